@@ -1,0 +1,106 @@
+"""Command line: ``python -m mi_amr {info,dataset,demo,...}``.
+
+Every user mistake ends as one line ``error: ...`` on stderr and exit status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from .errors import AMRError
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes_xml"
+
+
+def main(argv=None) -> int:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    if not hasattr(args, "run"):
+        parser.print_help()
+        return 2
+    try:
+        return args.run(args) or 0
+    except AMRError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m mi_amr",
+                                description="Isosurfaces of AMR volumes with Mitsuba 3.")
+    sub = p.add_subparsers(metavar="COMMAND")
+
+    s = sub.add_parser("info", help="print the summary of an AMR file")
+    s.add_argument("path")
+    s.add_argument("--fields", nargs="+", help="read only these fields")
+    s.set_defaults(run=_info)
+
+    from .datasets import DATASETS, SIZES
+    s = sub.add_parser("dataset", help="generate a synthetic dataset")
+    s.add_argument("name", choices=sorted(DATASETS))
+    s.add_argument("-o", "--output", required=True, help="output .npz file")
+    s.add_argument("--size", choices=list(SIZES), default="default",
+                   help="sphere_wake resolution (default: default)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--force", action="store_true", help="replace an existing file")
+    s.set_defaults(run=_dataset)
+
+    s = sub.add_parser("data", help="create every data file the scenes in scenes_xml/ need "
+                                    "(skips files that exist)")
+    s.set_defaults(run=_data)
+
+    s = sub.add_parser("demo", help="create the scenes' data, then render the default scene")
+    s.set_defaults(run=_demo)
+    return p
+
+
+def _info(args) -> None:
+    from .readers import load
+
+    vol = load(args.path, fields=args.fields)
+    print(vol.summary())
+
+
+def _dataset(args) -> None:
+    from .datasets import make
+
+    t0 = time.perf_counter()
+    written = make(args.name, args.output, size=args.size, seed=args.seed, overwrite=args.force)
+    print(f"wrote {', '.join(str(p) for p in written)} in {time.perf_counter() - t0:.1f} s")
+
+
+def scene_data(data_dir: Path = SCENES / "data", verbose: bool = True) -> list:
+    """Create the data files the scenes refer to, skipping those already present."""
+    from .datasets import ANALYTIC, make
+
+    data_dir.mkdir(parents=True, exist_ok=True)
+    wanted = [("sphere_wake", data_dir / "sphere_wake.npz", "default")]
+    wanted += [(name, data_dir / f"{name}.npz", "default") for name in ANALYTIC]
+    made = []
+    for name, path, size in wanted:
+        extra = [data_dir / "ball.ply"] if name == "sphere_wake" else []
+        if path.exists() and all(p.exists() for p in extra):
+            continue
+        t0 = time.perf_counter()
+        made += make(name, path, size=size, overwrite=True, progress=verbose)
+        if verbose:
+            print(f"made {path} in {time.perf_counter() - t0:.1f} s")
+    return made
+
+
+def _data(args) -> None:
+    scene_data()
+
+
+def _demo(args) -> None:
+    from .readers import load
+
+    scene_data()
+    vol = load(SCENES / "data" / "sphere_wake.npz")
+    print(vol.summary())

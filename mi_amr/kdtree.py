@@ -1,0 +1,440 @@
+"""A kd-tree over the grids of an AMR volume, built on the host and flattened for Dr.Jit kernels.
+
+Every grid has a **support**: its world box grown by one cell of its level on every side (an open
+box), the region where its cells can carry weight in the basis reconstruction. The tree partitions the
+support of the whole volume into leaf boxes such that
+
+* each leaf lies entirely inside or entirely outside every grid box, so one grid, its **owner**
+  (the finest grid containing the leaf, as in yt's AMR kd-tree), covers the whole leaf, or none
+  does (owner ``-1``: a region with no data);
+* each leaf is at most ``leaf_cells`` cells of the finest level whose support reaches it on every
+  axis, so the per-leaf value ranges used to skip empty space stay tight;
+* each leaf lists every grid whose support overlaps it, the **active** ones first: those
+  with at least one leaf cell whose hat function is non-zero somewhere in the leaf. The basis
+  reconstruction needs only the active grids.
+
+The build is breadth-first and vectorised over all nodes of a depth, so 10^5 grids take seconds.
+Flattened layout (what kernels gather from): node ``n`` has ``node_split[n]`` and
+``node_code[n] = child << 2 | axis`` (axis 3 marks a leaf and ``child`` is then the leaf index;
+otherwise the children are nodes ``child`` (below the split) and ``child + 1`` (at or above it)).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .boxes import contains_points
+from .errors import AMRError
+
+LEAF = 3
+
+
+class KDTree:
+    """kd-tree over the grid supports of ``volume`` (see the module docstring).
+
+    ``leaf_cells`` bounds the leaf size in cells of the finest level present at the leaf.
+    All positions are world space.
+    """
+
+    def __init__(self, volume, *, leaf_cells: int = 8, max_depth: int = 80):
+        if leaf_cells < 2:
+            raise AMRError(f"KDTree: leaf_cells must be >= 2, got {leaf_cells}")
+        self.volume = volume
+        self.leaf_cells = int(leaf_cells)
+        self.grid_lo, self.grid_hi = volume.grid_boxes()
+        self.spacing = volume.spacings()
+        self.level = volume.levels
+        self.shape = np.array([g.shape for g in volume.grids], dtype=np.int64)
+        self.support_lo = self.grid_lo - self.spacing
+        self.support_hi = self.grid_hi + self.spacing
+        self.lo = self.support_lo.min(axis=0)
+        self.hi = self.support_hi.max(axis=0)
+        self._build(max_depth)
+        self._order_active()
+
+    # ------------------------------------------------------------------ build
+    def _build(self, max_depth: int) -> None:
+        G = len(self.grid_lo)
+        anchor = self.volume.anchor
+        level_h = np.array([self.volume.level_spacing(l) for l in range(self.volume.num_levels)])
+        f_lo, f_hi = self.lo[None, :].copy(), self.hi[None, :].copy()
+        # (node, grid) pairs whose open support overlaps the node; pairs that can no longer
+        # matter (support-only, not finer than the grids inside the node) are dropped as we go.
+        p_node = np.zeros(G, dtype=np.int64)
+        p_grid = np.arange(G, dtype=np.int64)
+        split_out, code_out = [], []
+        leaf_lo, leaf_hi, leaf_owner = [], [], []
+        base, n_leaves = 0, 0
+        for depth in range(max_depth + 1):
+            n = len(f_lo)
+            pl, ph = f_lo[p_node], f_hi[p_node]
+            gl, gh = self.grid_lo[p_grid], self.grid_hi[p_grid]
+            p_level = self.level[p_grid]
+            overlap = np.all(np.minimum(gh, ph) > np.maximum(gl, pl), axis=1)
+            contains = np.all(gl <= pl, axis=1) & np.all(gh >= ph, axis=1)
+            partial = overlap & ~contains
+
+            # Owner: the finest containing grid (lowest index among equals).
+            score = np.where(contains, p_level * G + (G - 1 - p_grid), -1)
+            best = np.full(n, -1, dtype=np.int64)
+            np.maximum.at(best, p_node, score)
+            owner = np.where(best >= 0, G - 1 - best % G, -1)
+
+            # Finest level whose support reaches into the node, and its cell size.
+            box_finest = np.full(n, -1, dtype=np.int64)
+            np.maximum.at(box_finest, p_node[overlap], p_level[overlap])
+            useful = overlap | (p_level > box_finest[p_node])
+            p_node, p_grid, p_level = p_node[useful], p_grid[useful], p_level[useful]
+            partial = partial[useful]
+            finest = box_finest.copy()
+            np.maximum.at(finest, p_node, p_level)
+            node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
+
+            axis = np.full(n, LEAF, dtype=np.int64)
+            plane = np.zeros(n)
+
+            # Nodes cut by a grid face: split at the face nearest the node's centre.
+            has_partial = np.zeros(n, dtype=bool)
+            has_partial[p_node[partial]] = True
+            if partial.any():
+                cn, cg = p_node[partial], p_grid[partial]
+                cand_node = np.repeat(cn, 6)
+                cand_axis = np.tile(np.array([0, 1, 2, 0, 1, 2]), len(cn))
+                cand_pos = np.concatenate([self.grid_lo[cg], self.grid_hi[cg]], axis=1).ravel()
+                lo_c, hi_c = f_lo[cand_node, cand_axis], f_hi[cand_node, cand_axis]
+                inside = (cand_pos > lo_c) & (cand_pos < hi_c)
+                cand_node, cand_axis, cand_pos = cand_node[inside], cand_axis[inside], cand_pos[inside]
+                lo_c, hi_c = lo_c[inside], hi_c[inside]
+                cand_score = np.abs(cand_pos - 0.5 * (lo_c + hi_c)) / (hi_c - lo_c)
+                order = np.lexsort((cand_score, cand_node))
+                first = order[np.unique(cand_node[order], return_index=True)[1]]
+                axis[cand_node[first]] = cand_axis[first]
+                plane[cand_node[first]] = cand_pos[first]
+
+            # Clean nodes with data that are too large: halve the longest axis (in cells), on
+            # the lattice of the finest level present.
+            ext = f_hi - f_lo
+            with np.errstate(invalid="ignore", divide="ignore"):
+                cells = np.where(np.isfinite(node_h), ext / node_h, 0.0)
+            big = (~has_partial) & (owner >= 0) & np.any(cells > self.leaf_cells, axis=1)
+            if big.any():
+                idx = np.flatnonzero(big)
+                ax = np.argmax(cells[idx], axis=1)
+                h = node_h[idx, ax]
+                mid = 0.5 * (f_lo[idx, ax] + f_hi[idx, ax])
+                snapped = anchor[ax] + np.round((mid - anchor[ax]) / h) * h
+                ok = (snapped > f_lo[idx, ax]) & (snapped < f_hi[idx, ax])
+                axis[idx] = ax
+                plane[idx] = np.where(ok, snapped, mid)
+            if depth == max_depth:
+                axis[:] = LEAF
+
+            # Emit this depth: split nodes point at their children, leaves at their leaf index.
+            is_split = axis != LEAF
+            rank = np.cumsum(is_split) - 1
+            code = np.empty(n, dtype=np.int64)
+            code[is_split] = ((base + n + 2 * rank[is_split]) << 2) | axis[is_split]
+            leaf_ids = np.flatnonzero(~is_split)
+            code[leaf_ids] = ((n_leaves + np.arange(len(leaf_ids))) << 2) | LEAF
+            split_out.append(plane)
+            code_out.append(code)
+            leaf_lo.append(f_lo[leaf_ids])
+            leaf_hi.append(f_hi[leaf_ids])
+            leaf_owner.append(owner[leaf_ids])
+            n_leaves += len(leaf_ids)
+            base += n
+            sp = np.flatnonzero(is_split)
+            if len(sp) == 0:
+                break
+
+            # Children: boxes, and the pairs whose open support reaches each side.
+            a, pos = axis[sp], plane[sp]
+            c_lo = np.repeat(f_lo[sp], 2, axis=0)
+            c_hi = np.repeat(f_hi[sp], 2, axis=0)
+            c_hi[0::2][np.arange(len(sp)), a] = pos
+            c_lo[1::2][np.arange(len(sp)), a] = pos
+            child_of = np.full(n, -1, dtype=np.int64)
+            child_of[sp] = 2 * np.arange(len(sp))
+            keep = child_of[p_node] >= 0
+            kn, kg = p_node[keep], p_grid[keep]
+            ka, kpos = axis[kn], plane[kn]
+            go_left = self.support_lo[kg, ka] < kpos
+            go_right = self.support_hi[kg, ka] > kpos
+            p_node = np.concatenate([child_of[kn][go_left], child_of[kn][go_right] + 1])
+            p_grid = np.concatenate([kg[go_left], kg[go_right]])
+            f_lo, f_hi = c_lo, c_hi
+
+        self.node_split = np.concatenate(split_out)
+        self.node_code = np.concatenate(code_out)
+        self.depth = len(code_out)
+        self.leaf_lo = np.concatenate(leaf_lo)
+        self.leaf_hi = np.concatenate(leaf_hi)
+        self.leaf_owner = np.concatenate(leaf_owner)
+
+    def _order_active(self) -> None:
+        """Sort each leaf's grid list with the active grids first, and summarise them."""
+        L = len(self.leaf_lo)
+        pg, pl = self.overlapping_leaves(self.support_lo, self.support_hi)
+        lo, hi = self._windows(pl, pg)
+        active = np.all(hi >= lo, axis=1)
+        # Grids with covered cells: is there a leaf cell in the window? (Count it from a
+        # summed-area table of the leaf mask.)
+        partly = np.array([not self.volume.leaf_mask(i).all() for i in range(len(self.shape))])
+        sel = np.flatnonzero(active & partly[pg])
+        if len(sel):
+            sat, offsets = _leaf_count_tables(self.volume, np.flatnonzero(partly))
+            active[sel] = _box_sum(sat, offsets[pg[sel]], self.shape[pg[sel]], lo[sel], hi[sel]) > 0
+        order = np.lexsort((pg, ~active, pl))
+        pl, pg, active = pl[order], pg[order], active[order]
+        self.leaf_grids = pg.astype(np.int32)
+        self.leaf_nsupport = np.bincount(pl, minlength=L).astype(np.int64)
+        self.leaf_nactive = np.bincount(pl[active], minlength=L).astype(np.int64)
+        self.leaf_start = np.concatenate([[0], np.cumsum(self.leaf_nsupport)[:-1]])
+        self.leaf_levels = np.zeros(L, dtype=np.int64)
+        np.bitwise_or.at(self.leaf_levels, pl[active], 1 << self.level[pg[active]].astype(np.int64))
+        self.leaf_min_h = np.full((L, 3), np.inf)
+        np.minimum.at(self.leaf_min_h, pl[active], self.spacing[pg[active]])
+
+    def _windows(self, leaf, grid):
+        """Inclusive cell index ranges ``(lo, hi)`` (each ``(P, 3)``) of the cells of ``grid``
+        whose hat support (centre +- one cell, open) overlaps the box of ``leaf``; rows
+        where ``lo > hi`` on some axis are empty."""
+        o = self.grid_lo[grid]
+        h = self.spacing[grid]
+        shape = self.shape[grid]
+        lo = np.floor((self.leaf_lo[leaf] - o) / h - 1.5).astype(np.int64) + 1
+        hi = np.ceil((self.leaf_hi[leaf] - o) / h + 0.5).astype(np.int64) - 1
+        return np.maximum(lo, 0), np.minimum(hi, shape - 1)
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def num_leaves(self) -> int:
+        return len(self.leaf_lo)
+
+    @property
+    def num_nodes(self) -> int:
+        return len(self.node_code)
+
+    def locate(self, points) -> np.ndarray:
+        """Leaf index of each point ``(N, 3)`` (world). A point on a split plane goes to the
+        upper side. Points outside the tree's box still land in some leaf."""
+        points = np.asarray(points, dtype=np.float64)
+        node = np.zeros(len(points), dtype=np.int64)
+        todo = np.arange(len(points))
+        for _ in range(self.depth + 1):
+            code = self.node_code[node[todo]]
+            axis = code & 3
+            inner = axis != LEAF
+            todo = todo[inner]
+            if len(todo) == 0:
+                break
+            code, axis = code[inner], axis[inner]
+            n = node[todo]
+            up = points[todo, axis] >= self.node_split[n]
+            node[todo] = (code >> 2) + up
+        return self.node_code[node] >> 2
+
+    def overlapping_leaves(self, lo, hi):
+        """Pairs ``(box, leaf)`` for every leaf overlapping one of the open boxes ``[lo, hi]``
+        (each ``(N, 3)``, world) with positive volume, by descending the tree with all boxes at
+        once."""
+        lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        q = np.arange(len(lo))
+        node = np.zeros(len(lo), dtype=np.int64)
+        done_q, done_leaf = [], []
+        for _ in range(self.depth + 1):
+            code = self.node_code[node]
+            axis = code & 3
+            leaf = axis == LEAF
+            done_q.append(q[leaf])
+            done_leaf.append(code[leaf] >> 2)
+            q, node, code, axis = q[~leaf], node[~leaf], code[~leaf], axis[~leaf]
+            if len(q) == 0:
+                break
+            split = self.node_split[node]
+            left = lo[q, axis] < split
+            right = hi[q, axis] > split
+            q = np.concatenate([q[left], q[right]])
+            node = np.concatenate([(code[left] >> 2), (code[right] >> 2) + 1])
+        return np.concatenate(done_q), np.concatenate(done_leaf)
+
+    def _candidates(self, points):
+        """(point index, grid index) for every grid listed in the leaf of each point."""
+        leaf = self.locate(points)
+        counts = self.leaf_nsupport[leaf]
+        pi = np.repeat(np.arange(len(points)), counts)
+        first = np.repeat(np.cumsum(counts) - counts, counts)
+        gi = self.leaf_grids[np.repeat(self.leaf_start[leaf], counts) +
+                             np.arange(counts.sum()) - first]
+        return pi, gi.astype(np.int64)
+
+    def finest_grid(self, points) -> np.ndarray:
+        """Index of the finest grid whose closed box contains each point (``-1``: none).
+
+        Among grids of the same level that share a face, the lowest index wins."""
+        points = _as_points(points)
+        pi, gi = self._candidates(points)
+        inside = contains_points(self.grid_lo[gi], self.grid_hi[gi], points[pi])
+        return _finest_of(points, pi[inside], gi[inside], self.level)
+
+    def support_grids(self, points) -> list:
+        """For each point, the sorted indices of the grids whose (open) support contains it."""
+        points = _as_points(points)
+        pi, gi = self._candidates(points)
+        inside = np.all((points[pi] > self.support_lo[gi]) & (points[pi] < self.support_hi[gi]),
+                        axis=1)
+        return _group(pi[inside], gi[inside], len(points))
+
+    def leaf_ranges(self, field: str):
+        """Conservative ``(lo, hi)`` bounds (each ``(L,)``) of ``field`` reconstructed inside
+        each leaf, by either reconstruction: min and max of the finite values of every cell
+        whose hat support reaches the leaf, over all grids listed at the leaf. Leaves with no
+        owner get the empty range ``(+inf, -inf)``."""
+        vol = self.volume
+        if field not in vol.field_names:
+            raise AMRError(f"unknown field '{field}'; available: {list(vol.field_names)}")
+        L = self.num_leaves
+        pl = np.repeat(np.arange(L), self.leaf_nsupport)
+        pg = self.leaf_grids.astype(np.int64)
+        lo, hi = self._windows(pl, pg)
+        keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
+        pl, pg, lo, hi = pl[keep], pg[keep], lo[keep], hi[keep]
+        vmin, vmax = _window_min_max(vol, field, pg, lo, hi)
+        out_lo = np.full(L, np.inf)
+        out_hi = np.full(L, -np.inf)
+        np.minimum.at(out_lo, pl, vmin)
+        np.maximum.at(out_hi, pl, vmax)
+        return out_lo, out_hi
+
+
+# ---------------------------------------------------------------------- brute-force twins
+
+def finest_grid_bruteforce(volume, points) -> np.ndarray:
+    """Slow twin of :meth:`KDTree.finest_grid`: tests every grid against every point."""
+    points = _as_points(points)
+    lo, hi = volume.grid_boxes()
+    pi, gi = np.meshgrid(np.arange(len(points)), np.arange(len(lo)), indexing="ij")
+    pi, gi = pi.ravel(), gi.ravel()
+    inside = contains_points(lo[gi], hi[gi], points[pi])
+    return _finest_of(points, pi[inside], gi[inside], volume.levels)
+
+
+def support_grids_bruteforce(volume, points) -> list:
+    """Slow twin of :meth:`KDTree.support_grids`."""
+    points = _as_points(points)
+    lo, hi = volume.grid_boxes()
+    h = volume.spacings()
+    out = []
+    for p in points:
+        inside = np.all((p > lo - h) & (p < hi + h), axis=1)
+        out.append(np.flatnonzero(inside))
+    return out
+
+
+# ---------------------------------------------------------------------- helpers
+
+def _as_points(points) -> np.ndarray:
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise AMRError(f"points must be an (N, 3) array, got shape {points.shape}")
+    return points
+
+
+def _finest_of(points, pi, gi, level) -> np.ndarray:
+    G = len(level)
+    best = np.full(len(points), -1, dtype=np.int64)
+    np.maximum.at(best, pi, level[gi].astype(np.int64) * G + (G - 1 - gi))
+    return np.where(best >= 0, G - 1 - best % G, -1)
+
+
+def _group(pi, gi, n) -> list:
+    order = np.lexsort((gi, pi))
+    pi, gi = pi[order], gi[order]
+    cuts = np.searchsorted(pi, np.arange(1, n))
+    return np.split(gi, cuts)
+
+
+def _grid_offsets(volume) -> np.ndarray:
+    counts = np.array([g.num_cells for g in volume.grids], dtype=np.int64)
+    return np.concatenate([[0], np.cumsum(counts)[:-1]])
+
+
+def _leaf_count_tables(volume, grids):
+    """Summed-area tables of the leaf masks of ``grids`` (shape + 1 per axis), concatenated;
+    returns the tables and the offset of each grid's table (indexed by grid, -1 if absent)."""
+    tables, offsets, at = [], np.full(len(volume.grids), -1, dtype=np.int64), 0
+    for i in grids:
+        g = volume.grids[i]
+        sat = np.zeros(tuple(n + 1 for n in g.shape), dtype=np.int64)
+        sat[1:, 1:, 1:] = volume.leaf_mask(i).cumsum(0).cumsum(1).cumsum(2)
+        tables.append(sat.ravel())
+        offsets[i] = at
+        at += sat.size
+    return np.concatenate(tables), offsets
+
+
+def _box_sum(sat, offset, shape, lo, hi):
+    """Sum of a grid's leaf mask over inclusive boxes ``[lo, hi]`` (rows), from its table."""
+    n1, n2 = shape[:, 1] + 1, shape[:, 2] + 1
+    empty = np.any(hi < lo, axis=1)
+    a, b = lo, hi + 1
+    total = np.zeros(len(lo), dtype=np.int64)
+    for cx, sx in ((b[:, 0], 1), (a[:, 0], -1)):
+        for cy, sy in ((b[:, 1], 1), (a[:, 1], -1)):
+            for cz, sz in ((b[:, 2], 1), (a[:, 2], -1)):
+                total += sx * sy * sz * sat[offset + (cx * n1 + cy) * n2 + cz]
+    return np.where(empty, 0, total)
+
+
+def _window_min_max(volume, field, grid, lo, hi):
+    """Min and max of the finite values of ``field`` over inclusive index boxes of grids.
+
+    Uses sparse tables over all cells at once: table ``k`` holds, per cell, the extremum over the
+    block of ``2**k`` cells per axis starting there (cut at the grid's end). A box is covered by
+    at most 8 blocks of the largest ``2**k`` not longer than its longest side.
+    """
+    shapes = np.array([g.shape for g in volume.grids], dtype=np.int64)
+    offsets = _grid_offsets(volume)
+    values = np.concatenate([g.fields[field].ravel() for g in volume.grids]).astype(np.float64)
+    finite = np.isfinite(values)
+    tmin = np.where(finite, values, np.inf)
+    tmax = np.where(finite, values, -np.inf)
+    del values, finite
+    # Per-cell position and the flat stride of each axis within its grid.
+    cell_grid = np.repeat(np.arange(len(shapes)), np.prod(shapes, axis=1))
+    local = np.arange(len(cell_grid)) - offsets[cell_grid]
+    sh = shapes[cell_grid]
+    idx = np.stack([local // (sh[:, 1] * sh[:, 2]), (local // sh[:, 2]) % sh[:, 1],
+                    local % sh[:, 2]], axis=1)
+    stride = np.stack([sh[:, 1] * sh[:, 2], sh[:, 2], np.ones_like(sh[:, 2])], axis=1)
+    del local
+
+    size = hi - lo + 1
+    k_need = np.floor(np.log2(size.max(axis=1))).astype(np.int64)
+    out_min = np.empty(len(grid))
+    out_max = np.empty(len(grid))
+    flat = np.arange(len(cell_grid))
+    for k in range(int(k_need.max()) + 1 if len(k_need) else 0):
+        if k > 0:
+            step = 1 << (k - 1)
+            for a in range(3):
+                nxt = np.where(idx[:, a] + step < sh[:, a], flat + step * stride[:, a], flat)
+                tmin = np.minimum(tmin, tmin[nxt])
+                tmax = np.maximum(tmax, tmax[nxt])
+        sel = np.flatnonzero(k_need == k)
+        if len(sel) == 0:
+            continue
+        block = 1 << k
+        s_lo = lo[sel]
+        s_hi = np.maximum(lo[sel], hi[sel] - block + 1)
+        g = grid[sel]
+        best_min = np.full(len(sel), np.inf)
+        best_max = np.full(len(sel), -np.inf)
+        for cx in (s_lo[:, 0], s_hi[:, 0]):
+            for cy in (s_lo[:, 1], s_hi[:, 1]):
+                for cz in (s_lo[:, 2], s_hi[:, 2]):
+                    at = offsets[g] + (cx * shapes[g, 1] + cy) * shapes[g, 2] + cz
+                    best_min = np.minimum(best_min, tmin[at])
+                    best_max = np.maximum(best_max, tmax[at])
+        out_min[sel], out_max[sel] = best_min, best_max
+    return out_min, out_max

@@ -1,0 +1,125 @@
+"""Reading cell values of one refinement level across all its grids (host side, NumPy).
+
+A level's cells live in several grids; code that needs "the level-``l`` cell at integer index
+``(i, j, k)``" (ghost cells for derivatives, interpolation from a coarser level) asks here. Index
+coordinates are those of :meth:`AMRVolume.index_boxes`: cells of the level counted from the
+volume's anchor, ``[i, j, k]`` = x, y, z.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+class LevelIndex:
+    """Which grid of one level holds a given cell: a sorted table of the blocks the level's grids
+    cover, searched with ``np.searchsorted``.
+
+    A block is ``block`` cells per side, the largest power of two (at most 16) dividing every
+    grid corner of the level, so each block lies in exactly one grid. The table holds one entry
+    per block, so memory grows with the cells the level has, not with the domain.
+    """
+
+    def __init__(self, volume, level: int):
+        lo, hi = volume.index_boxes()
+        self.grids = np.flatnonzero(volume.levels == level)
+        glo, ghi = lo[self.grids], hi[self.grids]
+        corners = np.concatenate([glo.ravel(), ghi.ravel()])
+        block = 16
+        while block > 1 and np.any(corners % block):
+            block //= 2
+        self.block = block
+        blo, bhi = glo // block, ghi // block
+        self.origin = blo.min(axis=0)
+        self.dims = bhi.max(axis=0) - self.origin
+        counts = np.prod(bhi - blo, axis=1)
+        owner = np.repeat(np.arange(len(self.grids)), counts)
+        k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+        span = (bhi - blo)[owner]
+        cell = blo[owner] + np.stack([k // (span[:, 1] * span[:, 2]), (k // span[:, 2]) % span[:, 1],
+                                      k % span[:, 2]], axis=1)
+        keys = self._key(cell)
+        order = np.argsort(keys)
+        self.keys, self.owner = keys[order], owner[order]
+        self.lo, self.hi = glo, ghi
+
+    def _key(self, block_idx):
+        b = block_idx - self.origin
+        return (b[:, 0] * self.dims[1] + b[:, 1]) * self.dims[2] + b[:, 2]
+
+    def find(self, index) -> np.ndarray:
+        """Position in ``self.grids`` of the grid holding each cell ``index`` (``(N, 3)`` int),
+        -1 where the level has no such cell."""
+        b = index // self.block
+        inside = np.all((b >= self.origin) & (b < self.origin + self.dims), axis=1)
+        out = np.full(len(index), -1, dtype=np.int64)
+        if not inside.any() or len(self.keys) == 0:
+            return out
+        keys = self._key(b[inside])
+        at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
+        hit = self.keys[at] == keys
+        idx = np.flatnonzero(inside)
+        out[idx[hit]] = self.owner[at[hit]]
+        return out
+
+
+def level_index(volume, level: int) -> LevelIndex:
+    """The (cached) :class:`LevelIndex` of ``level``."""
+    cache = volume.__dict__.setdefault("_level_index", {})
+    if level not in cache:
+        cache[level] = LevelIndex(volume, level)
+    return cache[level]
+
+
+def cell_values(volume, level: int, index, fields):
+    """Values of ``fields`` at level-``level`` cells ``index`` (``(N, 3)`` int).
+
+    Returns ``(values, found)``: ``values`` is ``(len(fields), N)`` float64 (NaN where not found)
+    and ``found`` is True where some grid of that level holds the cell.
+    """
+    index = np.asarray(index, dtype=np.int64)
+    table = level_index(volume, level)
+    pos = table.find(index)
+    found = pos >= 0
+    values = np.full((len(fields), len(index)), np.nan)
+    order = np.argsort(pos, kind="stable")
+    sorted_pos = pos[order]
+    starts = np.searchsorted(sorted_pos, np.arange(len(table.grids) + 1))
+    for p in np.flatnonzero(np.diff(starts)):
+        sel = order[starts[p]:starts[p + 1]]
+        gi = table.grids[p]
+        local = index[sel] - table.lo[p]
+        for f, name in enumerate(fields):
+            values[f, sel] = volume.grids[gi].fields[name][local[:, 0], local[:, 1], local[:, 2]]
+    return values, found
+
+
+def interpolate(volume, level: int, points, fields):
+    """Trilinear interpolation of level ``level`` at world ``points`` (``(N, 3)``).
+
+    The 8 cells around each point (cell centres as nodes) are read across grids of the level;
+    a cell the level does not have is itself interpolated from the next coarser level, and at
+    level 0 a missing cell (outside the domain) is left out and the remaining weights are
+    renormalised. Returns ``(len(fields), N)``; NaN where no cell around a point has data.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    h = volume.level_spacing(level)
+    u = (points - volume.anchor) / h - 0.5
+    base = np.floor(u).astype(np.int64)
+    frac = u - base
+    num = np.zeros((len(fields), len(points)))
+    den = np.zeros(len(points))
+    for corner in range(8):
+        bits = np.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
+        idx = base + bits
+        w = np.prod(np.where(bits == 1, frac, 1.0 - frac), axis=1)
+        vals, found = cell_values(volume, level, idx, fields)
+        if level > 0 and not found.all():
+            missing = np.flatnonzero(~found)
+            centres = volume.anchor + (idx[missing] + 0.5) * h
+            vals[:, missing] = interpolate(volume, level - 1, centres, fields)
+        ok = np.all(np.isfinite(vals), axis=0)
+        num[:, ok] += w[ok] * vals[:, ok]
+        den[ok] += w[ok]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / den, np.nan)

@@ -1,0 +1,499 @@
+"""The AMR data model: a hierarchy of rectangular grids of cell-centred values.
+
+Coordinate conventions used throughout mi_amr:
+
+* **World space** is the space the grids are given in (``origin`` and ``spacing`` are world
+  units). The integrator's ``to_world`` places this space in a Mitsuba scene.
+* A grid is a box of ``shape = (nx, ny, nz)`` cells; array index ``[i, j, k]`` is ``x, y, z``.
+  Values are **cell-centred**: cell ``(i, j, k)`` has its centre at
+  ``origin + (i + 0.5, j + 0.5, k + 0.5) * spacing`` and covers
+  ``[origin + (i, j, k) * spacing, origin + (i + 1, j + 1, k + 1) * spacing]``.
+* Level 0 is the coarsest. Level ``l`` cells are ``ratio`` times smaller than level ``l - 1``
+  cells (``ratio`` is 2 or 4, the same on all axes, and may differ from level to level).
+* All grids sit on one **lattice**: level-0 grids are whole numbers of level-0 cells apart, a fine
+  grid starts and ends on a cell face of the level above. Integer **index boxes** of a grid are its
+  cells in its level's lattice, counted from the ``anchor`` (the origin of the first level-0 grid).
+* A cell is a **leaf** when no cell of the next finer level covers it; the basis reconstruction
+  uses leaf cells only.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+
+from .boxes import intersection_volume, overlap_pairs
+from .errors import AMRError
+
+ALLOWED_RATIOS = (2, 4)
+# How far (in cells) a grid corner may sit from the lattice and still count as aligned: float
+# rounding of origins such as 0.1 * k must pass, a real misalignment of a quarter cell must not.
+LATTICE_TOLERANCE = 1e-3
+
+
+@dataclass(frozen=True, eq=False)
+class Grid:
+    """One rectangular patch of cells at one refinement level (see the module docstring).
+
+    ``origin`` is the world position of the lower corner, ``spacing`` the cell size per axis in
+    world units, ``shape`` the number of cells per axis and ``fields`` maps a name to a
+    cell-centred array of that shape. Item access (``grid["level"]``) works too, so code written
+    for the mapping form accepted by :meth:`AMRVolume.from_grids` reads records unchanged.
+    """
+
+    level: int
+    origin: tuple
+    spacing: tuple
+    shape: tuple
+    fields: Mapping[str, np.ndarray]
+
+    @property
+    def lo(self) -> np.ndarray:
+        """World position of the lower corner, shape ``(3,)``."""
+        return np.asarray(self.origin, dtype=np.float64)
+
+    @property
+    def hi(self) -> np.ndarray:
+        """World position of the upper corner, shape ``(3,)``."""
+        return self.lo + np.asarray(self.shape) * np.asarray(self.spacing)
+
+    @property
+    def num_cells(self) -> int:
+        return int(np.prod(self.shape))
+
+    def cell_centers(self):
+        """World coordinates of the cell centres along x, y and z (three 1-D arrays)."""
+        return tuple(self.origin[a] + (np.arange(self.shape[a]) + 0.5) * self.spacing[a]
+                     for a in range(3))
+
+    def as_dict(self) -> dict:
+        return {"level": self.level, "origin": self.origin, "spacing": self.spacing,
+                "fields": dict(self.fields)}
+
+    def __getitem__(self, key):
+        if key not in ("level", "origin", "spacing", "shape", "fields"):
+            raise KeyError(key)
+        return getattr(self, key)
+
+    def describe(self, index: int) -> str:
+        """Short label for messages: ``grid 3 (level 1, origin (0, 0.5, 0))``."""
+        origin = ", ".join(f"{x:g}" for x in self.origin)
+        return f"grid {index} (level {self.level}, origin ({origin}))"
+
+
+class AMRVolume:
+    """A validated AMR hierarchy. Build it with :meth:`from_grids` (or :func:`mi_amr.load`).
+
+    ``grids`` is the tuple of :class:`Grid` records, in the order given, so
+    ``AMRVolume.from_grids(vol.grids)`` rebuilds the same volume.
+    """
+
+    def __init__(self, grids: tuple, *, allow_nonfinite: bool, source: str | None,
+                 index_lo: np.ndarray, ratios: tuple, anchor: np.ndarray):
+        # Private: from_grids() validates and computes the lattice data passed in here.
+        self.grids = grids
+        self.allow_nonfinite = allow_nonfinite
+        self.source = source
+        self.ratios = ratios
+        self.anchor = anchor
+        self._index_lo = index_lo
+        self._leaf_masks = None
+        self._ranges = {}
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_grids(cls, grids: Iterable, *, allow_nonfinite: bool = False,
+                   source: str | None = None) -> "AMRVolume":
+        """Validate a hierarchy and build the volume.
+
+        ``grids`` is a sequence of mappings (or :class:`Grid` records) with ``level`` (int >= 0),
+        ``origin`` (3 floats, world), ``spacing`` (a float or 3 floats, world) and ``fields``
+        (name -> array ``(nx, ny, nz)``). ``allow_nonfinite=True`` accepts NaN/Inf values and
+        treats those cells as *missing data*: they get no weight in the reconstruction and are
+        left out of value ranges. ``source`` (a file name) prefixes error messages.
+
+        Raises :class:`AMRError` naming the offending grids for: an empty hierarchy, a malformed
+        record, zero-size grids, fields that are missing or disagree in shape, non-finite values,
+        levels with a gap or mixed spacings, refinement ratios other than 2 or 4, grids off the
+        lattice, overlapping grids of one level, and fine grids outside the coarser level.
+        """
+        prefix = f"{source}: " if source else ""
+        records = [_parse_record(g, i, prefix) for i, g in enumerate(grids)]
+        if not records:
+            raise AMRError(f"{prefix}empty hierarchy: at least one level-0 grid is needed")
+        _check_fields(records, prefix, allow_nonfinite)
+        ratios = _check_levels(records, prefix)
+        anchor, index_lo = _check_lattice(records, ratios, prefix)
+        _check_overlap_and_nesting(records, index_lo, ratios, prefix)
+        return cls(tuple(records), allow_nonfinite=allow_nonfinite, source=source,
+                   index_lo=index_lo, ratios=ratios, anchor=anchor)
+
+    def with_fields(self, new_fields: Mapping[str, Sequence[np.ndarray]]) -> "AMRVolume":
+        """A volume with extra (or replaced) fields: ``{name: [array per grid]}``.
+
+        The existing arrays are shared, not copied; the hierarchy is not validated again.
+        """
+        for name, arrays in new_fields.items():
+            if len(arrays) != len(self.grids):
+                raise AMRError(f"field '{name}': {len(arrays)} arrays for {len(self.grids)} grids")
+            for i, (g, arr) in enumerate(zip(self.grids, arrays)):
+                if tuple(arr.shape) != g.shape:
+                    raise AMRError(f"field '{name}' of {g.describe(i)} has shape {arr.shape}, "
+                                   f"expected {g.shape}")
+        grids = tuple(Grid(g.level, g.origin, g.spacing, g.shape,
+                           {**g.fields, **{n: np.asarray(a[i]) for n, a in new_fields.items()}})
+                      for i, g in enumerate(self.grids))
+        out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
+                        index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
+        out._leaf_masks = self._leaf_masks
+        return out
+
+    def select_fields(self, names: Sequence[str]) -> "AMRVolume":
+        """A volume holding only the named fields (arrays shared, not copied)."""
+        missing = [n for n in names if n not in self.field_names]
+        if missing:
+            raise AMRError(f"{self._label()}unknown field(s) {missing}; "
+                           f"available: {list(self.field_names)}")
+        grids = tuple(Grid(g.level, g.origin, g.spacing, g.shape, {n: g.fields[n] for n in names})
+                      for g in self.grids)
+        out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
+                        index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
+        out._leaf_masks = self._leaf_masks
+        return out
+
+    # ------------------------------------------------------------------ hierarchy queries
+    @property
+    def field_names(self) -> tuple:
+        return tuple(self.grids[0].fields)
+
+    @property
+    def num_levels(self) -> int:
+        return len(self.ratios) + 1
+
+    @property
+    def num_cells(self) -> int:
+        return sum(g.num_cells for g in self.grids)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the field arrays."""
+        return sum(a.nbytes for g in self.grids for a in g.fields.values())
+
+    def level_spacing(self, level: int) -> np.ndarray:
+        """Cell size of ``level`` per axis (world units), shape ``(3,)``."""
+        for g in self.grids:
+            if g.level == level:
+                return np.asarray(g.spacing, dtype=np.float64)
+        raise AMRError(f"{self._label()}no level {level}; levels are 0..{self.num_levels - 1}")
+
+    @property
+    def bounds(self):
+        """World-space bounding box of all grids: ``(lo, hi)``, each shape ``(3,)``."""
+        lo, hi = self.grid_boxes()
+        return lo.min(axis=0), hi.max(axis=0)
+
+    @property
+    def levels(self) -> np.ndarray:
+        """Level of every grid, shape ``(G,)``."""
+        return np.array([g.level for g in self.grids], dtype=np.int32)
+
+    def grid_boxes(self):
+        """World-space boxes of all grids: ``(lo, hi)``, each shape ``(G, 3)``."""
+        lo = np.array([g.origin for g in self.grids], dtype=np.float64)
+        hi = lo + np.array([g.shape for g in self.grids]) * self.spacings()
+        return lo, hi
+
+    def spacings(self) -> np.ndarray:
+        """Cell size of every grid, shape ``(G, 3)`` (world units)."""
+        return np.array([g.spacing for g in self.grids], dtype=np.float64)
+
+    def index_boxes(self):
+        """Integer index boxes ``(lo, hi)`` of all grids, each ``(G, 3)`` int64, half-open, in
+        cells of each grid's own level counted from :attr:`anchor`."""
+        shapes = np.array([g.shape for g in self.grids], dtype=np.int64)
+        return self._index_lo, self._index_lo + shapes
+
+    def leaf_mask(self, grid: int) -> np.ndarray:
+        """Boolean array of the grid's shape: True where no finer cell covers the cell."""
+        if self._leaf_masks is None:
+            self._leaf_masks = _leaf_masks(self)
+        return self._leaf_masks[grid]
+
+    def num_leaf_cells(self) -> int:
+        return sum(int(self.leaf_mask(i).sum()) for i in range(len(self.grids)))
+
+    def value_range(self, field: str, grid: int | None = None):
+        """``(min, max)`` of the finite values of ``field``, over all grids or one grid.
+
+        A grid (or volume) with no finite value gives ``(nan, nan)``.
+        """
+        if field not in self.field_names:
+            raise AMRError(f"{self._label()}unknown field '{field}'; "
+                           f"available: {list(self.field_names)}")
+        if field not in self._ranges:
+            self._ranges[field] = np.array([_finite_range(g.fields[field]) for g in self.grids])
+        ranges = self._ranges[field]
+        if grid is not None:
+            return tuple(float(x) for x in ranges[grid])
+        with np.errstate(all="ignore"):
+            if np.all(np.isnan(ranges[:, 0])):
+                return (math.nan, math.nan)
+            return float(np.nanmin(ranges[:, 0])), float(np.nanmax(ranges[:, 1]))
+
+    # ------------------------------------------------------------------ output
+    def summary(self) -> str:
+        """Human-readable description: levels, grids, cells, memory, field ranges."""
+        lo, hi = self.bounds
+        lines = []
+        if self.source:
+            lines.append(f"source: {self.source}")
+        lines.append(f"AMR volume: {self.num_levels} level(s), {len(self.grids):,} grid(s), "
+                     f"{self.num_cells:,} cells ({self.num_leaf_cells():,} leaf cells), "
+                     f"{_format_bytes(self.nbytes)} of field data")
+        lines.append(f"bounds: ({', '.join(f'{x:g}' for x in lo)}) .. "
+                     f"({', '.join(f'{x:g}' for x in hi)})")
+        lines.append(f"{'level':>5}  {'ratio':>5}  {'spacing':<28}{'grids':>8}{'cells':>14}"
+                     f"{'leaf cells':>14}")
+        levels = self.levels
+        for level in range(self.num_levels):
+            ids = np.flatnonzero(levels == level)
+            cells = sum(self.grids[i].num_cells for i in ids)
+            leaf = sum(int(self.leaf_mask(i).sum()) for i in ids)
+            ratio = "-" if level == 0 else str(self.ratios[level - 1])
+            spacing = "(" + ", ".join(f"{x:.4g}" for x in self.level_spacing(level)) + ")"
+            lines.append(f"{level:>5}  {ratio:>5}  {spacing:<28}{len(ids):>8,}{cells:>14,}"
+                         f"{leaf:>14,}")
+        lines.append("fields:")
+        for name in self.field_names:
+            vmin, vmax = self.value_range(name)
+            dtype = self.grids[0].fields[name].dtype
+            lines.append(f"  {name:<20} {str(dtype):<8} [{vmin:.6g}, {vmax:.6g}]")
+        if self.allow_nonfinite:
+            lines.append("non-finite values allowed (treated as missing data)")
+        return "\n".join(lines)
+
+    def save(self, path, *, overwrite: bool = False) -> None:
+        """Write the volume to one ``.npz`` file (see :mod:`mi_amr.readers.native`)."""
+        from .readers.native import save
+        save(self, path, overwrite=overwrite)
+
+    def __repr__(self) -> str:
+        return (f"AMRVolume({len(self.grids)} grids, {self.num_levels} levels, "
+                f"{self.num_cells} cells, fields={list(self.field_names)})")
+
+    def _label(self) -> str:
+        return f"{self.source}: " if self.source else ""
+
+
+# ---------------------------------------------------------------------- validation helpers
+
+def _parse_record(g, index: int, prefix: str) -> Grid:
+    """Turn one user mapping into a :class:`Grid`, checking types and shapes."""
+    where = f"{prefix}grid {index}"
+    if isinstance(g, Grid):
+        g = g.as_dict()
+    if not isinstance(g, (dict, Mapping)):
+        raise AMRError(f"{where}: expected a mapping with level, origin, spacing and fields, "
+                       f"got {type(g).__name__}")
+    missing = [k for k in ("level", "origin", "spacing", "fields") if k not in g]
+    if missing:
+        raise AMRError(f"{where}: missing key(s) {missing}")
+    level = g["level"]
+    if isinstance(level, (bool, np.bool_)) or not isinstance(level, (int, np.integer)) or level < 0:
+        raise AMRError(f"{where}: level must be an integer >= 0, got {level!r}")
+    origin = _float3(g["origin"], f"{where}: origin", positive=False)
+    spacing = _float3(g["spacing"], f"{where}: spacing", positive=True)
+    fields = g["fields"]
+    if not isinstance(fields, (dict, Mapping)) or not fields:
+        raise AMRError(f"{where}: fields must be a non-empty mapping of name -> array")
+
+    def label():
+        return prefix + Grid(int(level), origin, spacing, (0, 0, 0), {}).describe(index)
+
+    arrays, shape, first = {}, None, None
+    for name, arr in fields.items():
+        if not isinstance(name, str) or not name:
+            raise AMRError(f"{label()}: field names must be non-empty strings, got {name!r}")
+        arr = np.asarray(arr)
+        if arr.dtype.kind in "biu":
+            arr = arr.astype(np.float64)
+        if arr.dtype.kind != "f":
+            raise AMRError(f"{label()}: field '{name}' has dtype {arr.dtype}, expected real "
+                           f"numbers")
+        if arr.ndim != 3:
+            raise AMRError(f"{label()}: field '{name}' has {arr.ndim} dimension(s), expected an "
+                           f"(nx, ny, nz) array")
+        if min(arr.shape) == 0:
+            raise AMRError(f"{label()}: field '{name}' has zero-size shape {arr.shape}; "
+                           f"every grid needs at least one cell per axis")
+        if shape is None:
+            shape, first = arr.shape, name
+        elif arr.shape != shape:
+            raise AMRError(f"{label()}: field '{name}' has shape {arr.shape} but field "
+                           f"'{first}' has {shape}; all fields of a grid must agree")
+        arrays[name] = arr if arr.flags.c_contiguous else np.ascontiguousarray(arr)
+    return Grid(int(level), origin, spacing, tuple(int(n) for n in shape), arrays)
+
+
+def _float3(value, what: str, positive: bool) -> tuple:
+    if positive and isinstance(value, (int, float, np.integer, np.floating)) \
+            and not isinstance(value, bool):
+        value = (value, value, value)
+    try:
+        out = tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        raise AMRError(f"{what} must be {'a number or ' if positive else ''}3 numbers, "
+                       f"got {value!r}") from None
+    if len(out) != 3:
+        raise AMRError(f"{what} must be {'a number or ' if positive else ''}3 numbers, "
+                       f"got {value!r}")
+    if not all(math.isfinite(x) and (x > 0 or not positive) for x in out):
+        raise AMRError(f"{what} must be finite{' and > 0' if positive else ''}, got {value!r}")
+    return out
+
+
+def _check_fields(records, prefix: str, allow_nonfinite: bool) -> None:
+    names = list(records[0].fields)
+    for i, g in enumerate(records):
+        if set(g.fields) != set(names):
+            lacking = sorted(set(names) - set(g.fields))
+            extra = sorted(set(g.fields) - set(names))
+            detail = (f"missing field(s) {lacking}" if lacking else "") + \
+                     ("; " if lacking and extra else "") + \
+                     (f"has extra field(s) {extra}" if extra else "")
+            raise AMRError(f"{prefix}{g.describe(i)}: {detail}; every grid must hold the same "
+                           f"fields as grid 0 ({names})")
+        if not allow_nonfinite:
+            for name, arr in g.fields.items():
+                bad = arr.size - int(np.count_nonzero(np.isfinite(arr)))
+                if bad:
+                    raise AMRError(f"{prefix}{g.describe(i)}: field '{name}' has {bad} non-finite "
+                                   f"value(s) (NaN/Inf); clean the data or pass "
+                                   f"allow_nonfinite=True to treat them as missing")
+
+
+def _check_levels(records, prefix: str) -> tuple:
+    """Levels 0..L-1 all present, one spacing per level, integer ratios 2 or 4 between them."""
+    levels = np.array([g.level for g in records])
+    spacings = np.array([g.spacing for g in records])
+    present = np.unique(levels)
+    if present[0] != 0:
+        raise AMRError(f"{prefix}no level-0 grid: the coarsest level must be 0, got levels "
+                       f"{present.tolist()}")
+    gaps = sorted(set(range(present[-1] + 1)) - set(present.tolist()))
+    if gaps:
+        raise AMRError(f"{prefix}level(s) {gaps} have no grids but finer levels do; levels must "
+                       f"be contiguous")
+    first = np.array([np.flatnonzero(levels == level)[0] for level in present])
+    ref = spacings[first[levels]]
+    bad = np.flatnonzero(np.any(np.abs(spacings - ref) > 1e-6 * ref, axis=1))
+    if len(bad):
+        i, j = bad[0], first[levels[bad[0]]]
+        raise AMRError(f"{prefix}{records[i].describe(i)}: spacing {records[i].spacing} differs "
+                       f"from {records[j].describe(j)} with spacing {records[j].spacing}; all "
+                       f"grids of a level share one cell size")
+    ratios = []
+    for level in range(1, present[-1] + 1):
+        r = spacings[first[level - 1]] / spacings[first[level]]
+        rounded = np.round(r)
+        if (not np.allclose(r, rounded, rtol=1e-6, atol=0) or len(set(rounded)) != 1
+                or int(rounded[0]) not in ALLOWED_RATIOS):
+            raise AMRError(f"{prefix}refinement ratio from level {level - 1} to {level} is "
+                           f"{tuple(float(x) for x in r)}; expected 2 or 4, the same on all axes")
+        ratios.append(int(rounded[0]))
+    return tuple(ratios)
+
+
+def _check_lattice(records, ratios, prefix: str):
+    """Every grid starts and ends on a cell face of the level above (level 0: of level 0)."""
+    levels = np.array([g.level for g in records])
+    origins = np.array([g.origin for g in records])
+    spacings = np.array([g.spacing for g in records])
+    shapes = np.array([g.shape for g in records], dtype=np.int64)
+    first0 = int(np.flatnonzero(levels == 0)[0])
+    anchor = origins[first0]
+    ratio = np.concatenate([[1], ratios])[levels]
+    offset = (origins - anchor) / (spacings * ratio[:, None])
+    rounded = np.round(offset)
+    bad = np.flatnonzero(np.any(np.abs(offset - rounded) > LATTICE_TOLERANCE, axis=1))
+    if len(bad):
+        i = bad[0]
+        g = records[i]
+        raise AMRError(f"{prefix}{g.describe(i)}: origin is not on a cell face of level "
+                       f"{max(g.level - 1, 0)} (offset {tuple(np.round(offset[i], 4))} cells from "
+                       f"the level-0 lattice anchored at {tuple(anchor)}); grids must align with "
+                       f"the coarser level's cells")
+    bad = np.flatnonzero(np.any(shapes % ratio[:, None], axis=1))
+    if len(bad):
+        i = bad[0]
+        g = records[i]
+        raise AMRError(f"{prefix}{g.describe(i)}: shape {g.shape} is not a multiple of the "
+                       f"refinement ratio {ratio[i]}, so it does not end on a cell face of "
+                       f"level {g.level - 1}")
+    return anchor, rounded.astype(np.int64) * ratio[:, None]
+
+
+def _check_overlap_and_nesting(records, index_lo, ratios, prefix: str) -> None:
+    levels = np.array([g.level for g in records])
+    shapes = np.array([g.shape for g in records], dtype=np.int64)
+    index_hi = index_lo + shapes
+    for level in range(len(ratios) + 1):
+        ids = np.flatnonzero(levels == level)
+        a, b = overlap_pairs(index_lo[ids], index_hi[ids], index_lo[ids], index_hi[ids])
+        clash = a < b
+        if np.any(clash):
+            i, j = ids[a[clash][0]], ids[b[clash][0]]
+            raise AMRError(f"{prefix}{records[i].describe(i)} and {records[j].describe(j)} "
+                           f"overlap; grids of one level must not overlap")
+        if level == 0:
+            continue
+        ratio = ratios[level - 1]
+        parents = np.flatnonzero(levels == level - 1)
+        flo, fhi = index_lo[ids] // ratio, index_hi[ids] // ratio
+        fa, pb = overlap_pairs(flo, fhi, index_lo[parents], index_hi[parents])
+        covered = np.zeros(len(ids), dtype=np.int64)
+        np.add.at(covered, fa, intersection_volume(flo[fa], fhi[fa], index_lo[parents][pb],
+                                                   index_hi[parents][pb]))
+        need = np.prod(fhi - flo, axis=1)
+        bad = np.flatnonzero(covered != need)
+        if len(bad):
+            i = ids[bad[0]]
+            share = covered[bad[0]] / need[bad[0]]
+            raise AMRError(f"{prefix}{records[i].describe(i)} is not inside the level-{level - 1} "
+                           f"grids (only {share:.0%} of it is covered); a fine grid must lie "
+                           f"within the coarser level (proper nesting)")
+
+
+def _leaf_masks(volume: AMRVolume) -> list:
+    """Per grid, True where no cell of the next finer level covers the cell."""
+    masks = [np.ones(g.shape, dtype=bool) for g in volume.grids]
+    levels = volume.levels
+    lo, hi = volume.index_boxes()
+    for level, ratio in enumerate(volume.ratios):
+        coarse = np.flatnonzero(levels == level)
+        fine = np.flatnonzero(levels == level + 1)
+        flo, fhi = lo[fine] // ratio, hi[fine] // ratio
+        ca, fb = overlap_pairs(lo[coarse], hi[coarse], flo, fhi)
+        for c, f in zip(coarse[ca], fb):
+            a = np.maximum(lo[c], flo[f]) - lo[c]
+            b = np.minimum(hi[c], fhi[f]) - lo[c]
+            masks[c][a[0]:b[0], a[1]:b[1], a[2]:b[2]] = False
+    return masks
+
+
+def _finite_range(arr: np.ndarray):
+    finite = arr[np.isfinite(arr)] if not np.all(np.isfinite(arr)) else arr
+    if finite.size == 0:
+        return (math.nan, math.nan)
+    return (float(finite.min()), float(finite.max()))
+
+
+def _format_bytes(n: int) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if n < 1024 or unit == "GiB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{n} B"
+        n /= 1024
+    return f"{n} B"
