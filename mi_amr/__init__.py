@@ -12,5 +12,29 @@ from .readers import load
 from .derive import derive
 from . import datasets
 
-__all__ = ["AMRError", "AMRVolume", "Grid", "KDTree", "load", "derive", "datasets"]
+
+
+def register():
+    """Register the ``amr_iso`` integrator for the active Mitsuba variant (again after a switch)."""
+    from .integrator import register as _register
+    _register()
+
+
+def trace(volume, origins, directions, **kwargs):
+    """Ray queries without a scene; see :func:`mi_amr.trace.trace`."""
+    from .trace import trace as _trace
+    return _trace(volume, origins, directions, **kwargs)
+
+
+def _register_if_variant_set():
+    import sys
+    mi = sys.modules.get("mitsuba")
+    if mi is not None and mi.variant() is not None:
+        register()
+
+
+_register_if_variant_set()
+
+__all__ = ["AMRError", "AMRVolume", "Grid", "KDTree", "load", "derive", "datasets", "register",
+           "trace"]
 __version__ = "0.1.0"

@@ -162,7 +162,7 @@ def _progress(enabled, total, desc):
 # ---------------------------------------------------------------------- analytic fields
 
 ISOVALUES = {"sphere": 0.3, "torus": 0.1, "ramp": 0.0, "spike": 0.75}
-SPIKE_CELL = (17, 13, 15)     # the level-1 cell (i, j, k) holding the spike
+SPIKE_CELL = (17, 13, 15)     # the level-1 cell (i, j, k), counted from the cube's corner
 
 
 def _two_levels(fn, base: int = 16):
@@ -214,7 +214,8 @@ def spike(base: int = 16) -> AMRVolume:
     def f(p, level):
         out = np.zeros(p.shape[:-1])
         if level == 1:
-            out[SPIKE_CELL] = 1.0
+            # The level-1 grid starts at x = 0.5, which is level-1 cell ``base``.
+            out[SPIKE_CELL[0] - base, SPIKE_CELL[1], SPIKE_CELL[2]] = 1.0
         return out
 
     return _two_levels(f, base)

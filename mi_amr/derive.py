@@ -3,7 +3,8 @@
 Derivatives are central differences on each grid. The neighbour a difference needs beyond the
 grid's edge (a *ghost cell*, one cell of the grid's level) comes from the grid of the same level
 that holds it; failing that, from trilinear interpolation of the coarser level at the ghost
-cell's centre; failing that (outside the domain) the difference is one-sided, second order.
+cell's centre; failing that (outside the domain, or so near its edge that the interpolation
+would lack cells) the difference is one-sided, second order.
 This is what keeps Q continuous across level boundaries (the course report, section 4.1, saw it
 jump when every grid used one-sided differences at its own edges).
 
@@ -131,7 +132,8 @@ def _ghost_layers(volume, comps) -> list:
         if level > 0 and not found.all():
             missing = np.flatnonzero(~found)
             centres = volume.anchor + (cells[missing] + 0.5) * volume.level_spacing(level)
-            values[:, missing] = levels.interpolate(volume, level - 1, centres, comps)
+            values[:, missing] = levels.interpolate(volume, level - 1, centres, comps,
+                                                    complete=True)
         at = 0
         for gi, axis, side, slab, n in where:
             layer = values[:, at:at + n].reshape((3,) + slab)

@@ -80,10 +80,15 @@ class KDTree:
             np.maximum.at(best, p_node, score)
             owner = np.where(best >= 0, G - 1 - best % G, -1)
 
-            # Finest level whose support reaches into the node, and its cell size.
+            # Finest level whose support reaches into the node, and its cell size. A support-only
+            # pair is dropped once it is no finer than the owner, which contains every descendant
+            # and so bounds their finest level from below. (Grids that merely overlap the node
+            # give no such bound: a child may miss them, and a dropped finer support would then
+            # be forgotten there.)
+            owner_level = np.where(best >= 0, best // G, -1)
             box_finest = np.full(n, -1, dtype=np.int64)
             np.maximum.at(box_finest, p_node[overlap], p_level[overlap])
-            useful = overlap | (p_level > box_finest[p_node])
+            useful = overlap | (p_level > owner_level[p_node])
             p_node, p_grid, p_level = p_node[useful], p_grid[useful], p_level[useful]
             partial = partial[useful]
             finest = box_finest.copy()

@@ -94,13 +94,15 @@ def cell_values(volume, level: int, index, fields):
     return values, found
 
 
-def interpolate(volume, level: int, points, fields):
+def interpolate(volume, level: int, points, fields, *, complete: bool = False):
     """Trilinear interpolation of level ``level`` at world ``points`` (``(N, 3)``).
 
     The 8 cells around each point (cell centres as nodes) are read across grids of the level;
     a cell the level does not have is itself interpolated from the next coarser level, and at
     level 0 a missing cell (outside the domain) is left out and the remaining weights are
     renormalised. Returns ``(len(fields), N)``; NaN where no cell around a point has data.
+    ``complete=True`` gives NaN instead wherever a cell with non-zero weight lacks data, at any
+    level, so the result is a true trilinear interpolation (exact for linear fields) or NaN.
     """
     points = np.asarray(points, dtype=np.float64)
     h = volume.level_spacing(level)
@@ -117,9 +119,12 @@ def interpolate(volume, level: int, points, fields):
         if level > 0 and not found.all():
             missing = np.flatnonzero(~found)
             centres = volume.anchor + (idx[missing] + 0.5) * h
-            vals[:, missing] = interpolate(volume, level - 1, centres, fields)
+            vals[:, missing] = interpolate(volume, level - 1, centres, fields,
+                                           complete=complete)
         ok = np.all(np.isfinite(vals), axis=0)
         num[:, ok] += w[ok] * vals[:, ok]
         den[ok] += w[ok]
+    # The weights sum to 1 up to rounding when no cell is missing.
+    enough = den > 1.0 - 1e-9 if complete else den > 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, num / den, np.nan)
+        return np.where(enough, num / den, np.nan)

@@ -415,7 +415,7 @@ def _check_lattice(records, ratios, prefix: str):
     shapes = np.array([g.shape for g in records], dtype=np.int64)
     first0 = int(np.flatnonzero(levels == 0)[0])
     anchor = origins[first0]
-    ratio = np.concatenate([[1], ratios])[levels]
+    ratio = np.array((1,) + tuple(ratios), dtype=np.int64)[levels]
     offset = (origins - anchor) / (spacings * ratio[:, None])
     rounded = np.round(offset)
     bad = np.flatnonzero(np.any(np.abs(offset - rounded) > LATTICE_TOLERANCE, axis=1))

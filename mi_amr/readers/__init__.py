@@ -8,22 +8,44 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import AMRError
-from . import native
+from . import amrex, native
 
 
 def load(path, fields=None, **options):
     """Read an AMR volume from ``path``.
 
-    Recognised: mi_amr's ``.npz`` files (see :mod:`mi_amr.readers.native`). ``fields`` (a list
-    of names) reads only those fields from disk. Derived fields (``speed``, ``q_criterion``) are
-    not read here; see :func:`mi_amr.derive`. Raises :class:`~mi_amr.AMRError` for a missing
-    file or an unrecognised format.
+    Recognised: mi_amr's ``.npz`` files (see :mod:`mi_amr.readers.native`) and AMReX plotfile
+    folders (a ``Header`` plus ``Level_N/`` data; see :mod:`mi_amr.readers.amrex`). ``fields``
+    (a list of names) reads only those fields from disk. Derived fields (``speed``,
+    ``q_criterion``) are not read here; see :func:`mi_amr.derive`. Raises
+    :class:`~mi_amr.AMRError` for a missing file, an unrecognised format or a malformed file.
     """
     path = Path(path)
     if not path.exists():
         raise AMRError(f"{path}: no such file or folder")
     if native.is_native(path):
-        if options:
-            raise AMRError(f"{path}: unknown option(s) {sorted(options)} for an mi_amr .npz file")
+        _no_options(path, options, "an mi_amr .npz file")
         return native.load(path, fields)
-    raise AMRError(f"{path}: unrecognised format; mi_amr reads its own .npz volumes")
+    if amrex.is_plotfile(path):
+        _no_options(path, options, "an AMReX plotfile")
+        return amrex.load(path, fields)
+    raise AMRError(f"{path}: unrecognised format; mi_amr reads its own .npz volumes and AMReX "
+                   f"plotfile folders (a folder with a Header whose first line is e.g. "
+                   f"HyperCLaw-V1.1)")
+
+
+def available_fields(path) -> list:
+    """Names of the fields stored in ``path``, without reading their data."""
+    path = Path(path)
+    if not path.exists():
+        raise AMRError(f"{path}: no such file or folder")
+    if native.is_native(path):
+        return native.field_names(path)
+    if amrex.is_plotfile(path):
+        return list(amrex.read_header(path).field_names)
+    return list(load(path).field_names)
+
+
+def _no_options(path: Path, options: dict, what: str) -> None:
+    if options:
+        raise AMRError(f"{path}: unknown option(s) {sorted(options)} for {what}")

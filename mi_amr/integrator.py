@@ -1,0 +1,331 @@
+"""The ``amr_iso`` Mitsuba integrator: isosurfaces (or an opacity band) of an AMR volume, with
+Mitsuba's meshes, emitters, shadows, camera and film.
+
+.. code-block:: xml
+
+    <integrator type="amr_iso">
+        <string name="filename" value="data/sphere_wake.npz"/>
+        <string name="field" value="q_criterion"/>
+        <float name="isovalue" value="0.05"/>
+        <string name="color_field" value="speed"/>
+        <string name="colormap" value="0.012: 0.03 0.03 1, 0.025: 0.03 1 0.03, 0.072: 1 0.03 0.03"/>
+    </integrator>
+
+==================  =============  ================================================  ==========
+Parameter           Type           Meaning                                           Default
+==================  =============  ================================================  ==========
+filename            string         anything :func:`mi_amr.load` reads; relative to   (required)
+                                   the scene file
+field               string         field to contour; stored, or derived              (required)
+                                   (``q_criterion``, ``speed``,
+                                   ``vorticity_magnitude``) from the velocity
+isovalue            float / list   one or up to 8 isovalues, ``"0.05, 0.1"``         (required)
+iso_color           rgb / list     colour per isovalue, ``"r g b; r g b"``           0.8 0.8 0.8
+iso_opacity         float / list   opacity per isovalue in (0, 1]; below 1 the       1
+                                   surfaces are composited front to back
+color_field         string         colour the surface by this field ...              none
+colormap            string         ... with ``"v: r g b, ..."`` pairs (flat +-0.0025  none
+                                   around each) or a matplotlib map name
+color_range         2 floats       value range of a named colour map                 field range
+mode                string         ``surface`` or ``volume``                         surface
+method              string         ``exact``, ``bisect``, ``adaptive``, ``uniform``  exact
+reconstruction      string         ``basis`` (Wald et al.) or ``finest``             basis
+step_scale          float          step in cells (sampling methods)                  0.5
+shadows             boolean        shadow rays test meshes and isosurfaces           true
+to_world            transform      places the volume's world space in the scene      identity
+ka, kd, ks          float          Phong ambient, diffuse, specular                  .15 .75 .25
+shininess           float          Phong exponent                                    32
+ambient             float          ambient light level                               1
+band_center         float          volume mode: centre of the opacity band           isovalue
+band_width          float          volume mode: Gaussian width                       0.004
+band_support        2 floats       volume mode: where opacity is non-zero            centre+-2w
+band_peak           float          volume mode: opacity scale (clamped to 1)         1.6
+preintegrated       boolean        volume mode: pre-integrated opacity per step      false
+leaf_cells          integer        kd leaf size in cells (empty-space skipping)      4
+max_layers          integer        translucent surfaces composited per ray, at most  8
+==================  =============  ================================================  ==========
+
+``isovalue`` and ``step_scale`` appear in ``mi.traverse(scene)`` as ``integrator.isovalue`` and
+``integrator.step_scale``; changing them (or the camera) renders without recompiling.
+
+Python classes deriving from ``mi.SamplingIntegrator`` can only be defined once a variant is set,
+so the class is made by :func:`register` for the active variant (``import mi_amr`` calls it when
+a variant is already set; call it again after ``mi.set_variant``).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+
+from . import options as opts
+from .device import backend_of
+from .errors import AMRError
+from .march import Crossing, MarchConfig, first_crossing
+from .prepared import prepare_file
+from .reconstruct import reconstruct
+from .shading import ColorMap, OpacityBand, phong_direct
+
+_CLASSES = {}
+_DOC = __doc__
+
+
+def register() -> None:
+    """Register ``amr_iso`` with Mitsuba for the active variant."""
+    variant = mi.variant()
+    if variant is None:
+        raise AMRError("mi_amr.register(): set a Mitsuba variant first (mi.set_variant(...))")
+    if variant not in _CLASSES:
+        _CLASSES[variant] = _make_class()
+    cls = _CLASSES[variant]
+    mi.register_integrator("amr_iso", lambda props: cls(props))
+
+
+def load_scene(path, **params):
+    """``mi.load_file`` that reports an amr_iso parameter or data mistake as :class:`AMRError`
+    (Mitsuba wraps errors raised while building plugins in a RuntimeError with a traceback)."""
+    path = Path(path)
+    if not path.is_file():
+        raise AMRError(f"{path}: no such scene file")
+    try:
+        return mi.load_file(str(path), **{k: v for k, v in params.items()})
+    except RuntimeError as e:
+        raise _unwrap(e, path) from None
+
+
+def _unwrap(error: RuntimeError, path) -> AMRError:
+    text = str(error)
+    marker = "AMRError: "
+    if marker in text:
+        return AMRError(text[text.rindex(marker) + len(marker):].strip())
+    first = text.strip().splitlines()[0] if text.strip() else "unknown error"
+    return AMRError(f"{path}: Mitsuba could not load the scene: {first}")
+
+
+def _resolve(filename: str) -> str:
+    resolved = Path(str(mi.file_resolver().resolve(filename)))
+    if not resolved.exists():
+        raise AMRError(f"amr_iso: parameter 'filename': {filename} not found (looked for "
+                       f"{resolved}); the scenes' data files are made by 'make demo' or "
+                       f"'python -m mi_amr data'")
+    return str(resolved)
+
+
+def _make_class():
+    class AMRIsoIntegrator(mi.SamplingIntegrator):
+        __doc__ = _DOC
+
+        def __init__(self, props):
+            super().__init__(props)
+            values = {k: props[k] for k in props.keys()}
+            to_world = values.pop("to_world", None)
+            opt = opts.parse(values)
+            self.opt = opt
+            self.m = m = backend_of(mi.Float)
+            self.prep = prepare_file(_resolve(opt.filename), opt.field, opt.color_field,
+                                     leaf_cells=opt.leaf_cells, m=m)
+            self.dev = self.prep.device
+            vol = self.prep.volume
+            self.to_world = mi.Transform4f(to_world) if to_world is not None \
+                else mi.Transform4f()
+            self.to_local = self.to_world.inverse()
+            self.isovalue = mi.Float(opt.isovalues)
+            self.step_scale = mi.Float(opt.step_scale)
+            self._make_opaque()
+            self.colormap = None
+            if opt.colormap is not None:
+                rng = opt.color_range or vol.value_range(self.prep.color_field)
+                self.colormap = ColorMap.parse(opt.colormap, rng).device(m)
+            self.band = None
+            if opt.mode == "volume":
+                centre = opt.band_center if opt.band_center is not None else opt.isovalues[0]
+                self.band = OpacityBand(centre, opt.band_width, opt.band_support, opt.band_peak,
+                                        dx0=self.dev.min_h)
+                self.band_table = self.band.device(m)
+
+        # ------------------------------------------------------------------ parameters
+        def _make_opaque(self):
+            dr.make_opaque(self.isovalue, self.step_scale)
+
+        def traverse(self, callback):
+            callback.put("isovalue", self.isovalue, mi.ParamFlags.NonDifferentiable)
+            callback.put("step_scale", self.step_scale, mi.ParamFlags.NonDifferentiable)
+
+        def parameters_changed(self, keys):
+            if dr.width(self.isovalue) != len(self.opt.isovalues):
+                raise AMRError(f"amr_iso: 'isovalue' must keep {len(self.opt.isovalues)} "
+                               f"value(s); load the scene again to change how many")
+            if not dr.all(self.step_scale > 0.0):
+                raise AMRError("amr_iso: 'step_scale' must be > 0")
+            self._make_opaque()
+
+        def config(self):
+            return MarchConfig(method=self.opt.method,
+                               basis=self.opt.reconstruction == "basis",
+                               isovalues=self.isovalue, step_scale=self.step_scale,
+                               num_iso=len(self.opt.isovalues))
+
+        def to_string(self):
+            o = self.opt
+            return (f"AMRIsoIntegrator[field={o.field}, isovalue={o.isovalues}, mode={o.mode}, "
+                    f"method={o.method}, reconstruction={o.reconstruction}]")
+
+        # ------------------------------------------------------------------ rendering
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            m = self.m
+            active = mi.Bool(active)
+            si = scene.ray_intersect(ray, active)
+            t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
+            o, d = self._local_ray(ray.o, ray.d)
+            jitter = m.Float(sampler.next_1d(active))
+            if self.opt.mode == "surface":
+                L, T = self._surfaces(scene, sampler, ray, o, d, t_mesh, jitter, active)
+            else:
+                L, T = self._volume(scene, sampler, ray, o, d, t_mesh, jitter, active)
+            # ---- What lies behind the isosurfaces: a mesh, an emitter, or nothing.
+            L += T * self._shade_mesh(scene, sampler, ray, si, active & (T > 0.0))
+            hit_any = si.is_valid() | (T < 1.0)
+            return L, active & (hit_any | (dr.max(L) > 0.0)), []
+
+        def _local_ray(self, o, d):
+            m = self.m
+            ol = self.to_local @ o
+            dl = self.to_local @ d
+            return m.Array3f(ol.x, ol.y, ol.z), m.Array3f(dl.x, dl.y, dl.z)
+
+        @dr.syntax
+        def _surfaces(self, scene, sampler, ray, o, d, t_mesh, jitter, active):
+            """Front-to-back over the isosurface crossings in front of the mesh hit."""
+            cfg = self.config()
+            L = mi.Spectrum(0.0)
+            T = mi.Float(1.0)
+            t = mi.Float(0.0)
+            layer = mi.UInt32(0)
+            alive = mi.Bool(active)
+            while alive:
+                c = first_crossing(self.dev, cfg, o, d, self.m.Float(t), self.m.Float(t_mesh),
+                                   jitter, self.m.Bool(alive))
+                hit = mi.Bool(c.hit) & alive
+                shade = self._shade_iso(scene, sampler, ray, o, d, c, hit)
+                alpha = self._iso_opacity(c.k)
+                L += dr.select(hit, T * alpha * shade, 0.0)
+                T = dr.select(hit, T * (1.0 - alpha), T)
+                t = mi.Float(c.t) + 1e-3 * self.dev.min_h / dr.norm(mi.Vector3f(d.x, d.y, d.z))
+                layer += 1
+                alive = hit & (T > 0.01) & (layer < self.opt.max_layers)
+            T = dr.select(T <= 0.01, 0.0, T)
+            return L, T
+
+        def _iso_opacity(self, k):
+            alphas = self.opt.iso_opacity
+            out = mi.Float(alphas[0])
+            for i in range(1, len(alphas)):
+                out = dr.select(mi.UInt32(k) == i, alphas[i], out)
+            return out
+
+        def _iso_color(self, k, value):
+            if self.colormap is not None:
+                c = ColorMap.lookup(self.m, self.colormap, self.m.Float(value))
+                return mi.Color3f(c.x, c.y, c.z)
+            cols = self.opt.iso_colors
+            out = mi.Color3f(*cols[0])
+            for i in range(1, len(cols)):
+                out = dr.select(mi.UInt32(k) == i, mi.Color3f(*cols[i]), out)
+            return out
+
+        def _shade_iso(self, scene, sampler, ray, o, d, c: Crossing, hit):
+            """Phong shading of the isosurface point of crossing ``c`` (world normal from the
+            analytic gradient, turned towards the viewer)."""
+            m = self.m
+            dev = self.dev
+            basis = self.opt.reconstruction == "basis"
+            arrays = [dev.leaf_values, dev.color_leaf_values] if basis else \
+                [dev.values, dev.color_values]
+            p = o + d * c.t
+            vals, grad = reconstruct(dev, basis, p, arrays, m.Bool(hit))
+            n = dr.normalize(self.to_world @ mi.Normal3f(grad.x, grad.y, grad.z))
+            n = dr.select(dr.dot(n, ray.d) > 0.0, -n, n)
+            n = dr.select(dr.all(dr.isfinite(n)), n, -ray.d)
+            color = self._iso_color(c.k, vals[1])
+            P = ray(mi.Float(c.t))
+            L = color * (self.opt.ka * self.opt.ambient)
+            for emitter in scene.emitters():
+                it = dr.zeros(mi.Interaction3f)
+                it.p = P
+                it.time = ray.time
+                it.wavelengths = ray.wavelengths
+                ds, w = emitter.sample_direction(it, sampler.next_2d(hit), hit)
+                lit = hit & (ds.pdf > 0.0) & (dr.dot(n, ds.d) > 0.0)
+                vis = self._visibility(scene, P, ds, lit, offset_iso=True)
+                L += dr.select(lit, phong_direct(n, ds.d, -ray.d, color, w * vis, self.opt.kd,
+                                                 self.opt.ks, self.opt.shininess), 0.0)
+            return L
+
+        def _shade_mesh(self, scene, sampler, ray, si, active):
+            """Emission plus direct light through the mesh's BSDF, shadowed by meshes and
+            isosurfaces; the environment where the ray escaped."""
+            L = dr.select(active, si.emitter(scene, active).eval(si, active), 0.0)
+            on_mesh = active & si.is_valid()
+            bsdf = si.bsdf(ray)
+            ctx = mi.BSDFContext()
+            L += dr.select(on_mesh, bsdf.eval_diffuse_reflectance(si, on_mesh) *
+                           (self.opt.ka * self.opt.ambient), 0.0)
+            for emitter in scene.emitters():
+                ds, w = emitter.sample_direction(si, sampler.next_2d(on_mesh), on_mesh)
+                lit = on_mesh & (ds.pdf > 0.0)
+                vis = self._visibility(scene, si, ds, lit, offset_iso=False)
+                f = bsdf.eval(ctx, si, si.to_local(ds.d), lit)
+                L += dr.select(lit, f * w * vis, 0.0)
+            return L
+
+        def _visibility(self, scene, origin, ds, active, offset_iso):
+            """Fraction of light from ``ds`` reaching ``origin`` (a point, or a surface
+            interaction whose spawned ray avoids self-intersection)."""
+            if isinstance(origin, mi.SurfaceInteraction3f):
+                shadow = origin.spawn_ray(ds.d)
+                P = origin.p
+            else:
+                shadow = mi.Ray3f(origin, ds.d)
+                P = origin
+            shadow.maxt = ds.dist * (1.0 - 1e-4)
+            blocked = scene.ray_test(shadow, active)
+            vis = dr.select(blocked, 0.0, mi.Float(1.0))
+            if not self.opt.shadows:
+                return dr.select(active, mi.Float(1.0), 0.0)
+            o, d = self._local_ray(P, ds.d)
+            t0 = (1e-3 if offset_iso else 0.0) * self.dev.min_h / dr.norm(d)
+            T = self._transmittance(o, d, t0, self.m.Float(shadow.maxt), active & ~blocked)
+            return vis * T
+
+        @dr.syntax
+        def _transmittance(self, o, d, t0, t1, active):
+            """Light passing the isosurfaces (or the opacity band) between ``t0`` and ``t1``."""
+            m = self.m
+            if dr.hint(self.opt.mode == "volume", mode="scalar"):
+                T = self._band_transmittance(o, d, t0, t1, active)
+            else:
+                cfg = self.config()
+                T = mi.Float(1.0)
+                t = m.Float(t0)
+                alive = mi.Bool(active)
+                layer = mi.UInt32(0)
+                while alive:
+                    c = first_crossing(self.dev, cfg, o, d, t, t1, m.Float(0.5), m.Bool(alive))
+                    hit = mi.Bool(c.hit) & alive
+                    T = dr.select(hit, T * (1.0 - self._iso_opacity(c.k)), T)
+                    t = c.t + 1e-3 * self.dev.min_h / dr.norm(d)
+                    layer += 1
+                    alive = hit & (T > 0.01) & (layer < self.opt.max_layers)
+                T = dr.select(T <= 0.01, 0.0, T)
+            return T
+
+        def _volume(self, scene, sampler, ray, o, d, t_mesh, jitter, active):
+            raise AMRError("amr_iso: mode 'volume' is not available yet")
+
+        def _band_transmittance(self, o, d, t0, t1, active):
+            raise AMRError("amr_iso: mode 'volume' is not available yet")
+
+    return AMRIsoIntegrator

@@ -1,0 +1,347 @@
+"""Finding isosurface crossings along rays: one kd-leaf traversal shared by four methods.
+
+A ray ``p(t) = o + t d`` (volume world space, ``d`` need not be unit length; ``t`` is the same
+parameter as the caller's) is walked leaf by leaf: at the current position the kd-tree is
+descended, the leaf's box gives the distance to its exit, and a leaf whose value range holds no
+isovalue (or that has no data) is skipped whole. Inside a leaf the method decides what to look
+at (pbrt's majorant-segment shape: traversal hands ``[t, t_exit]`` segments to the consumer):
+
+* ``exact``: the ray is cut at every dual-cell plane of the levels that contribute (the owner's
+  level for ``finest``, all active levels for ``basis``); inside each piece the field is
+  ``N(s) / D(s)`` with cubic ``N`` and ``D`` (:func:`mi_amr.reconstruct.segment_cubic`), so each
+  isovalue's crossings are the roots of the cubic ``N - iso D``, found without fail by
+  :mod:`mi_amr.roots`. A jump of the field across a piece boundary (``finest`` at grid edges)
+  counts as a crossing at the boundary.
+* ``uniform``: samples every ``step_scale * h_min`` (``h_min``: the finest cell width of the
+  volume) from the ray's entry; a crossing between two samples that straddle an isovalue is put
+  where the line through them meets it.
+* ``adaptive`` (ExaBricks): the step is ``step_scale`` times the finest cell width active in the
+  leaf; step positions, offset by a per-ray random ``jitter`` in ``[0, 1)`` steps (interleaved
+  sampling), and leaf boundaries delimit sub-intervals that are sampled at their mid-points.
+* ``bisect``: ``adaptive``, then bisection between two straddling samples (the course report's
+  "advanced adaptive sampling") down to ``0.005`` cells, then linear interpolation.
+
+Skipping a leaf does not change what the sampling methods see: the first and last sample inside a
+skipped leaf are still taken (all samples in between lie on the same side of every isovalue), so
+skipping only saves work.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+
+from . import reconstruct as rec
+from . import roots
+from .device import NO_GRID, gather
+
+METHODS = ("exact", "bisect", "adaptive", "uniform")
+RECONSTRUCTIONS = ("basis", "finest")
+BISECT_TARGET = 0.005    # cells: bisection stops at this interval (course report, section 3.6.2)
+
+
+@dataclass
+class MarchConfig:
+    """What a march looks for. ``method`` and ``basis`` and the number of isovalues shape the
+    kernel; ``isovalues`` (an array of that length) and ``step_scale`` are opaque values that
+    may change between frames without recompiling."""
+
+    method: str
+    basis: bool
+    isovalues: Any
+    step_scale: Any
+    num_iso: int
+
+    def iso(self, dev, k):
+        m = dev.m
+        return gather(m.Float, self.isovalues, m.UInt32(k))
+
+
+@dataclass
+class Crossing:
+    """Result of :func:`first_crossing`: ``t`` is ``inf`` where ``hit`` is False."""
+
+    hit: Any
+    t: Any
+    k: Any           # index of the isovalue crossed
+    samples: Any     # field evaluations (``exact``: cubic pieces) along the ray
+
+
+# ---------------------------------------------------------------------- traversal helpers
+
+def box_interval(lo, hi, o, d):
+    """Parametric interval ``(t_in, t_out)`` of the ray inside the box ``[lo, hi]``."""
+    inv = dr.rcp(d)
+    t_a = (lo - o) * inv
+    t_b = (hi - o) * inv
+    flat = d == 0.0
+    inside = (o >= lo) & (o <= hi)
+    near = dr.select(flat, dr.select(inside, -dr.inf, dr.inf), dr.minimum(t_a, t_b))
+    far = dr.select(flat, dr.select(inside, dr.inf, -dr.inf), dr.maximum(t_a, t_b))
+    return dr.max(near), dr.min(far)
+
+
+def leaf_exit(lo, hi, o, d):
+    """Parameter where the ray leaves the box ``[lo, hi]`` (the larger end of the interval)."""
+    face = dr.select(d > 0.0, hi, lo)
+    t = dr.select(d != 0.0, (face - o) / d, dr.inf)
+    return dr.min(t)
+
+
+def enter_leaf(dev, cfg, o, d, t_probe, active):
+    """The leaf at ``o + t_probe d``: ``(leaf, t_exit, skip, mid_value)``. ``skip`` is set when
+    the leaf has no data or its value range contains no isovalue; ``mid_value`` is then a value
+    on the same side of every isovalue as the whole leaf."""
+    m = dev.m
+    p = dr.fma(d, t_probe, o)
+    leaf = rec.locate(dev, p, active)
+    lo = gather(m.Array3f, dev.leaf_lo, leaf, active)
+    hi = gather(m.Array3f, dev.leaf_hi, leaf, active)
+    t_exit = leaf_exit(lo, hi, o, d)
+    owner = gather(m.UInt32, dev.leaf_owner, leaf, active)
+    r_lo = gather(m.Float, dev.range_lo, leaf, active)
+    r_hi = gather(m.Float, dev.range_hi, leaf, active)
+    holds = m.Bool(False)
+    for k in range(cfg.num_iso):
+        iso = cfg.iso(dev, k)
+        holds |= (r_lo <= iso) & (iso <= r_hi)
+    skip = (owner == NO_GRID) | ~holds
+    mid = dr.select(owner == NO_GRID, dr.nan, 0.5 * (r_lo + r_hi))
+    return leaf, t_exit, skip, mid
+
+
+def next_dual_plane(dev, levels_mask, o, d, t_probe):
+    """Smallest parameter > ``t_probe`` (up to rounding) at which the ray crosses a plane through
+    cell centres of a level in ``levels_mask`` (bit ``l`` for level ``l``)."""
+    m = dev.m
+    p = dr.fma(d, t_probe, o)
+    anchor = m.Array3f(*dev.anchor)
+    best = m.Float(dr.inf)
+    for level in range(dev.num_levels):
+        h = m.Array3f(*dev.level_h[level])
+        u = (p - anchor) / h - 0.5
+        cell = dr.floor(u)
+        plane = dr.select(d > 0.0, cell + 1.0, cell)
+        t = dr.select(d != 0.0, (anchor + (plane + 0.5) * h - o) / d, dr.inf)
+        on = ((levels_mask >> level) & 1) != 0
+        best = dr.select(on, dr.minimum(best, dr.min(t)), best)
+    return best
+
+
+def _epsilon(dev, t, dnorm):
+    """A step in ``t`` well below a cell yet large enough to move ``t`` in float32."""
+    return dr.maximum(1e-4 * dev.min_h / dnorm, dr.abs(t) * 4e-7)
+
+
+# ---------------------------------------------------------------------- the march
+
+def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active) -> Crossing:
+    """First crossing of any isovalue by the reconstructed field on ``(t_start, t_end)``.
+
+    ``o``, ``d``: ray origin and direction in volume world space (``m.Array3f``); ``jitter``:
+    per-ray offset in ``[0, 1)`` for the adaptive methods (ignored by ``exact`` and ``uniform``).
+    """
+    m = dev.m
+    lo = m.Array3f(*dev.bounds_lo)
+    hi = m.Array3f(*dev.bounds_hi)
+    t_in, t_out = box_interval(lo, hi, o, d)
+    t0 = dr.maximum(t_start, t_in)
+    t1 = dr.minimum(t_end, t_out)
+    active = m.Bool(active) & (t0 < t1)
+    if cfg.method == "exact":
+        return _march_exact(dev, cfg, o, d, t0, t1, active)
+    return _march_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), active)
+
+
+@dr.syntax
+def _march_exact(dev, cfg, o, d, t0, t1, active):
+    m = dev.m
+    dnorm = dr.norm(d)
+    values = [dev.leaf_values if cfg.basis else dev.values]
+    level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
+    t = m.Float(t0)
+    leaf = m.UInt32(0)
+    t_exit = m.Float(-dr.inf)
+    skip = m.Bool(True)
+    v_prev = m.Float(dr.nan)
+    samples = m.UInt32(0)
+    hit = m.Bool(False)
+    jump = m.Bool(False)
+    k_hit = m.UInt32(0)
+    t_seg = m.Float(0.0)
+    s_a, s_b = m.Float(0.0), m.Float(0.0)
+    c0, c1, c2, c3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
+    while active:
+        eps = _epsilon(dev, t, dnorm)
+        # --- Enter the leaf holding the next stretch of the ray.
+        new = t >= t_exit
+        n_leaf, n_exit, n_skip, skip_value = enter_leaf(dev, cfg, o, d, t + eps, active & new)
+        leaf = dr.select(new, n_leaf, leaf)
+        t_exit = dr.select(new, n_exit, t_exit)
+        skip = dr.select(new, n_skip, skip)
+
+        # --- The piece [t, t_b]: up to the next dual-cell plane of a contributing level.
+        work = active & ~skip
+        mask = gather(m.UInt32, level_masks, leaf, work)
+        t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, t + eps), t_exit), t1)
+        t_b = dr.maximum(t_b, t + eps)
+        L = t_b - t
+        p0 = dr.fma(d, t, o)
+        nums, den = rec.segment_cubic(dev, cfg.basis, leaf, p0, d, 0.5 * L, values, work)
+        num = nums[0]
+        samples += dr.select(work, 1, 0)
+        d_mid = roots.cubic(den, 0.5 * L)
+        have = work & (roots.cubic(den, 0.0 * L) > 1e-3) & (roots.cubic(den, L) > 1e-3) & \
+            (d_mid > 1e-3)
+        v_start = num[0] / den[0]
+        v_end = roots.cubic(num, L) / roots.cubic(den, L)
+        n_mid = roots.cubic(num, 0.5 * L)
+
+        # --- Crossings: a jump at the piece's start, else the first root of N - iso D.
+        best = m.Float(dr.inf)
+        for k in range(cfg.num_iso):
+            iso = cfg.iso(dev, k)
+            jumped = have & ((v_prev - iso) * (v_start - iso) < 0.0)
+            c = [num[i] - iso * den[i] for i in range(4)]
+            found, a, b = roots.first_root_bracket(c, L, dr.abs(n_mid) + dr.abs(iso * d_mid))
+            found &= have & ~jumped
+            where = dr.select(jumped, 0.0, dr.select(found, a, dr.inf))
+            take = where < best
+            best = dr.select(take, where, best)
+            k_hit = dr.select(take, k, k_hit)
+            jump = dr.select(take, jumped, jump)
+            s_a = dr.select(take, a, s_a)
+            s_b = dr.select(take, b, s_b)
+            c0 = dr.select(take, c[0], c0)
+            c1 = dr.select(take, c[1], c1)
+            c2 = dr.select(take, c[2], c2)
+            c3 = dr.select(take, c[3], c3)
+        got = active & (best < dr.inf)
+        hit |= got
+        t_seg = dr.select(got, t, t_seg)
+
+        # --- Advance: to the piece's end, or past a skipped leaf (entered in this iteration, so
+        # skip_value is its value on the right side of every isovalue).
+        v_prev = dr.select(skip, skip_value, dr.select(have, v_end, dr.nan))
+        t = dr.select(skip, dr.maximum(t_exit, t + eps), t_b)
+        active &= ~got & (t < t1)
+
+    s = roots.refine_root([c0, c1, c2, c3], s_a, s_b)
+    t_hit = dr.select(hit, t_seg + dr.select(jump, 0.0, s), dr.inf)
+    return Crossing(hit=hit, t=t_hit, k=k_hit, samples=samples)
+
+
+@dr.syntax
+def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
+    m = dev.m
+    dnorm = dr.norm(d)
+    values = [dev.leaf_values if cfg.basis else dev.values]
+    uniform = cfg.method == "uniform"
+    rho = m.Float(0.0) if uniform else jitter
+    global_dt = cfg.step_scale * dev.min_h / dnorm
+    t_anchor = m.Float(t0)
+    t = m.Float(t0)
+    leaf = m.UInt32(0)
+    t_exit = m.Float(-dr.inf)
+    skip = m.Bool(True)
+    dt = m.Float(global_dt)
+    t_prev = m.Float(dr.nan)
+    v_prev = m.Float(dr.nan)
+    samples = m.UInt32(0)
+    hit = m.Bool(False)
+    k_hit = m.UInt32(0)
+    t_a, t_b = m.Float(0.0), m.Float(0.0)
+    v_a, v_b = m.Float(0.0), m.Float(0.0)
+    while active:
+        eps = _epsilon(dev, t, dnorm)
+        # --- Enter the leaf holding the next stretch of the ray.
+        new = t >= t_exit
+        n_leaf, n_exit, n_skip, _ = enter_leaf(dev, cfg, o, d, t + eps, active & new)
+        leaf = dr.select(new, n_leaf, leaf)
+        t_exit = dr.select(new, n_exit, t_exit)
+        skip = dr.select(new, n_skip, skip)
+        if dr.hint(not uniform, mode="scalar"):
+            leaf_h = gather(m.Float, dev.leaf_min_h, leaf, active & new)
+            dt = dr.select(new, cfg.step_scale * leaf_h / dnorm, dt)
+
+        # --- The next sub-interval [t, b] ends at a step position or the leaf's end.
+        step = dr.floor((t - t_anchor) / dt - rho + 1e-4) + 1.0
+        b_lattice = t_anchor + (rho + step) * dt
+        b = dr.minimum(dr.minimum(b_lattice, t_exit), t1)
+        b = dr.maximum(b, t + eps)
+        if dr.hint(uniform, mode="scalar"):
+            # Uniform samples sit on the step positions themselves.
+            t_s = b_lattice
+            take = active & (b_lattice <= dr.minimum(t_exit, t1))
+        else:
+            t_s = 0.5 * (t + b)
+            take = m.Bool(active)
+        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), values, take, leaf=leaf)
+        v = vals[0]
+        samples += dr.select(take, 1, 0)
+
+        # --- A straddled isovalue between the previous sample and this one.
+        best = m.Float(dr.inf)
+        for k in range(cfg.num_iso):
+            iso = cfg.iso(dev, k)
+            cross = take & ((v_prev - iso) * (v - iso) <= 0.0) & (v != v_prev)
+            where = dr.select(cross, t_prev + (iso - v_prev) / (v - v_prev) * (t_s - t_prev),
+                              dr.inf)
+            pick = where < best
+            best = dr.select(pick, where, best)
+            k_hit = dr.select(pick, k, k_hit)
+        got = best < dr.inf
+        hit |= got
+        t_a = dr.select(got, t_prev, t_a)
+        t_b = dr.select(got, t_s, t_b)
+        v_a = dr.select(got, v_prev, v_a)
+        v_b = dr.select(got, v, v_b)
+        t_prev = dr.select(take, t_s, t_prev)
+        v_prev = dr.select(take, v, v_prev)
+
+        # --- Advance; in a skipped leaf, jump to its last sample (all samples in between lie on
+        # the same side of every isovalue).
+        last = t_anchor + (rho + dr.floor((t_exit - t_anchor) / dt - rho - 1e-4)) * dt
+        if dr.hint(uniform, mode="scalar"):
+            last = last - 0.5 * dt
+        t = dr.select(skip, dr.maximum(b, last), b)
+        active &= ~got & (t < t1)
+
+    iso_hit = _iso_of(dev, cfg, k_hit)
+    t_hit = dr.select(hit, t_a + (iso_hit - v_a) / (v_b - v_a) * (t_b - t_a), dr.inf)
+    if dr.hint(cfg.method == "bisect", mode="scalar"):
+        t_hit = _bisect(dev, cfg, o, d, t_a, t_b, v_a, k_hit, hit)
+    return Crossing(hit=hit, t=t_hit, k=k_hit, samples=samples)
+
+
+def _iso_of(dev, cfg, k):
+    """The isovalue with index ``k`` (a per-lane array)."""
+    return gather(dev.m.Float, cfg.isovalues, k)
+
+
+@dr.syntax
+def _bisect(dev, cfg, o, d, t_a, t_b, v_a, k, active):
+    """Bisection of ``[t_a, t_b]`` (whose ends straddle isovalue ``k``) down to
+    :data:`BISECT_TARGET` cells, then linear interpolation in the last interval."""
+    m = dev.m
+    values = [dev.leaf_values if cfg.basis else dev.values]
+    iso = _iso_of(dev, cfg, k)
+    fa = v_a - iso
+    depth = dr.maximum(dr.ceil(dr.log2(cfg.step_scale / BISECT_TARGET)), 1.0)
+    i = m.Float(0.0)
+    fb = m.Float(0.0)
+    while active & (i < depth):
+        mid = 0.5 * (t_a + t_b)
+        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, mid, o), values, active)
+        f = vals[0] - iso
+        left = (f * fa) <= 0.0
+        t_b = dr.select(left, mid, t_b)
+        t_a = dr.select(left, t_a, mid)
+        fa = dr.select(left, fa, f)
+        i += 1.0
+    vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_b, o), values, active)
+    fb = vals[0] - iso
+    t = t_a + fa / (fa - fb) * (t_b - t_a)
+    return dr.select(active, dr.select(dr.isfinite(t), t, 0.5 * (t_a + t_b)), dr.inf)

@@ -1,0 +1,95 @@
+"""A volume made ready for rendering: the fields it needs loaded or derived, the kd-tree built
+and everything flattened onto the device. Shared by the integrator and :func:`mi_amr.trace`.
+
+Loading reads only the fields a scene uses (a derived field reads just the velocity).
+Preparing the same file twice in one process (a benchmark sweep, a movie) reuses the work.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+
+import drjit as dr
+
+from .derive import DERIVED_FIELDS
+from .device import DeviceVolume
+from .errors import AMRError
+from .kdtree import KDTree
+
+_CACHE: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
+_CACHE_SIZE = 3
+
+
+class PreparedVolume:
+    """``volume`` with ``field`` (and ``color_field``) present, its kd-tree and device arrays.
+
+    ``m`` is the Dr.Jit backend module of the kernels that will read it.
+    """
+
+    def __init__(self, volume, field: str, color_field: str | None = None, *,
+                 leaf_cells: int = 4, m=None):
+        wanted = [f for f in dict.fromkeys([field, color_field]) if f is not None]
+        missing = [f for f in wanted if f not in volume.field_names]
+        derivable = [f for f in missing if f in DERIVED_FIELDS]
+        unknown = [f for f in missing if f not in DERIVED_FIELDS]
+        if unknown:
+            raise AMRError(f"{volume._label()}unknown field(s) {unknown}: the volume holds "
+                           f"{list(volume.field_names)}; derived fields are "
+                           f"{list(DERIVED_FIELDS)}")
+        if derivable:
+            from .derive import derive
+            volume = derive(volume, *derivable)
+        self.volume = volume.select_fields(wanted)
+        self.field = field
+        self.color_field = color_field or field
+        self.tree = KDTree(self.volume, leaf_cells=leaf_cells)
+        self.device = DeviceVolume(self.volume, self.tree, field, self.color_field,
+                                   m=m or dr.llvm.ad)
+
+
+def fields_to_read(field: str, color_field: str | None, available) -> list:
+    """Names to read from disk for a scene showing ``field`` coloured by ``color_field``: stored
+    fields as they are, the velocity components for a derived one."""
+    out = []
+    for name in (field, color_field):
+        if name is None:
+            continue
+        if name in available or name not in DERIVED_FIELDS:
+            out.append(name)  # an unknown name is reported by the reader
+        else:
+            out.extend(_velocity_names(available))
+    return list(dict.fromkeys(out))
+
+
+def _velocity_names(available) -> list:
+    from .derive import VELOCITY_NAMES
+
+    for names in VELOCITY_NAMES:
+        if all(n in available for n in names):
+            return list(names)
+    raise AMRError(f"no velocity components to derive from (looked for "
+                   f"{', '.join('/'.join(n) for n in VELOCITY_NAMES)}); fields: {list(available)}")
+
+
+def prepare_file(path, field: str, color_field: str | None = None, *, leaf_cells: int = 4,
+                 m=None) -> PreparedVolume:
+    """Load ``path`` (only what is needed) and prepare it; cached by file, fields and backend."""
+    from .readers import available_fields, load
+
+    path = os.path.abspath(path)
+    try:
+        stamp = os.stat(path).st_mtime_ns
+    except OSError:
+        raise AMRError(f"{path}: no such file or folder") from None
+    key = (path, stamp, field, color_field, leaf_cells, getattr(m, "__name__", None))
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    names = fields_to_read(field, color_field, available_fields(path))
+    prepared = PreparedVolume(load(path, fields=names), field, color_field,
+                              leaf_cells=leaf_cells, m=m)
+    _CACHE[key] = prepared
+    while len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return prepared
