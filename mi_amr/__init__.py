@@ -10,6 +10,7 @@ from .volume import AMRVolume, Grid
 from .kdtree import KDTree
 from .readers import load
 from .derive import derive
+from .rays import TraceResult, trace
 from . import datasets
 
 
@@ -18,12 +19,6 @@ def register():
     """Register the ``amr_iso`` integrator for the active Mitsuba variant (again after a switch)."""
     from .integrator import register as _register
     _register()
-
-
-def trace(volume, origins, directions, **kwargs):
-    """Ray queries without a scene; see :func:`mi_amr.trace.trace`."""
-    from .trace import trace as _trace
-    return _trace(volume, origins, directions, **kwargs)
 
 
 def _register_if_variant_set():

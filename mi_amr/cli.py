@@ -55,7 +55,21 @@ def _parser() -> argparse.ArgumentParser:
                                     "(skips files that exist)")
     s.set_defaults(run=_data)
 
+    s = sub.add_parser("render", help="render a scene file")
+    s.add_argument("scene", help="Mitsuba scene XML")
+    s.add_argument("-o", "--output", required=True, help="image to write (.png or .exr)")
+    s.add_argument("--spp", type=int, help="samples per pixel (the scene's 'spp' default)")
+    s.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
+                   help="image size (the scene's 'resx'/'resy' defaults)")
+    s.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
+                   help="set a <default> of the scene, e.g. -D isovalue=0.1 (repeatable)")
+    s.add_argument("--variant", default="llvm_ad_rgb",
+                   help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb, scalar_rgb)")
+    s.add_argument("--force", action="store_true", help="replace an existing image")
+    s.set_defaults(run=_render)
+
     s = sub.add_parser("demo", help="create the scenes' data, then render the default scene")
+    s.add_argument("-o", "--output", default="out/sphere_wake.png")
     s.set_defaults(run=_demo)
     return p
 
@@ -98,9 +112,21 @@ def _data(args) -> None:
     scene_data()
 
 
+def _render(args) -> None:
+    from .render import render_file
+
+    defines = {}
+    for item in args.defines:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise AMRError(f"-D {item}: expected NAME=VALUE")
+        defines[name] = value
+    render_file(args.scene, args.output, spp=args.spp, resolution=args.resolution,
+                defines=defines, variant=args.variant, overwrite=args.force)
+
+
 def _demo(args) -> None:
-    from .readers import load
+    from .render import render_file
 
     scene_data()
-    vol = load(SCENES / "data" / "sphere_wake.npz")
-    print(vol.summary())
+    render_file(SCENES / "sphere_wake.xml", args.output, overwrite=True)

@@ -151,8 +151,8 @@ def _difference(v, lo_ghost, hi_ghost, axis, h):
     n = v.shape[axis]
     take = lambda a, i: np.take(a, i, axis=axis)  # noqa: E731
     d = (take(ext, np.arange(2, n + 2)) - take(ext, np.arange(0, n))) / (2.0 * h)
-    for end, sign in ((0, 1), (n - 1, -1)):
-        ghost = lo_ghost if end == 0 else hi_ghost
+    # The side picks the ghost layers, not ``end``: with one cell, both ends are cell 0.
+    for end, sign, ghost, other in ((0, 1, lo_ghost, hi_ghost), (n - 1, -1, hi_ghost, lo_ghost)):
         missing = ~np.isfinite(np.take(ghost, 0, axis=axis))
         if not missing.any():
             continue
@@ -162,7 +162,6 @@ def _difference(v, lo_ghost, hi_ghost, axis, h):
         elif n == 2:
             one_sided = sign * (take(v, end + sign) - take(v, end)) / h
         else:
-            other = hi_ghost if end == 0 else lo_ghost
             g = np.take(other, 0, axis=axis)
             one_sided = np.where(np.isfinite(g), sign * (g - take(v, 0)) / h, 0.0)
         idx = [slice(None)] * 3

@@ -36,9 +36,9 @@ to_world            transform      places the volume's world space in the scene 
 ka, kd, ks          float          Phong ambient, diffuse, specular                  .15 .75 .25
 shininess           float          Phong exponent                                    32
 ambient             float          ambient light level                               1
-band_center         float          volume mode: centre of the opacity band           isovalue
-band_width          float          volume mode: Gaussian width                       0.004
-band_support        2 floats       volume mode: where opacity is non-zero            centre+-2w
+band_width          float          volume mode: Gaussian width of the opacity band   0.004
+                                   centred on ``isovalue``
+band_support        2 floats       volume mode: where opacity is non-zero            iso+-2w
 band_peak           float          volume mode: opacity scale (clamped to 1)         1.6
 preintegrated       boolean        volume mode: pre-integrated opacity per step      false
 leaf_cells          integer        kd leaf size in cells (empty-space skipping)      4
@@ -60,14 +60,15 @@ from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from . import options as opts
 from .device import backend_of
 from .errors import AMRError
-from .march import Crossing, MarchConfig, first_crossing
+from .march import Crossing, MarchConfig, composite, first_crossing
 from .prepared import prepare_file
 from .reconstruct import reconstruct
-from .shading import ColorMap, OpacityBand, phong_direct
+from .shading import ColorMap, OpacityBand
 
 _CLASSES = {}
 _DOC = __doc__
@@ -129,8 +130,10 @@ def _make_class():
                                      leaf_cells=opt.leaf_cells, m=m)
             self.dev = self.prep.device
             vol = self.prep.volume
-            self.to_world = mi.Transform4f(to_world) if to_world is not None \
-                else mi.Transform4f()
+            matrix = np.eye(4) if to_world is None else np.array(to_world.matrix, dtype=np.float64)
+            if not np.all(np.isfinite(matrix)) or abs(np.linalg.det(matrix[:3, :3])) < 1e-12:
+                raise AMRError("amr_iso: parameter 'to_world' must be an invertible transform")
+            self.to_world = mi.Transform4f(matrix.astype(np.float32))
             self.to_local = self.to_world.inverse()
             self.isovalue = mi.Float(opt.isovalues)
             self.step_scale = mi.Float(opt.step_scale)
@@ -139,10 +142,12 @@ def _make_class():
             if opt.colormap is not None:
                 rng = opt.color_range or vol.value_range(self.prep.color_field)
                 self.colormap = ColorMap.parse(opt.colormap, rng).device(m)
-            self.band = None
+            self.band = self.band_table = None
             if opt.mode == "volume":
-                centre = opt.band_center if opt.band_center is not None else opt.isovalues[0]
-                self.band = OpacityBand(centre, opt.band_width, opt.band_support, opt.band_peak,
+                iso = opt.isovalues[0]
+                support = None if opt.band_support is None else \
+                    (opt.band_support[0] - iso, opt.band_support[1] - iso)
+                self.band = OpacityBand(opt.band_width, support, opt.band_peak,
                                         dx0=self.dev.min_h)
                 self.band_table = self.band.device(m)
 
@@ -166,7 +171,8 @@ def _make_class():
             return MarchConfig(method=self.opt.method,
                                basis=self.opt.reconstruction == "basis",
                                isovalues=self.isovalue, step_scale=self.step_scale,
-                               num_iso=len(self.opt.isovalues))
+                               num_iso=len(self.opt.isovalues), band=self.band,
+                               band_table=self.band_table, preintegrated=self.opt.preintegrated)
 
         def to_string(self):
             o = self.opt
@@ -181,10 +187,13 @@ def _make_class():
             t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
             o, d = self._local_ray(ray.o, ray.d)
             jitter = m.Float(sampler.next_1d(active))
+            # One light sample per emitter and ray, drawn here: the sampler's state must not
+            # change inside the symbolic loops below.
+            light_u = [sampler.next_2d(active) for _ in scene.emitters()]
             if self.opt.mode == "surface":
-                L, T = self._surfaces(scene, sampler, ray, o, d, t_mesh, jitter, active)
+                L, T = self._surfaces(scene, light_u, ray, o, d, t_mesh, jitter, active)
             else:
-                L, T = self._volume(scene, sampler, ray, o, d, t_mesh, jitter, active)
+                L, T = self._volume(scene, light_u, ray, o, d, t_mesh, jitter, active)
             # ---- What lies behind the isosurfaces: a mesh, an emitter, or nothing.
             L += T * self._shade_mesh(scene, sampler, ray, si, active & (T > 0.0))
             hit_any = si.is_valid() | (T < 1.0)
@@ -197,7 +206,7 @@ def _make_class():
             return m.Array3f(ol.x, ol.y, ol.z), m.Array3f(dl.x, dl.y, dl.z)
 
         @dr.syntax
-        def _surfaces(self, scene, sampler, ray, o, d, t_mesh, jitter, active):
+        def _surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
             """Front-to-back over the isosurface crossings in front of the mesh hit."""
             cfg = self.config()
             L = mi.Spectrum(0.0)
@@ -209,7 +218,7 @@ def _make_class():
                 c = first_crossing(self.dev, cfg, o, d, self.m.Float(t), self.m.Float(t_mesh),
                                    jitter, self.m.Bool(alive))
                 hit = mi.Bool(c.hit) & alive
-                shade = self._shade_iso(scene, sampler, ray, o, d, c, hit)
+                shade = self._shade_iso(scene, light_u, ray, o, d, c, hit)
                 alpha = self._iso_opacity(c.k)
                 L += dr.select(hit, T * alpha * shade, 0.0)
                 T = dr.select(hit, T * (1.0 - alpha), T)
@@ -236,33 +245,47 @@ def _make_class():
                 out = dr.select(mi.UInt32(k) == i, mi.Color3f(*cols[i]), out)
             return out
 
-        def _shade_iso(self, scene, sampler, ray, o, d, c: Crossing, hit):
+        def _arrays(self):
+            dev = self.dev
+            if self.opt.reconstruction == "basis":
+                return [dev.leaf_values, dev.color_leaf_values]
+            return [dev.values, dev.color_values]
+
+        def _shade_iso(self, scene, light_u, ray, o, d, c: Crossing, hit):
             """Phong shading of the isosurface point of crossing ``c`` (world normal from the
             analytic gradient, turned towards the viewer)."""
             m = self.m
-            dev = self.dev
             basis = self.opt.reconstruction == "basis"
-            arrays = [dev.leaf_values, dev.color_leaf_values] if basis else \
-                [dev.values, dev.color_values]
             p = o + d * c.t
-            vals, grad = reconstruct(dev, basis, p, arrays, m.Bool(hit))
+            vals, grad = reconstruct(self.dev, basis, p, self._arrays(), m.Bool(hit))
+            color = self._iso_color(c.k, vals[1])
+            A, S = self._phong_terms(scene, light_u, ray, mi.Float(c.t), grad, hit)
+            return color * A + S
+
+        def _phong_terms(self, scene, light_u, ray, t, grad, active):
+            """``(A, S)`` with the Phong-shaded colour of a point ``ray(t)`` of colour ``c``
+            being ``c * A + S``; the normal is the gradient ``grad`` (volume space) taken to the
+            world and turned towards the viewer."""
             n = dr.normalize(self.to_world @ mi.Normal3f(grad.x, grad.y, grad.z))
             n = dr.select(dr.dot(n, ray.d) > 0.0, -n, n)
             n = dr.select(dr.all(dr.isfinite(n)), n, -ray.d)
-            color = self._iso_color(c.k, vals[1])
-            P = ray(mi.Float(c.t))
-            L = color * (self.opt.ka * self.opt.ambient)
-            for emitter in scene.emitters():
+            P = ray(t)
+            A = mi.Spectrum(self.opt.ka * self.opt.ambient)
+            S = mi.Spectrum(0.0)
+            for emitter, u in zip(scene.emitters(), light_u):
                 it = dr.zeros(mi.Interaction3f)
                 it.p = P
                 it.time = ray.time
                 it.wavelengths = ray.wavelengths
-                ds, w = emitter.sample_direction(it, sampler.next_2d(hit), hit)
-                lit = hit & (ds.pdf > 0.0) & (dr.dot(n, ds.d) > 0.0)
+                ds, w = emitter.sample_direction(it, u, active)
+                lit = active & (ds.pdf > 0.0) & (dr.dot(n, ds.d) > 0.0)
                 vis = self._visibility(scene, P, ds, lit, offset_iso=True)
-                L += dr.select(lit, phong_direct(n, ds.d, -ray.d, color, w * vis, self.opt.kd,
-                                                 self.opt.ks, self.opt.shininess), 0.0)
-            return L
+                light = w * vis
+                n_l = dr.maximum(dr.dot(n, ds.d), 0.0)
+                n_h = dr.maximum(dr.dot(n, dr.normalize(ds.d - ray.d)), 0.0)
+                A += dr.select(lit, self.opt.kd * light * n_l, 0.0)
+                S += dr.select(lit, self.opt.ks * light * dr.power(n_h, self.opt.shininess), 0.0)
+            return A, S
 
         def _shade_mesh(self, scene, sampler, ray, si, active):
             """Emission plus direct light through the mesh's BSDF, shadowed by meshes and
@@ -322,10 +345,29 @@ def _make_class():
                 T = dr.select(T <= 0.01, 0.0, T)
             return T
 
-        def _volume(self, scene, sampler, ray, o, d, t_mesh, jitter, active):
-            raise AMRError("amr_iso: mode 'volume' is not available yet")
+        def _volume(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
+            """Front-to-back compositing of the opacity band up to the mesh hit."""
+            m = self.m
+            ray_len = dr.norm(mi.Vector3f(d.x, d.y, d.z))
+
+            def color_of(value):
+                c = self._iso_color(0, value)
+                return m.Array3f(c.x, c.y, c.z)
+
+            def lighting(p, grad, lit):
+                # Back from the volume point to the ray parameter: p = o + t d.
+                t = mi.Float(dr.dot(p - o, d)) / (ray_len * ray_len)
+                A, S = self._phong_terms(scene, light_u, ray, t, grad, mi.Bool(lit))
+                return m.Array3f(A.x, A.y, A.z), m.Array3f(S.x, S.y, S.z)
+
+            res = composite(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh), jitter,
+                            color_of, lighting, m.Bool(active))
+            return mi.Spectrum(res.C.x, res.C.y, res.C.z), mi.Float(res.T)
 
         def _band_transmittance(self, o, d, t0, t1, active):
-            raise AMRError("amr_iso: mode 'volume' is not available yet")
+            m = self.m
+            res = composite(self.dev, self.config(), o, d, m.Float(t0), m.Float(t1),
+                            m.Float(0.5), None, None, m.Bool(active))
+            return mi.Float(res.T)
 
     return AMRIsoIntegrator

@@ -51,6 +51,7 @@ class KDTree:
         self.hi = self.support_hi.max(axis=0)
         self._build(max_depth)
         self._order_active()
+        self._ropes()
 
     # ------------------------------------------------------------------ build
     def _build(self, max_depth: int) -> None:
@@ -59,10 +60,10 @@ class KDTree:
         level_h = np.array([self.volume.level_spacing(l) for l in range(self.volume.num_levels)])
         f_lo, f_hi = self.lo[None, :].copy(), self.hi[None, :].copy()
         # (node, grid) pairs whose open support overlaps the node; pairs that can no longer
-        # matter (support-only, not finer than the grids inside the node) are dropped as we go.
+        # matter (support-only, no finer than the node's owner) are dropped as we go.
         p_node = np.zeros(G, dtype=np.int64)
         p_grid = np.arange(G, dtype=np.int64)
-        split_out, code_out = [], []
+        split_out, code_out, box_lo, box_hi = [], [], [], []
         leaf_lo, leaf_hi, leaf_owner = [], [], []
         base, n_leaves = 0, 0
         for depth in range(max_depth + 1):
@@ -143,6 +144,8 @@ class KDTree:
             code[leaf_ids] = ((n_leaves + np.arange(len(leaf_ids))) << 2) | LEAF
             split_out.append(plane)
             code_out.append(code)
+            box_lo.append(f_lo)
+            box_hi.append(f_hi)
             leaf_lo.append(f_lo[leaf_ids])
             leaf_hi.append(f_hi[leaf_ids])
             leaf_owner.append(owner[leaf_ids])
@@ -171,6 +174,8 @@ class KDTree:
 
         self.node_split = np.concatenate(split_out)
         self.node_code = np.concatenate(code_out)
+        self.node_lo = np.concatenate(box_lo)
+        self.node_hi = np.concatenate(box_hi)
         self.depth = len(code_out)
         self.leaf_lo = np.concatenate(leaf_lo)
         self.leaf_hi = np.concatenate(leaf_hi)
@@ -199,6 +204,40 @@ class KDTree:
         np.bitwise_or.at(self.leaf_levels, pl[active], 1 << self.level[pg[active]].astype(np.int64))
         self.leaf_min_h = np.full((L, 3), np.inf)
         np.minimum.at(self.leaf_min_h, pl[active], self.spacing[pg[active]])
+
+    def _ropes(self) -> None:
+        """``leaf_ropes[l, 2 * axis + side]``: the deepest node holding everything just beyond
+        face ``side`` (0 low, 1 high) of leaf ``l`` along ``axis`` (Havran's ropes), so a ray
+        leaving a leaf restarts its descent there instead of at the root. Faces on the tree's
+        boundary get the root."""
+        L = self.num_leaves
+        extent = float(np.max(self.hi - self.lo))
+        delta = 1e-9 * extent
+        lo = np.repeat(self.leaf_lo, 6, axis=0)
+        hi = np.repeat(self.leaf_hi, 6, axis=0)
+        face = np.tile(np.arange(6), L)
+        axis, side = face // 2, face % 2
+        rows = np.arange(6 * L)
+        plane = np.where(side == 1, hi[rows, axis] + delta, lo[rows, axis] - delta)
+        lo[rows, axis] = plane
+        hi[rows, axis] = plane
+        node = np.zeros(6 * L, dtype=np.int64)
+        todo = np.arange(6 * L)
+        for _ in range(self.depth + 1):
+            code = self.node_code[node[todo]]
+            ax = code & 3
+            split = self.node_split[node[todo]]
+            inner = ax != LEAF
+            a = np.where(inner, ax, 0)
+            below = inner & (hi[todo, a] < split)
+            above = inner & (lo[todo, a] >= split)
+            go = below | above
+            node[todo[go]] = (code[go] >> 2) + above[go]
+            todo = todo[go]
+            if len(todo) == 0:
+                break
+        outside = np.any((lo < self.lo) | (hi > self.hi), axis=1)
+        self.leaf_ropes = np.where(outside, 0, node).reshape(L, 6)
 
     def _windows(self, leaf, grid):
         """Inclusive cell index ranges ``(lo, hi)`` (each ``(P, 3)``) of the cells of ``grid``
@@ -290,21 +329,37 @@ class KDTree:
                         axis=1)
         return _group(pi[inside], gi[inside], len(points))
 
-    def leaf_ranges(self, field: str):
+    def leaf_ranges(self, field: str, reconstruction: str | None = None):
         """Conservative ``(lo, hi)`` bounds (each ``(L,)``) of ``field`` reconstructed inside
-        each leaf, by either reconstruction: min and max of the finite values of every cell
-        whose hat support reaches the leaf, over all grids listed at the leaf. Leaves with no
-        owner get the empty range ``(+inf, -inf)``."""
+        each leaf: min and max of the finite values of the cells whose hat support (centre +- one
+        cell) reaches the leaf. ``reconstruction`` narrows the cells to those that method uses:
+        ``"basis"`` -- leaf cells of the leaf's active grids; ``"finest"`` -- cells of the
+        owner grid; ``None`` -- every cell of every grid listed at the leaf (valid for both).
+        Leaves with no owner get the empty range ``(+inf, -inf)``."""
         vol = self.volume
         if field not in vol.field_names:
             raise AMRError(f"unknown field '{field}'; available: {list(vol.field_names)}")
+        if reconstruction not in (None, "basis", "finest"):
+            raise AMRError(f"reconstruction must be 'basis' or 'finest', got {reconstruction!r}")
         L = self.num_leaves
-        pl = np.repeat(np.arange(L), self.leaf_nsupport)
-        pg = self.leaf_grids.astype(np.int64)
+        if reconstruction == "finest":
+            pl = np.flatnonzero(self.leaf_owner >= 0)
+            pg = self.leaf_owner[pl]
+        else:
+            count = self.leaf_nactive if reconstruction == "basis" else self.leaf_nsupport
+            pl = np.repeat(np.arange(L), count)
+            first = np.repeat(self.leaf_start, count)
+            pg = self.leaf_grids[first + np.arange(len(pl)) -
+                                 np.repeat(np.cumsum(count) - count, count)].astype(np.int64)
         lo, hi = self._windows(pl, pg)
         keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
         pl, pg, lo, hi = pl[keep], pg[keep], lo[keep], hi[keep]
-        vmin, vmax = _window_min_max(vol, field, pg, lo, hi)
+        if reconstruction == "basis":
+            values = np.concatenate([np.where(vol.leaf_mask(i), g.fields[field], np.nan).ravel()
+                                     for i, g in enumerate(vol.grids)])
+        else:
+            values = np.concatenate([g.fields[field].ravel() for g in vol.grids])
+        vmin, vmax = _window_min_max(vol, values, pg, lo, hi)
         out_lo = np.full(L, np.inf)
         out_hi = np.full(L, -np.inf)
         np.minimum.at(out_lo, pl, vmin)
@@ -391,8 +446,9 @@ def _box_sum(sat, offset, shape, lo, hi):
     return np.where(empty, 0, total)
 
 
-def _window_min_max(volume, field, grid, lo, hi):
-    """Min and max of the finite values of ``field`` over inclusive index boxes of grids.
+def _window_min_max(volume, values, grid, lo, hi):
+    """Min and max of the finite ``values`` (all cells of all grids, flat, grid after grid) over
+    inclusive index boxes of grids.
 
     Uses sparse tables over all cells at once: table ``k`` holds, per cell, the extremum over the
     block of ``2**k`` cells per axis starting there (cut at the grid's end). A box is covered by
@@ -400,7 +456,7 @@ def _window_min_max(volume, field, grid, lo, hi):
     """
     shapes = np.array([g.shape for g in volume.grids], dtype=np.int64)
     offsets = _grid_offsets(volume)
-    values = np.concatenate([g.fields[field].ravel() for g in volume.grids]).astype(np.float64)
+    values = values.astype(np.float64)
     finite = np.isfinite(values)
     tmin = np.where(finite, values, np.inf)
     tmax = np.where(finite, values, -np.inf)

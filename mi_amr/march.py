@@ -53,6 +53,9 @@ class MarchConfig:
     isovalues: Any
     step_scale: Any
     num_iso: int
+    band: Any = None            # volume mode: a shading.OpacityBand around isovalue 0
+    band_table: Any = None      # its pre-integration table on the device
+    preintegrated: bool = False
 
     def iso(self, dev, k):
         m = dev.m
@@ -83,33 +86,49 @@ def box_interval(lo, hi, o, d):
     return dr.max(near), dr.min(far)
 
 
-def leaf_exit(lo, hi, o, d):
-    """Parameter where the ray leaves the box ``[lo, hi]`` (the larger end of the interval)."""
+def leaf_exit(m, lo, hi, o, d):
+    """Parameter where the ray leaves the box ``[lo, hi]`` and the face it leaves through
+    (``2 * axis + 1`` for the high face of ``axis``, ``2 * axis`` for the low one)."""
     face = dr.select(d > 0.0, hi, lo)
     t = dr.select(d != 0.0, (face - o) / d, dr.inf)
-    return dr.min(t)
+    t_exit = dr.min(t)
+    axis = dr.select(t.x == t_exit, m.UInt32(0), dr.select(t.y == t_exit, m.UInt32(1), m.UInt32(2)))
+    up = dr.select(axis == 0, d.x > 0.0, dr.select(axis == 1, d.y > 0.0, d.z > 0.0))
+    return t_exit, 2 * axis + dr.select(up, m.UInt32(1), m.UInt32(0))
 
 
-def enter_leaf(dev, cfg, o, d, t_probe, active):
-    """The leaf at ``o + t_probe d``: ``(leaf, t_exit, skip, mid_value)``. ``skip`` is set when
-    the leaf has no data or its value range contains no isovalue; ``mid_value`` is then a value
-    on the same side of every isovalue as the whole leaf."""
+def enter_leaf(dev, cfg, o, d, t_probe, prev_leaf, prev_face, active):
+    """The leaf at ``o + t_probe d``, found from the rope of the face the ray left the previous
+    leaf through (``prev_face`` >= 6: no previous leaf). Returns
+    ``(leaf, t_exit, exit_face, skip, mid_value)``: ``skip`` is set when the leaf has no data or
+    its value range contains no isovalue; ``mid_value`` is then a value on the same side of
+    every isovalue as the whole leaf."""
     m = dev.m
     p = dr.fma(d, t_probe, o)
-    leaf = rec.locate(dev, p, active)
+    # Start the descent at the rope's node when it holds the point, else at the root.
+    roped = active & (prev_face < 6)
+    node = gather(m.UInt32, dev.leaf_ropes, prev_leaf * 6 + prev_face, roped)
+    n_lo = gather(m.Array3f, dev.node_lo, node, roped)
+    n_hi = gather(m.Array3f, dev.node_hi, node, roped)
+    inside = roped & dr.all((p >= n_lo) & (p <= n_hi))
+    leaf = rec.locate(dev, p, active, dr.select(inside, node, m.UInt32(0)))
     lo = gather(m.Array3f, dev.leaf_lo, leaf, active)
     hi = gather(m.Array3f, dev.leaf_hi, leaf, active)
-    t_exit = leaf_exit(lo, hi, o, d)
+    t_exit, face = leaf_exit(m, lo, hi, o, d)
     owner = gather(m.UInt32, dev.leaf_owner, leaf, active)
-    r_lo = gather(m.Float, dev.range_lo, leaf, active)
-    r_hi = gather(m.Float, dev.range_hi, leaf, active)
+    range_lo, range_hi = dev.ranges(cfg.basis)
+    r_lo = gather(m.Float, range_lo, leaf, active)
+    r_hi = gather(m.Float, range_hi, leaf, active)
     holds = m.Bool(False)
-    for k in range(cfg.num_iso):
+    if cfg.band is not None:
+        centre = cfg.iso(dev, 0)
+        holds = (r_lo < centre + cfg.band.hi) & (r_hi > centre + cfg.band.lo)
+    for k in range(cfg.num_iso if cfg.band is None else 0):
         iso = cfg.iso(dev, k)
         holds |= (r_lo <= iso) & (iso <= r_hi)
     skip = (owner == NO_GRID) | ~holds
     mid = dr.select(owner == NO_GRID, dr.nan, 0.5 * (r_lo + r_hi))
-    return leaf, t_exit, skip, mid
+    return leaf, t_exit, face, skip, mid
 
 
 def next_dual_plane(dev, levels_mask, o, d, t_probe):
@@ -164,6 +183,7 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
     t = m.Float(t0)
     leaf = m.UInt32(0)
     t_exit = m.Float(-dr.inf)
+    face = m.UInt32(6)
     skip = m.Bool(True)
     v_prev = m.Float(dr.nan)
     samples = m.UInt32(0)
@@ -177,9 +197,11 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         eps = _epsilon(dev, t, dnorm)
         # --- Enter the leaf holding the next stretch of the ray.
         new = t >= t_exit
-        n_leaf, n_exit, n_skip, skip_value = enter_leaf(dev, cfg, o, d, t + eps, active & new)
+        n_leaf, n_exit, n_face, n_skip, skip_value = enter_leaf(dev, cfg, o, d, t + eps, leaf,
+                                                                face, active & new)
         leaf = dr.select(new, n_leaf, leaf)
         t_exit = dr.select(new, n_exit, t_exit)
+        face = dr.select(new, n_face, face)
         skip = dr.select(new, n_skip, skip)
 
         # --- The piece [t, t_b]: up to the next dual-cell plane of a contributing level.
@@ -245,6 +267,7 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
     t = m.Float(t0)
     leaf = m.UInt32(0)
     t_exit = m.Float(-dr.inf)
+    face = m.UInt32(6)
     skip = m.Bool(True)
     dt = m.Float(global_dt)
     t_prev = m.Float(dr.nan)
@@ -258,9 +281,11 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
         eps = _epsilon(dev, t, dnorm)
         # --- Enter the leaf holding the next stretch of the ray.
         new = t >= t_exit
-        n_leaf, n_exit, n_skip, _ = enter_leaf(dev, cfg, o, d, t + eps, active & new)
+        n_leaf, n_exit, n_face, n_skip, _ = enter_leaf(dev, cfg, o, d, t + eps, leaf, face,
+                                                       active & new)
         leaf = dr.select(new, n_leaf, leaf)
         t_exit = dr.select(new, n_exit, t_exit)
+        face = dr.select(new, n_face, face)
         skip = dr.select(new, n_skip, skip)
         if dr.hint(not uniform, mode="scalar"):
             leaf_h = gather(m.Float, dev.leaf_min_h, leaf, active & new)
@@ -345,3 +370,259 @@ def _bisect(dev, cfg, o, d, t_a, t_b, v_a, k, active):
     fb = vals[0] - iso
     t = t_a + fa / (fa - fb) * (t_b - t_a)
     return dr.select(active, dr.select(dr.isfinite(t), t, 0.5 * (t_a + t_b)), dr.inf)
+
+
+# ---------------------------------------------------------------------- volume mode
+
+@dataclass
+class Composite:
+    """Result of :func:`composite`: premultiplied colour ``C`` and the transmittance ``T`` left."""
+
+    C: Any
+    T: Any
+    samples: Any
+
+
+def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lighting,
+              active) -> Composite:
+    """Front-to-back compositing of the opacity band ``cfg.band`` along the ray, with early
+    termination when less than 1 % of the light gets through.
+
+    ``color_of(value)`` gives the colour (``m.Array3f``) for a colour-field value;
+    ``lighting(p, gradient, active)`` gives ``(A, S)`` such that the shaded colour of a sample of
+    colour ``c`` is ``c * A + S`` (the Phong terms). With ``lighting=None`` only the
+    transmittance is computed (shadow rays).
+
+    ``exact``: each cubic piece is cut where the reconstructed value can turn relative to the
+    band (at the extrema of ``N - v D`` for the band's low end, centre and high end), and each
+    resulting piece contributes the pre-integrated opacity of a linear ramp between its end
+    values: the band is never stepped over. The sampling methods take one sample per step with
+    opacity correction (or pre-integration between consecutive samples); ``bisect`` moves a
+    sample into the band when two samples straddle it (the course report's method).
+    """
+    m = dev.m
+    lo = m.Array3f(*dev.bounds_lo)
+    hi = m.Array3f(*dev.bounds_hi)
+    t_in, t_out = box_interval(lo, hi, o, d)
+    t0 = dr.maximum(t_start, t_in)
+    t1 = dr.minimum(t_end, t_out)
+    active = m.Bool(active) & (t0 < t1)
+    if cfg.method == "exact":
+        return _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active)
+    return _composite_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), color_of, lighting, active)
+
+
+def _sort(values):
+    """Odd-even transposition sort of a short list of Dr.Jit values (ascending)."""
+    v = list(values)
+    for r in range(len(v)):
+        for i in range(r % 2, len(v) - 1, 2):
+            a, b = v[i], v[i + 1]
+            v[i], v[i + 1] = dr.minimum(a, b), dr.maximum(a, b)
+    return v
+
+
+@dr.syntax
+def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
+    m = dev.m
+    band = cfg.band
+    dnorm = dr.norm(d)
+    shade = lighting is not None
+    if dr.hint(cfg.basis, mode="scalar"):
+        arrays = [dev.leaf_values, dev.color_leaf_values]
+    else:
+        arrays = [dev.values, dev.color_values]
+    level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
+    centre = cfg.iso(dev, 0)
+    marks = [centre + band.lo, centre, centre + band.hi]
+    C = m.Array3f(0.0)
+    T = m.Float(1.0)
+    t = m.Float(t0)
+    leaf = m.UInt32(0)
+    t_exit = m.Float(-dr.inf)
+    face = m.UInt32(6)
+    skip = m.Bool(True)
+    samples = m.UInt32(0)
+    while active:
+        eps = _epsilon(dev, t, dnorm)
+        new = t >= t_exit
+        n_leaf, n_exit, n_face, n_skip, _ = enter_leaf(dev, cfg, o, d, t + eps, leaf, face,
+                                                       active & new)
+        leaf = dr.select(new, n_leaf, leaf)
+        t_exit = dr.select(new, n_exit, t_exit)
+        face = dr.select(new, n_face, face)
+        skip = dr.select(new, n_skip, skip)
+
+        work = active & ~skip
+        mask = gather(m.UInt32, level_masks, leaf, work)
+        t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, t + eps), t_exit), t1)
+        t_b = dr.maximum(t_b, t + eps)
+        L = t_b - t
+        p0 = dr.fma(d, t, o)
+        nums, den = rec.segment_cubic(dev, cfg.basis, leaf, p0, d, 0.5 * L, arrays, work)
+        samples += dr.select(work, 1, 0)
+        have = work & (roots.cubic(den, 0.5 * L) > 1e-3)
+
+        # --- Pieces on which the value cannot turn back across the band's ends or centre.
+        cuts = []
+        for v in marks:
+            r1, r2 = roots.extrema([nums[0][i] - v * den[i] for i in range(4)], L)
+            cuts += [r1, r2]
+        s_pts = [0.0 * L] + _sort(cuts) + [L]
+        values = [roots.cubic(nums[0], s) / roots.cubic(den, s) for s in s_pts]
+        alphas, mids = [], []
+        best_alpha = m.Float(0.0)
+        s_best = m.Float(0.0)
+        for i in range(len(s_pts) - 1):
+            dx = (s_pts[i + 1] - s_pts[i]) * dnorm
+            a = band.segment_alpha(m, cfg.band_table, values[i], values[i + 1], dx, centre)
+            a = dr.select(have & (dx > 0.0), a, 0.0)
+            mid = 0.5 * (s_pts[i] + s_pts[i + 1])
+            alphas.append(a)
+            mids.append(mid)
+            better = a > best_alpha
+            best_alpha = dr.select(better, a, best_alpha)
+            s_best = dr.select(better, mid, s_best)
+
+        # --- Light once per piece of the ray, where it is most opaque.
+        lit = have & (best_alpha > 1e-3)
+        if dr.hint(shade, mode="scalar"):
+            p_best = dr.fma(d, t + s_best, o)
+            _, grad = rec.reconstruct(dev, cfg.basis, p_best, arrays[:1], lit, leaf=leaf)
+            A, S = lighting(p_best, grad, lit)
+        for i in range(len(alphas)):
+            a = alphas[i]
+            if dr.hint(shade, mode="scalar"):
+                cval = roots.cubic(nums[1], mids[i]) / roots.cubic(den, mids[i])
+                C += dr.select(a > 0.0, T * a * (color_of(cval) * A + S), 0.0)
+            T *= 1.0 - a
+
+        t = dr.select(skip, dr.maximum(t_exit, t + eps), t_b)
+        active &= (t < t1) & (T > 0.01)
+    T = dr.select(T <= 0.01, 0.0, T)
+    return Composite(C=C, T=T, samples=samples)
+
+
+@dr.syntax
+def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, active):
+    m = dev.m
+    band = cfg.band
+    dnorm = dr.norm(d)
+    shade = lighting is not None
+    uniform = cfg.method == "uniform"
+    if dr.hint(cfg.basis, mode="scalar"):
+        arrays = [dev.leaf_values, dev.color_leaf_values]
+    else:
+        arrays = [dev.values, dev.color_values]
+    centre = cfg.iso(dev, 0)
+    band_lo, band_hi = centre + band.lo, centre + band.hi
+    rho = m.Float(0.0) if uniform else jitter
+    t_anchor = m.Float(t0)
+    t = m.Float(t0)
+    leaf = m.UInt32(0)
+    t_exit = m.Float(-dr.inf)
+    face = m.UInt32(6)
+    skip = m.Bool(True)
+    dt = m.Float(cfg.step_scale * dev.min_h / dnorm)
+    t_prev = m.Float(t0)
+    v_prev = m.Float(dr.nan)
+    C = m.Array3f(0.0)
+    T = m.Float(1.0)
+    samples = m.UInt32(0)
+    while active:
+        eps = _epsilon(dev, t, dnorm)
+        new = t >= t_exit
+        n_leaf, n_exit, n_face, n_skip, _ = enter_leaf(dev, cfg, o, d, t + eps, leaf, face,
+                                                       active & new)
+        leaf = dr.select(new, n_leaf, leaf)
+        t_exit = dr.select(new, n_exit, t_exit)
+        face = dr.select(new, n_face, face)
+        skip = dr.select(new, n_skip, skip)
+        if dr.hint(not uniform, mode="scalar"):
+            leaf_h = gather(m.Float, dev.leaf_min_h, leaf, active & new)
+            dt = dr.select(new, cfg.step_scale * leaf_h / dnorm, dt)
+
+        step = dr.floor((t - t_anchor) / dt - rho + 1e-4) + 1.0
+        b_lattice = t_anchor + (rho + step) * dt
+        b = dr.maximum(dr.minimum(dr.minimum(b_lattice, t_exit), t1), t + eps)
+        if dr.hint(uniform, mode="scalar"):
+            t_s = b_lattice
+            take = active & (b_lattice <= dr.minimum(t_exit, t1))
+        else:
+            t_s = 0.5 * (t + b)
+            take = m.Bool(active)
+        vals, grad = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), arrays, take, leaf=leaf)
+        v = vals[0]
+        cval = vals[1]
+        samples += dr.select(take, 1, 0)
+
+        if dr.hint(cfg.method == "bisect", mode="scalar"):
+            # Two samples on either side of the band: move this sample into it if a point in
+            # between lies in the band (course report, section 3.6.2).
+            straddle = take & (((v_prev < band_lo) & (v > band_hi)) |
+                               ((v_prev > band_hi) & (v < band_lo)))
+            t_m, found = _bisect_band(dev, cfg, o, d, t_prev, t_s, v_prev, band_lo, band_hi,
+                                      straddle)
+            moved = straddle & found
+            vals_m, grad_m = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_m, o), arrays, moved)
+            t_s = dr.select(moved, t_m, t_s)
+            v = dr.select(moved, vals_m[0], v)
+            cval = dr.select(moved, vals_m[1], cval)
+            grad = dr.select(moved, grad_m, grad)
+
+        # Opacity-correction weight: the step (uniform), the sub-interval (adaptive, ExaBricks)
+        # or the distance from the previous sample (bisect, course report).
+        if dr.hint(uniform, mode="scalar"):
+            dx = dt * dnorm
+        elif dr.hint(cfg.method == "adaptive", mode="scalar"):
+            dx = (b - t) * dnorm
+        else:
+            dx = (t_s - t_prev) * dnorm
+        if dr.hint(cfg.preintegrated, mode="scalar"):
+            a = dr.select(dr.isfinite(v_prev),
+                          band.segment_alpha(m, cfg.band_table, v_prev, v, dx, centre),
+                          band.corrected(band.alpha(m, v, centre), dx))
+        else:
+            a = band.corrected(band.alpha(m, v, centre), dx)
+        a = dr.select(take & dr.isfinite(v), a, 0.0)
+        if dr.hint(shade, mode="scalar"):
+            lit = take & (a > 1e-3)
+            A, S = lighting(dr.fma(d, t_s, o), grad, lit)
+            C += dr.select(lit, T * a * (color_of(cval) * A + S), 0.0)
+        T *= 1.0 - a
+        t_prev = dr.select(take, t_s, t_prev)
+        v_prev = dr.select(take, v, v_prev)
+
+        last = t_anchor + (rho + dr.floor((t_exit - t_anchor) / dt - rho - 1e-4)) * dt
+        if dr.hint(uniform, mode="scalar"):
+            last = last - 0.5 * dt
+        t = dr.select(skip, dr.maximum(b, last), b)
+        active &= (t < t1) & (T > 0.01)
+    T = dr.select(T <= 0.01, 0.0, T)
+    return Composite(C=C, T=T, samples=samples)
+
+
+@dr.syntax
+def _bisect_band(dev, cfg, o, d, t_a, t_b, v_a, band_lo, band_hi, active):
+    """A point of ``[t_a, t_b]`` whose value lies in ``(band_lo, band_hi)``, by bisection on the
+    side of the band that ``v_a`` is on; returns ``(t, found)``."""
+    m = dev.m
+    values = [dev.leaf_values if cfg.basis else dev.values]
+    below = v_a < band_lo
+    depth = dr.maximum(dr.ceil(dr.log2(cfg.step_scale / BISECT_TARGET)), 1.0)
+    i = m.Float(0.0)
+    found = m.Bool(False)
+    t_found = m.Float(0.0)
+    while active & ~found & (i < depth):
+        mid = 0.5 * (t_a + t_b)
+        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, mid, o), values, active & ~found)
+        v = vals[0]
+        inside = (v > band_lo) & (v < band_hi)
+        found |= inside
+        t_found = dr.select(inside, mid, t_found)
+        # Still on the starting side: the band lies further on.
+        same = dr.select(below, v <= band_lo, v >= band_hi)
+        t_a = dr.select(same, mid, t_a)
+        t_b = dr.select(same, t_b, mid)
+        i += 1.0
+    return t_found, found

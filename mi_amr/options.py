@@ -34,7 +34,6 @@ PARAMETERS = {
     "ks": ("float", 0.25),
     "shininess": ("float", 32.0),
     "ambient": ("float", 1.0),
-    "band_center": ("float", None),
     "band_width": ("float", 0.004),
     "band_support": ("2 floats", None),
     "band_peak": ("float", 1.6),
@@ -64,7 +63,6 @@ class Options:
     ks: float = 0.25
     shininess: float = 32.0
     ambient: float = 1.0
-    band_center: Optional[float] = None
     band_width: float = 0.004
     band_support: Optional[tuple] = None
     band_peak: float = 1.6
@@ -115,8 +113,6 @@ def parse(values: dict) -> Options:
     opt.ks = _number(values, "ks", lo=0.0, hi=100.0)
     opt.shininess = _number(values, "shininess", lo=0.0, hi=1e4)
     opt.ambient = _number(values, "ambient", lo=0.0, hi=1e6)
-    if "band_center" in values:
-        opt.band_center = _number(values, "band_center", lo=-math.inf, hi=math.inf)
     opt.band_width = _number(values, "band_width", lo=1e-30, hi=math.inf)
     if "band_support" in values:
         opt.band_support = _pair(values, "band_support")

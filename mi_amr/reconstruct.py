@@ -34,10 +34,11 @@ from .device import NO_GRID, gather
 # ---------------------------------------------------------------------- kd-tree point location
 
 @dr.syntax
-def locate(dev, p, active):
-    """Index of the kd leaf containing world point ``p`` (a point on a split plane goes up)."""
+def locate(dev, p, active, start=None):
+    """Index of the kd leaf containing world point ``p`` (a point on a split plane goes up),
+    descending from node ``start`` (the root by default), which must contain ``p``."""
     m = dev.m
-    node = m.UInt32(0)
+    node = m.UInt32(0) if start is None else m.UInt32(start)
     code = gather(m.UInt32, dev.node_code, node, active)
     while active & ((code & 3) != 3):
         axis = code & 3

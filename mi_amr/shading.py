@@ -118,60 +118,65 @@ class ColorMap:
 
 
 class OpacityBand:
-    """The Gaussian opacity band of volume mode (see the module docstring)."""
+    """The Gaussian opacity band of volume mode (see the module docstring), centred on the
+    isovalue. ``width`` and the support ``(lo, hi)`` are offsets from the centre, so a new
+    isovalue moves the band without rebuilding anything. ``dx0`` is the step length (world
+    units) at which ``alpha`` is the opacity of one step."""
 
-    def __init__(self, centre: float, width: float = 0.004, support=None, peak: float = 1.6,
-                 dx0: float = 1.0):
+    def __init__(self, width: float = 0.004, support=None, peak: float = 1.6, dx0: float = 1.0):
         if not width > 0:
-            raise AMRError(f"band_width must be > 0, got {width}")
+            raise AMRError(f"amr_iso: parameter 'band_width' must be > 0, got {width}")
         if not peak > 0:
-            raise AMRError(f"band_peak must be > 0, got {peak}")
-        lo, hi = support if support is not None else (centre - 2 * width, centre + 2 * width)
-        if not lo < centre < hi:
-            raise AMRError(f"band_support ({lo:g}, {hi:g}) must contain the band centre "
-                           f"{centre:g}")
-        self.centre, self.width, self.lo, self.hi, self.peak = centre, width, lo, hi, peak
+            raise AMRError(f"amr_iso: parameter 'band_peak' must be > 0, got {peak}")
+        lo, hi = support if support is not None else (-2.0 * width, 2.0 * width)
+        if not lo < 0.0 < hi:
+            raise AMRError(f"amr_iso: parameter 'band_support' must contain the isovalue "
+                           f"(offsets {lo:g}, {hi:g})")
+        self.width, self.lo, self.hi, self.peak = float(width), float(lo), float(hi), float(peak)
         self.dx0 = float(dx0)
-        # Integral of the extinction over values, tabulated across the support.
-        self.table_x = np.linspace(lo, hi, 1025)
-        tau = -np.log1p(-np.minimum(self.alpha_numpy(self.table_x), OPACITY_CAP)) / self.dx0
+        # Integral of the extinction over value offsets, tabulated across the support.
+        self.table_x = np.linspace(self.lo, self.hi, 1025)
+        tau = -np.log1p(-np.minimum(self.alpha_numpy(self.table_x, 0.0), OPACITY_CAP)) / self.dx0
         self.table_T = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) *
                                                         np.diff(self.table_x))])
 
-    def alpha_numpy(self, v):
-        v = np.asarray(v, dtype=np.float64)
-        a = np.minimum(1.0, self.peak * np.exp(-0.5 * (v - self.centre) ** 2 / self.width ** 2))
-        return np.where((v > self.lo) & (v < self.hi), a, 0.0)
+    def alpha_numpy(self, v, centre):
+        x = np.asarray(v, dtype=np.float64) - centre
+        a = np.minimum(1.0, self.peak * np.exp(-0.5 * (x / self.width) ** 2))
+        return np.where((x > self.lo) & (x < self.hi), a, 0.0)
 
-    def alpha(self, m, v):
-        a = dr.minimum(1.0, self.peak * dr.exp(-0.5 * dr.square((v - self.centre) / self.width)))
-        return dr.select((v > self.lo) & (v < self.hi), a, 0.0)
+    def alpha(self, m, v, centre):
+        """Opacity of one step of length ``dx0`` at value ``v``."""
+        x = v - centre
+        a = dr.minimum(1.0, self.peak * dr.exp(-0.5 * dr.square(x / self.width)))
+        return dr.select((x > self.lo) & (x < self.hi), a, 0.0)
 
-    @staticmethod
-    def corrected(alpha, dx, dx0):
-        """Opacity correction for a step ``dx`` when ``alpha`` was defined for steps ``dx0``."""
-        return 1.0 - dr.power(dr.maximum(1.0 - alpha, 0.0), dx / dx0)
+    def corrected(self, alpha, dx):
+        """Opacity correction for a step of length ``dx`` (world units)."""
+        return 1.0 - dr.power(dr.maximum(1.0 - dr.minimum(alpha, OPACITY_CAP), 0.0),
+                              dx / self.dx0)
 
     def device(self, m):
         mk = (lambda a: dr.scalar.ArrayXf(a)) if m is dr.scalar else m.Float
         return mk(self.table_T.astype(np.float32))
 
-    def integral(self, m, table, v):
-        """``T(v)``: the extinction integrated from the support's low end to ``v``."""
+    def integral(self, m, table, x):
+        """``T(x)``: the extinction integrated from the support's low end to offset ``x``."""
         n = len(self.table_x) - 1
-        u = dr.clip((v - self.lo) / (self.hi - self.lo), 0.0, 1.0) * n
+        u = dr.clip((x - self.lo) / (self.hi - self.lo), 0.0, 1.0) * n
         i = dr.minimum(m.UInt32(dr.floor(u)), n - 1)
         f = u - m.Float(i)
         return dr.lerp(gather(m.Float, table, i), gather(m.Float, table, i + 1), f)
 
-    def segment_alpha(self, m, table, a, b, dx):
-        """Pre-integrated opacity of a segment of length ``dx`` whose value goes linearly from
-        ``a`` to ``b``."""
-        Ta, Tb = self.integral(m, table, a), self.integral(m, table, b)
-        same = dr.abs(b - a) < 1e-7 * (dr.abs(a) + dr.abs(b) + 1e-30)
-        tau_mean = dr.select(same, -dr.log(1.0 - dr.minimum(self.alpha(m, 0.5 * (a + b)),
-                                                             OPACITY_CAP)) / self.dx0,
-                             (Tb - Ta) / (b - a))
+    def segment_alpha(self, m, table, a, b, dx, centre):
+        """Pre-integrated opacity of a step of length ``dx`` (world) along which the value goes
+        linearly from ``a`` to ``b``."""
+        xa, xb = a - centre, b - centre
+        Ta, Tb = self.integral(m, table, xa), self.integral(m, table, xb)
+        close = dr.abs(xb - xa) < 1e-6 * self.width
+        tau_point = -dr.log(1.0 - dr.minimum(self.alpha(m, 0.5 * (a + b), centre),
+                                             OPACITY_CAP)) / self.dx0
+        tau_mean = dr.select(close, tau_point, (Tb - Ta) / (xb - xa))
         return 1.0 - dr.exp(-dr.maximum(tau_mean, 0.0) * dx)
 
 

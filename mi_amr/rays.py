@@ -1,0 +1,95 @@
+"""Ray queries without a scene: the integrator's kernels on NumPy rays.
+
+>>> r = mi_amr.trace(vol, origins, directions, field="f", isovalue=0.3)
+>>> r.t, r.hit, r.normal, r.samples
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import numpy as np
+
+from .errors import AMRError
+from .march import METHODS, RECONSTRUCTIONS, MarchConfig, first_crossing
+from .prepared import PreparedVolume
+from .reconstruct import reconstruct
+
+
+@dataclass
+class TraceResult:
+    """Per ray: ``t`` (inf where no hit; the hit point is ``origin + t * direction``), ``hit``,
+    ``normal`` (unit gradient of the reconstructed field at the hit, pointing towards increasing
+    values; NaN where no hit), ``samples`` (field evaluations along the ray; for ``exact`` the
+    number of cubic pieces examined) and ``iso_index`` (which isovalue was crossed)."""
+
+    t: np.ndarray
+    hit: np.ndarray
+    normal: np.ndarray
+    samples: np.ndarray
+    iso_index: np.ndarray
+
+
+def trace(volume, origins, directions, *, field: str, isovalue, method: str = "exact",
+          reconstruction: str = "basis", step_scale: float = 0.5, jitter=None,
+          leaf_cells: int = 4, t_max=np.inf, backend=None) -> TraceResult:
+    """First crossing of ``isovalue`` (a number or a list) by each ray, in the volume's world
+    space. ``origins`` and ``directions`` are ``(N, 3)``; directions need not be unit length.
+    ``jitter`` (``(N,)`` in [0, 1)) offsets the adaptive methods' steps; by default a fixed
+    hash of the ray index. ``backend`` is a Dr.Jit module (default ``drjit.llvm.ad``)."""
+    if method not in METHODS:
+        raise AMRError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if reconstruction not in RECONSTRUCTIONS:
+        raise AMRError(f"reconstruction must be one of {', '.join(RECONSTRUCTIONS)}, "
+                       f"got {reconstruction!r}")
+    if not step_scale > 0:
+        raise AMRError(f"step_scale must be > 0, got {step_scale}")
+    origins = np.asarray(origins, dtype=np.float64)
+    directions = np.asarray(directions, dtype=np.float64)
+    if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
+        raise AMRError(f"origins and directions must both be (N, 3) arrays, got "
+                       f"{origins.shape} and {directions.shape}")
+    isovalues = [float(x) for x in np.atleast_1d(isovalue)]
+    m = backend or dr.llvm.ad
+    prep = _prepared(volume, field, leaf_cells, m)
+    dev = prep.device
+    n = len(origins)
+    if jitter is None:
+        jitter = (np.arange(n, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15) >> np.uint64(40)
+                  ).astype(np.float64) / float(1 << 24)
+    iso = m.Float(np.array(isovalues, dtype=np.float32))
+    scale = m.Float(float(step_scale))
+    dr.make_opaque(iso, scale)
+    cfg = MarchConfig(method=method, basis=reconstruction == "basis", isovalues=iso,
+                      step_scale=scale, num_iso=len(isovalues))
+    o = _array3(m, origins)
+    d = _array3(m, directions)
+    c = first_crossing(dev, cfg, o, d, m.Float(0.0), m.Float(np.broadcast_to(
+        np.asarray(t_max, dtype=np.float32), (n,)).copy()), m.Float(np.asarray(
+            jitter, dtype=np.float32)), m.Bool(True))
+    arrays = [dev.leaf_values if cfg.basis else dev.values]
+    _, grad = reconstruct(dev, cfg.basis, dr.fma(d, c.t, o), arrays, c.hit)
+    normal = dr.normalize(grad)
+    dr.eval(c.t, c.hit, c.samples, c.k, normal)
+    hit = c.hit.numpy().astype(bool)
+    t = np.where(hit, c.t.numpy().astype(np.float64), np.inf)
+    nrm = np.stack([normal.x.numpy(), normal.y.numpy(), normal.z.numpy()], axis=1).astype(
+        np.float64)
+    nrm[~hit] = np.nan
+    return TraceResult(t=t, hit=hit, normal=nrm, samples=c.samples.numpy().astype(np.int64),
+                       iso_index=np.where(hit, c.k.numpy(), -1).astype(np.int64))
+
+
+def _prepared(volume, field, leaf_cells, m) -> PreparedVolume:
+    """One PreparedVolume per (volume, field, leaf size, backend), kept on the volume."""
+    cache = volume.__dict__.setdefault("_prepared", {})
+    key = (field, leaf_cells, m.__name__)
+    if key not in cache:
+        cache[key] = PreparedVolume(volume, field, leaf_cells=leaf_cells, m=m)
+    return cache[key]
+
+
+def _array3(m, a):
+    a = np.asarray(a, dtype=np.float32)
+    return m.Array3f(m.Float(a[:, 0].copy()), m.Float(a[:, 1].copy()), m.Float(a[:, 2].copy()))

@@ -1,0 +1,74 @@
+"""Shared builders of small, valid AMR hierarchies (world boxes given by hand, so every expected
+value in the tests can be derived from them).
+
+All spacings here are powers of two, so grid faces, cell centres and hat-support boundaries are
+exact binary fractions and "a point exactly on a face" means exactly.
+"""
+
+import numpy as np
+import pytest
+
+from mi_amr import AMRVolume
+
+
+def grid(level, lo, hi, h, fn=None, names=("f",)):
+    """A grid record covering the world box ``[lo, hi]`` with cells of size ``h`` (a float);
+    each field is ``fn(centres)`` (``centres`` shaped ``(nx, ny, nz, 3)``), or zeros."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    shape = tuple(int(n) for n in np.round((hi - lo) / h))
+    axes = [lo[a] + (np.arange(shape[a]) + 0.5) * h for a in range(3)]
+    centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    fields = {}
+    for name in names:
+        fields[name] = np.zeros(shape) if fn is None else np.asarray(fn(centres), dtype=np.float64)
+    return {"level": level, "origin": tuple(lo), "spacing": h, "fields": fields}
+
+
+# World boxes of the reference hierarchy: two level-0 grids sharing the face x = 4; level-1
+# grids spanning that face, touching each other at y = 4, and one apart; level-2 grids inside
+# them, one spanning the level-1 face y = 4, one touching its parent's faces.
+LEVEL0 = [((0, 0, 0), (4, 8, 8)), ((4, 0, 0), (8, 8, 8))]
+LEVEL1 = [((2, 2, 2), (6, 4, 4)), ((2, 4, 2), (4, 6, 4)), ((5, 5, 5), (7, 7, 7))]
+LEVEL2 = [((3, 2.5, 2.5), (5, 3.5, 3.5)), ((3, 3.5, 2.5), (4, 4.5, 3.5)),
+          ((5.5, 5, 6), (6.5, 6, 7))]
+
+
+def reference_grids(ratios=(2, 2), fn=None, names=("f",)):
+    """The reference hierarchy (3 levels, 8 grids) with level-0 cells of size 1."""
+    h = [1.0, 1.0 / ratios[0], 1.0 / (ratios[0] * ratios[1])]
+    out = []
+    for level, boxes in enumerate((LEVEL0, LEVEL1, LEVEL2)):
+        out += [grid(level, lo, hi, h[level], fn, names) for lo, hi in boxes]
+    return out
+
+
+def random_grids(seed, *, num_levels=3, ratios=(2, 2), base=(8, 6, 6), tries=12, fn=None):
+    """A random valid hierarchy: level 0 is ``base`` cells (size 1) cut into slabs along x;
+    each finer level gets up to ``tries`` random boxes, each inside one grid of the level above
+    and on its lattice, kept when it does not overlap the boxes already chosen."""
+    rng = np.random.default_rng(seed)
+    cuts = np.unique(np.concatenate([[0, base[0]], rng.integers(1, base[0], 2)]))
+    boxes = [[(np.array([a, 0, 0]), np.array([b, base[1], base[2]]))
+              for a, b in zip(cuts[:-1], cuts[1:])]]
+    h = [1.0]
+    for level in range(1, num_levels):
+        r = ratios[level - 1]
+        h.append(h[-1] / r)
+        chosen = []
+        for _ in range(tries):
+            plo, phi = boxes[level - 1][rng.integers(len(boxes[level - 1]))]
+            ext = np.round((phi - plo) / h[level - 1]).astype(int)
+            size = np.array([rng.integers(1, min(n, 3) + 1) for n in ext])
+            start = np.array([rng.integers(0, n - s + 1) for n, s in zip(ext, size)])
+            lo = plo + start * h[level - 1]
+            hi = lo + size * h[level - 1]
+            if all(np.any(hi <= clo) or np.any(lo >= chi) for clo, chi in chosen):
+                chosen.append((lo, hi))
+        boxes.append(chosen)
+    return [grid(level, lo, hi, h[level], fn) for level in range(num_levels)
+            for lo, hi in boxes[level]]
+
+
+@pytest.fixture
+def reference_volume():
+    return AMRVolume.from_grids(reference_grids())

@@ -1,0 +1,287 @@
+"""Derived fields across levels: speed, Q-criterion and vorticity magnitude of velocity fields
+whose values are known in closed form.
+
+Why linear fields are exact: a central difference of a linear function is exact, so is the
+second-order one-sided difference used at the domain's edge, and trilinear interpolation (used
+for ghost cells taken from a coarser level) reproduces linear functions. So for v = A x + b
+every cell, on every level, must give grad v = A to rounding.
+"""
+
+import numpy as np
+import pytest
+from hypothesis import given, settings, strategies as st
+
+import mi_amr
+from mi_amr import AMRError, AMRVolume
+from mi_amr.derive import DERIVED_FIELDS, velocity_gradient
+from conftest import random_grids
+
+# Level-0 cells of 0.5 over [0, 8] x [0, 4] x [0, 4] in two grids sharing x = 4. Level-1 grids:
+# one spanning that face, one in the domain corner at the origin, one in the opposite corner.
+# Level-2 grids: one inside the first (away from every edge), one in each domain corner.
+DERIVE_BOXES = [
+    [((0, 0, 0), (4, 4, 4)), ((4, 0, 0), (8, 4, 4))],
+    [((2, 1, 1), (6, 3, 3)), ((0, 0, 0), (2, 2, 2)), ((6, 2, 2), (8, 4, 4))],
+    [((3, 1.5, 1.5), (4, 2.5, 2.5)), ((0, 0, 0), (1, 1, 1)), ((7, 3, 3), (8, 4, 4))],
+]
+H0 = 0.5
+
+
+def velocity_grid(level, lo, hi, h, velocity, names=("vx", "vy", "vz"), dtype=np.float64):
+    """A grid record over the world box ``[lo, hi]`` with ``velocity(centres) -> (..., 3)``
+    sampled at its cell centres."""
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    axes = [lo[a] + (np.arange(round((hi[a] - lo[a]) / h)) + 0.5) * h for a in range(3)]
+    v = velocity(np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1))
+    return {"level": level, "origin": tuple(lo), "spacing": h,
+            "fields": {n: v[..., c].astype(dtype) for c, n in enumerate(names)}}
+
+
+def velocity_volume(velocity, ratios=(2, 2), names=("vx", "vy", "vz"), dtype=np.float64,
+                    num_levels=3):
+    """The hierarchy above with ``velocity`` sampled at cell centres."""
+    h = [H0, H0 / ratios[0], H0 / (ratios[0] * ratios[1])]
+    return AMRVolume.from_grids([velocity_grid(level, lo, hi, h[level], velocity, names, dtype)
+                                 for level in range(num_levels)
+                                 for lo, hi in DERIVE_BOXES[level]])
+
+
+def centres_of(g):
+    return np.stack(np.meshgrid(*g.cell_centers(), indexing="ij"), axis=-1)
+
+
+def q_exact(grad):
+    """Q = -tr(grad^2) / 2 for ``grad[..., i, j] = d v_i / d x_j``."""
+    return -0.5 * np.einsum("...ij,...ji->...", grad, grad)
+
+
+def vorticity_exact(grad):
+    w = np.stack([grad[..., 2, 1] - grad[..., 1, 2], grad[..., 0, 2] - grad[..., 2, 0],
+                  grad[..., 1, 0] - grad[..., 0, 1]], axis=-1)
+    return np.linalg.norm(w, axis=-1)
+
+
+RNG = np.random.default_rng(42)
+A = RNG.normal(size=(3, 3))
+B = RNG.normal(size=3)
+
+
+def linear(p):
+    return p @ A.T + B
+
+
+# ---------------------------------------------------------------------- linear fields: exact
+
+@pytest.mark.parametrize("ratios", [(2, 2), (4, 2), (2, 4)])
+def test01_q_of_a_linear_field_is_exact_on_every_level(ratios):
+    vol = mi_amr.derive(velocity_volume(linear, ratios), "q_criterion", "vorticity_magnitude")
+    q = -0.5 * np.trace(A @ A)
+    w = vorticity_exact(A)
+    assert abs(q) > 0.1 and w > 0.1
+    for i, g in enumerate(vol.grids):
+        np.testing.assert_allclose(g.fields["q_criterion"], q, rtol=0, atol=1e-12,
+                                   err_msg=f"grid {i} (level {g.level})")
+        np.testing.assert_allclose(g.fields["vorticity_magnitude"], w, rtol=0, atol=1e-12,
+                                   err_msg=f"grid {i} (level {g.level})")
+
+
+def test02_velocity_gradient_of_a_linear_field_is_a_everywhere():
+    vol = velocity_volume(linear)
+    grads = velocity_gradient(vol, ("vx", "vy", "vz"))
+    for i, (g, grad) in enumerate(zip(vol.grids, grads)):
+        assert grad.shape == (3, 3) + g.shape
+        np.testing.assert_allclose(np.moveaxis(grad, (0, 1), (-2, -1)),
+                                   np.broadcast_to(A, g.shape + (3, 3)), rtol=0, atol=1e-12,
+                                   err_msg=f"grid {i} (level {g.level})")
+
+
+def test03_solid_body_rotation_about_z():
+    omega, centre = 0.7, np.array([4.1, 1.9, 0.0])
+
+    def rotation(p):
+        d = p - centre
+        return omega * np.stack([-d[..., 1], d[..., 0], np.zeros(d.shape[:-1])], axis=-1)
+
+    vol = mi_amr.derive(velocity_volume(rotation), "q_criterion", "vorticity_magnitude", "speed")
+    for g in vol.grids:
+        np.testing.assert_allclose(g.fields["q_criterion"], omega ** 2, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(g.fields["vorticity_magnitude"], 2 * omega, rtol=0, atol=1e-12)
+        rho = np.linalg.norm((centres_of(g) - centre)[..., :2], axis=-1)
+        np.testing.assert_allclose(g.fields["speed"], omega * rho, rtol=1e-12, atol=1e-14)
+
+
+def test04_pure_strain_has_negative_q_and_no_vorticity():
+    # v = (x, -y, 0) about (4, 2, 2): Q = -(1 + 1) / 2 = -1, curl v = 0.
+    vol = mi_amr.derive(velocity_volume(lambda p: (p - [4, 2, 2]) * [1, -1, 0]),
+                        "q_criterion", "vorticity_magnitude")
+    for g in vol.grids:
+        np.testing.assert_allclose(g.fields["q_criterion"], -1.0, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(g.fields["vorticity_magnitude"], 0.0, rtol=0, atol=1e-12)
+
+
+def test05_speed_is_the_norm_of_the_stored_velocity():
+    vol = velocity_volume(linear, dtype=np.float32)
+    out = mi_amr.derive(vol, "speed")
+    for g, h in zip(vol.grids, out.grids):
+        v = np.stack([g.fields[n] for n in ("vx", "vy", "vz")], axis=-1)
+        assert h.fields["speed"].dtype == np.float32
+        np.testing.assert_array_equal(h.fields["speed"], np.sqrt((v * v).sum(axis=-1)))
+
+
+def test06_one_sided_differences_at_the_domain_edge_are_exact_for_linear_fields():
+    # One level only: every grid face on the domain's edge uses the one-sided difference.
+    vol = mi_amr.derive(velocity_volume(linear, num_levels=1), "q_criterion")
+    for g in vol.grids:
+        np.testing.assert_allclose(g.fields["q_criterion"], -0.5 * np.trace(A @ A),
+                                   rtol=0, atol=1e-12)
+    # Grids only 2 cells thick along an axis take a first-order difference there: still exact.
+    thin = AMRVolume.from_grids([velocity_grid(0, (0, 0, 0), (1, 2, 2), 0.5, linear)])
+    q = mi_amr.derive(thin, "q_criterion").grids[0].fields["q_criterion"]
+    np.testing.assert_allclose(q, -0.5 * np.trace(A @ A), rtol=0, atol=1e-12)
+    # A grid one cell thick on the domain's edge differences towards its neighbour grid.
+    for lo, hi in (((0, 0, 0), (0.5, 2, 2)), ((1.5, 0, 0), (2, 2, 2))):
+        slab = AMRVolume.from_grids([velocity_grid(0, lo, hi, 0.5, linear),
+                                     velocity_grid(0, (0.5, 0, 0), (1.5, 2, 2), 0.5, linear)])
+        for g in mi_amr.derive(slab, "q_criterion").grids:
+            np.testing.assert_allclose(g.fields["q_criterion"], -0.5 * np.trace(A @ A),
+                                       rtol=0, atol=1e-12)
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2 ** 32 - 1), ratios=st.sampled_from([(2, 2), (2, 4), (4, 2), (4, 4)]))
+def test07_linear_fields_are_exact_on_random_hierarchies(seed, ratios):
+    """Random grids (level-0 slabs down to one cell thick, fine grids touching each other and
+    the domain's edge anywhere): grad v = A in every cell."""
+    grids = random_grids(seed, ratios=ratios)
+    for g in grids:
+        lo = np.array(g["origin"])
+        hi = lo + np.array(g["fields"]["f"].shape) * g["spacing"]
+        g["fields"] = velocity_grid(g["level"], lo, hi, g["spacing"], linear)["fields"]
+    vol = AMRVolume.from_grids(grids)
+    for i, (g, grad) in enumerate(zip(vol.grids, velocity_gradient(vol, ("vx", "vy", "vz")))):
+        np.testing.assert_allclose(np.moveaxis(grad, (0, 1), (-2, -1)),
+                                   np.broadcast_to(A, g.shape + (3, 3)), rtol=0, atol=1e-11,
+                                   err_msg=f"grid {i} (level {g.level}, origin {g.origin})")
+
+
+# ---------------------------------------------------------------------- quadratic fields
+
+# v_i = A x + x^T C_i x / 2 (x relative to the domain centre): grad v_i = A_i + C_i x.
+C = RNG.normal(size=(3, 3, 3)) * 0.05
+C = 0.5 * (C + np.swapaxes(C, 1, 2))
+CENTRE = np.array([4.0, 2.0, 2.0])
+
+
+def quadratic(p):
+    x = p - CENTRE
+    return x @ A.T + 0.5 * np.einsum("...j,ijk,...k->...i", x, C, x)
+
+
+def quadratic_grad(p):
+    return A + np.einsum("ijk,...k->...ij", C, p - CENTRE)
+
+
+def quadratic_q_tolerance(level, grad, ratios=(2, 2)):
+    """A bound on the Q error of level-``level`` cells whose exact gradient is ``grad``
+    (``(..., 3, 3)``), from ghost cells interpolated from coarser levels.
+
+    Trilinear interpolation of a quadratic is off by at most h^2/8 * sum_a |d^2 v_i / dx_a^2|
+    per level it passes through (a level-2 ghost may come from a level-1 value that was itself
+    interpolated from level 0); the central difference divides that by 2 h_level. With every
+    gradient entry off by at most dG, Q = -sum_ij G_ij G_ji / 2 is off by at most
+    sum_ij |G_ji| dG + 9 dG^2 / 2. Level 0 takes no interpolated ghost: exact up to rounding.
+    """
+    curv = np.abs(np.einsum("ikk->ik", C)).sum(axis=1).max()
+    h = [H0, H0 / ratios[0], H0 / (ratios[0] * ratios[1])]
+    dG = sum(hc ** 2 for hc in h[:level]) / 8 * curv / (2 * h[level])
+    return np.abs(grad).sum(axis=(-2, -1)) * dG + 4.5 * dG ** 2 + 1e-10
+
+
+def test08_quadratic_field_is_exact_away_from_level_edges_and_close_near_them():
+    vol = mi_amr.derive(velocity_volume(quadratic), "q_criterion")
+    for i, g in enumerate(vol.grids):
+        centres = centres_of(g)
+        grad = quadratic_grad(centres)
+        want = q_exact(grad)
+        got = g.fields["q_criterion"]
+        tol = quadratic_q_tolerance(g.level, grad)
+        assert np.all(tol < 0.2 * np.abs(want).max())
+        assert np.all(np.abs(got - want) <= tol), f"grid {i}"
+        # Cells whose neighbours along all axes lie in the same grid or beyond the domain's edge
+        # need no interpolated ghost: central and one-sided differences of a quadratic are exact.
+        h = np.asarray(g.spacing)
+        inner = np.all((centres - h > g.lo) | (np.isclose(g.lo, 0)), axis=-1) & \
+            np.all((centres + h < g.hi) | (np.isclose(g.hi, [8, 4, 4])), axis=-1)
+        assert inner.any()
+        np.testing.assert_allclose(got[inner], want[inner], rtol=0, atol=1e-10,
+                                   err_msg=f"grid {i}")
+
+
+def test09_q_is_continuous_across_a_level_boundary():
+    """Along x through the level-1 grid spanning x in [2, 6], the derived Q of the last coarse
+    cell and the first fine cell differ as the exact Q at their centres does."""
+    vol = mi_amr.derive(velocity_volume(quadratic, num_levels=2), "q_criterion")
+    coarse, fine = vol.grids[0], vol.grids[2]        # level 0 [0, 4]^3; level 1 from x = 2
+    for j, k in ((2, 2), (3, 5), (0, 7)):           # fine-cell rows in y, z
+        yc, zc = fine.cell_centers()[1][j], fine.cell_centers()[2][k]
+        # The coarse cell left of x = 2 holding (yc, zc), and the fine cell right of it.
+        ci, cj, ck = 3, int(yc // H0), int(zc // H0)
+        q_c = coarse.fields["q_criterion"][ci, cj, ck]
+        q_f = fine.fields["q_criterion"][0, j, k]
+        grad_c = quadratic_grad(np.array([1.75, (cj + 0.5) * H0, (ck + 0.5) * H0]))
+        grad_f = quadratic_grad(np.array([2.125, yc, zc]))
+        tol = quadratic_q_tolerance(0, grad_c) + quadratic_q_tolerance(1, grad_f)
+        assert abs((q_f - q_c) - (q_exact(grad_f) - q_exact(grad_c))) <= tol
+    # And the coarse cell under the fine grid's corner (x, y, z in [2, 2.5] x [1, 1.5]^2)
+    # agrees with the 8 fine cells it holds.
+    under = coarse.fields["q_criterion"][4, 2, 2]
+    fine_q = fine.fields["q_criterion"][0:2, 0:2, 0:2]
+    grad_f = quadratic_grad(centres_of(fine)[0:2, 0:2, 0:2])
+    exact_under = q_exact(quadratic_grad(np.array([2.25, 1.25, 1.25])))
+    assert abs((under - fine_q.mean()) - (exact_under - q_exact(grad_f).mean())) <= \
+        quadratic_q_tolerance(1, grad_f).max()
+
+
+# ---------------------------------------------------------------------- names and errors
+
+def test10_unknown_derived_field_is_refused():
+    vol = velocity_volume(linear, num_levels=1)
+    with pytest.raises(AMRError, match=r"cannot derive \['helicity'\]; derived fields are " +
+                       r"\['speed', 'q_criterion', 'vorticity_magnitude'\]"):
+        mi_amr.derive(vol, "speed", "helicity")
+    assert DERIVED_FIELDS == ("speed", "q_criterion", "vorticity_magnitude")
+
+
+def test11_missing_velocity_components_are_refused():
+    vol = velocity_volume(linear, num_levels=1, names=("vx", "vy", "density"))
+    with pytest.raises(AMRError, match=r"no velocity components found .*vx/vy/vz.*"
+                       r"available fields: \['vx', 'vy', 'density'\]"):
+        mi_amr.derive(vol, "q_criterion")
+    with pytest.raises(AMRError, match=r"velocity must name 3 fields of the volume, got "
+                       r"\('vx', 'vy', 'vw'\)"):
+        mi_amr.derive(vol, "speed", velocity=("vx", "vy", "vw"))
+    with pytest.raises(AMRError, match="velocity must name 3 fields"):
+        mi_amr.derive(vol, "speed", velocity=("vx", "vy"))
+
+
+@pytest.mark.parametrize("names", [("vx", "vy", "vz"), ("x_velocity", "y_velocity", "z_velocity"),
+                                   ("velocity_x", "velocity_y", "velocity_z"), ("u", "v", "w")])
+def test12_velocity_names_are_detected(names):
+    vol = mi_amr.derive(velocity_volume(linear, names=names, num_levels=2), "q_criterion")
+    assert vol.field_names == names + ("q_criterion",)
+    for g in vol.grids:
+        np.testing.assert_allclose(g.fields["q_criterion"], -0.5 * np.trace(A @ A),
+                                   rtol=0, atol=1e-12)
+
+
+def test13_explicit_velocity_names_and_shared_fields():
+    vol = velocity_volume(linear, names=("a", "b", "c"), num_levels=2, dtype=np.float32)
+    out = mi_amr.derive(vol, "q_criterion", "speed", velocity=("a", "b", "c"))
+    assert out.field_names[:3] == ("a", "b", "c")
+    assert set(out.field_names[3:]) == {"q_criterion", "speed"}
+    for g, h in zip(vol.grids, out.grids):
+        assert h.fields["a"] is g.fields["a"]
+        assert h.fields["q_criterion"].dtype == np.float32
+        np.testing.assert_allclose(h.fields["q_criterion"], -0.5 * np.trace(A @ A), atol=1e-4)
+    # The input volume is unchanged.
+    assert vol.field_names == ("a", "b", "c")
