@@ -10,9 +10,10 @@ Per grid ``g``: ``origin[g]`` and ``inv_h[g]`` (3 floats each), ``shape[g]`` (3 
 ``offset + (i * ny + j) * nz + k``) and ``level[g]``. Value arrays: ``values`` (the field as
 stored, used by the finest-level reconstruction), ``leaf_values`` (the same with NaN in covered
 and non-finite cells, so the basis reconstruction gives them no weight), and the same pair for
-the colour field. Per kd node: its box; per kd leaf: its box, owner grid, range of grid ids
-(active ones first), the bitmask of active levels, its finest active cell width, its six ropes
-and the value range of the field (one per reconstruction, see :meth:`DeviceVolume.ranges`).
+the colour field. Per kd node: its box, its six ropes and the value range of the field inside it
+(one per reconstruction, see :meth:`DeviceVolume.node_ranges`); per kd leaf: its box, owner
+grid, range of grid ids (active ones first), the bitmask of active levels and its finest active
+cell width.
 """
 
 from __future__ import annotations
@@ -85,7 +86,7 @@ class DeviceVolume:
         min_h = tree.leaf_min_h.min(axis=1)
         self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h))
         self.leaf_grids = u32(tree.leaf_grids)
-        self.leaf_ropes = u32(tree.leaf_ropes)
+        self.node_ropes = u32(tree.node_ropes)
         self.node_lo = f32(tree.node_lo)
         self.node_hi = f32(tree.node_hi)
         self.tree_depth = int(tree.depth)
@@ -127,12 +128,12 @@ class DeviceVolume:
         m = self.m
         return dr.scalar.ArrayXu(a) if m is dr.scalar else m.UInt32(a)
 
-    def ranges(self, basis: bool):
-        """Per-leaf value range ``(lo, hi)`` of the field for one reconstruction (computed on
-        first use: each costs a pass over the cells)."""
+    def node_ranges(self, basis: bool):
+        """Per-node value range ``(lo, hi)`` of the field for one reconstruction (computed on
+        first use: each costs a pass over the cells). A leaf with no data has ``(+inf, -inf)``."""
         key = "basis" if basis else "finest"
         if key not in self._ranges:
-            rlo, rhi = self.tree.leaf_ranges(self.field, key)
+            rlo, rhi = self.tree.node_ranges(*self.tree.leaf_ranges(self.field, key))
             self._ranges[key] = (self._floats(rlo.astype(np.float32)),
                                  self._floats(rhi.astype(np.float32)))
         return self._ranges[key]

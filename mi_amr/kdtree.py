@@ -47,8 +47,8 @@ class KDTree:
         self.shape = np.array([g.shape for g in volume.grids], dtype=np.int64)
         self.support_lo = self.grid_lo - self.spacing
         self.support_hi = self.grid_hi + self.spacing
-        self.lo = self.support_lo.min(axis=0)
-        self.hi = self.support_hi.max(axis=0)
+        self.lo, self.hi = _dyadic_box(self.support_lo.min(axis=0), self.support_hi.max(axis=0),
+                                       volume.anchor, volume.level_spacing(volume.num_levels - 1))
         self._build(max_depth)
         self._order_active()
         self._ropes()
@@ -58,12 +58,13 @@ class KDTree:
         G = len(self.grid_lo)
         anchor = self.volume.anchor
         level_h = np.array([self.volume.level_spacing(l) for l in range(self.volume.num_levels)])
+        finest_h = level_h[-1]
         f_lo, f_hi = self.lo[None, :].copy(), self.hi[None, :].copy()
         # (node, grid) pairs whose open support overlaps the node; pairs that can no longer
         # matter (support-only, no finer than the node's owner) are dropped as we go.
         p_node = np.zeros(G, dtype=np.int64)
         p_grid = np.arange(G, dtype=np.int64)
-        split_out, code_out, box_lo, box_hi = [], [], [], []
+        split_out, code_out, box_lo, box_hi, depth_out = [], [], [], [], []
         leaf_lo, leaf_hi, leaf_owner = [], [], []
         base, n_leaves = 0, 0
         for depth in range(max_depth + 1):
@@ -99,39 +100,20 @@ class KDTree:
             axis = np.full(n, LEAF, dtype=np.int64)
             plane = np.zeros(n)
 
-            # Nodes cut by a grid face: split at the face nearest the node's centre.
+            # Split nodes cut by a grid face, and clean nodes with data that are too large, in
+            # the middle of their longest axis (in cells of the volume's finest level). Nodes are
+            # then power-of-two boxes of that lattice, as in an octree, so neighbouring subtrees
+            # are cut alike and a rope leads close to the neighbouring leaf.
             has_partial = np.zeros(n, dtype=bool)
             has_partial[p_node[partial]] = True
-            if partial.any():
-                cn, cg = p_node[partial], p_grid[partial]
-                cand_node = np.repeat(cn, 6)
-                cand_axis = np.tile(np.array([0, 1, 2, 0, 1, 2]), len(cn))
-                cand_pos = np.concatenate([self.grid_lo[cg], self.grid_hi[cg]], axis=1).ravel()
-                lo_c, hi_c = f_lo[cand_node, cand_axis], f_hi[cand_node, cand_axis]
-                inside = (cand_pos > lo_c) & (cand_pos < hi_c)
-                cand_node, cand_axis, cand_pos = cand_node[inside], cand_axis[inside], cand_pos[inside]
-                lo_c, hi_c = lo_c[inside], hi_c[inside]
-                cand_score = np.abs(cand_pos - 0.5 * (lo_c + hi_c)) / (hi_c - lo_c)
-                order = np.lexsort((cand_score, cand_node))
-                first = order[np.unique(cand_node[order], return_index=True)[1]]
-                axis[cand_node[first]] = cand_axis[first]
-                plane[cand_node[first]] = cand_pos[first]
-
-            # Clean nodes with data that are too large: halve the longest axis (in cells), on
-            # the lattice of the finest level present.
             ext = f_hi - f_lo
             with np.errstate(invalid="ignore", divide="ignore"):
                 cells = np.where(np.isfinite(node_h), ext / node_h, 0.0)
             big = (~has_partial) & (owner >= 0) & np.any(cells > self.leaf_cells, axis=1)
-            if big.any():
-                idx = np.flatnonzero(big)
-                ax = np.argmax(cells[idx], axis=1)
-                h = node_h[idx, ax]
-                mid = 0.5 * (f_lo[idx, ax] + f_hi[idx, ax])
-                snapped = anchor[ax] + np.round((mid - anchor[ax]) / h) * h
-                ok = (snapped > f_lo[idx, ax]) & (snapped < f_hi[idx, ax])
-                axis[idx] = ax
-                plane[idx] = np.where(ok, snapped, mid)
+            cut = np.flatnonzero(has_partial | big)
+            ax = np.argmax(np.round(ext[cut] / finest_h), axis=1)
+            axis[cut] = ax
+            plane[cut] = 0.5 * (f_lo[cut, ax] + f_hi[cut, ax])
             if depth == max_depth:
                 axis[:] = LEAF
 
@@ -146,6 +128,7 @@ class KDTree:
             code_out.append(code)
             box_lo.append(f_lo)
             box_hi.append(f_hi)
+            depth_out.append(np.full(n, depth))
             leaf_lo.append(f_lo[leaf_ids])
             leaf_hi.append(f_hi[leaf_ids])
             leaf_owner.append(owner[leaf_ids])
@@ -176,6 +159,7 @@ class KDTree:
         self.node_code = np.concatenate(code_out)
         self.node_lo = np.concatenate(box_lo)
         self.node_hi = np.concatenate(box_hi)
+        self.node_depth = np.concatenate(depth_out)
         self.depth = len(code_out)
         self.leaf_lo = np.concatenate(leaf_lo)
         self.leaf_hi = np.concatenate(leaf_hi)
@@ -206,23 +190,23 @@ class KDTree:
         np.minimum.at(self.leaf_min_h, pl[active], self.spacing[pg[active]])
 
     def _ropes(self) -> None:
-        """``leaf_ropes[l, 2 * axis + side]``: the deepest node holding everything just beyond
-        face ``side`` (0 low, 1 high) of leaf ``l`` along ``axis`` (Havran's ropes), so a ray
-        leaving a leaf restarts its descent there instead of at the root. Faces on the tree's
-        boundary get the root."""
-        L = self.num_leaves
+        """``node_ropes[n, 2 * axis + side]``: the deepest node holding everything just beyond
+        face ``side`` (0 low, 1 high) of node ``n``'s box along ``axis`` (Havran's ropes), so a
+        ray leaving a node restarts its descent there instead of at the root. Faces on the
+        tree's boundary get the root. ``leaf_node[l]`` is the node of leaf ``l``."""
+        N = self.num_nodes
         extent = float(np.max(self.hi - self.lo))
         delta = 1e-9 * extent
-        lo = np.repeat(self.leaf_lo, 6, axis=0)
-        hi = np.repeat(self.leaf_hi, 6, axis=0)
-        face = np.tile(np.arange(6), L)
+        lo = np.repeat(self.node_lo, 6, axis=0)
+        hi = np.repeat(self.node_hi, 6, axis=0)
+        face = np.tile(np.arange(6), N)
         axis, side = face // 2, face % 2
-        rows = np.arange(6 * L)
+        rows = np.arange(6 * N)
         plane = np.where(side == 1, hi[rows, axis] + delta, lo[rows, axis] - delta)
         lo[rows, axis] = plane
         hi[rows, axis] = plane
-        node = np.zeros(6 * L, dtype=np.int64)
-        todo = np.arange(6 * L)
+        node = np.zeros(6 * N, dtype=np.int64)
+        todo = np.arange(6 * N)
         for _ in range(self.depth + 1):
             code = self.node_code[node[todo]]
             ax = code & 3
@@ -237,7 +221,25 @@ class KDTree:
             if len(todo) == 0:
                 break
         outside = np.any((lo < self.lo) | (hi > self.hi), axis=1)
-        self.leaf_ropes = np.where(outside, 0, node).reshape(L, 6)
+        self.node_ropes = np.where(outside, 0, node).reshape(N, 6)
+        is_leaf = (self.node_code & 3) == LEAF
+        self.leaf_node = np.empty(self.num_leaves, dtype=np.int64)
+        self.leaf_node[self.node_code[is_leaf] >> 2] = np.flatnonzero(is_leaf)
+
+    def node_ranges(self, leaf_lo, leaf_hi):
+        """Value ranges of every node (each ``(N,)``): the union of the ranges ``leaf_lo`` /
+        ``leaf_hi`` of the leaves below it."""
+        lo = np.full(self.num_nodes, np.inf)
+        hi = np.full(self.num_nodes, -np.inf)
+        lo[self.leaf_node] = leaf_lo
+        hi[self.leaf_node] = leaf_hi
+        inner = (self.node_code & 3) != LEAF
+        for depth in range(self.depth - 1, -1, -1):
+            n = np.flatnonzero(inner & (self.node_depth == depth))
+            c = self.node_code[n] >> 2
+            lo[n] = np.minimum(lo[c], lo[c + 1])
+            hi[n] = np.maximum(hi[c], hi[c + 1])
+        return lo, hi
 
     def _windows(self, leaf, grid):
         """Inclusive cell index ranges ``(lo, hi)`` (each ``(P, 3)``) of the cells of ``grid``
@@ -392,6 +394,16 @@ def support_grids_bruteforce(volume, points) -> list:
 
 
 # ---------------------------------------------------------------------- helpers
+
+def _dyadic_box(lo, hi, anchor, h):
+    """A box holding ``[lo, hi]`` that starts on the lattice of cells ``h`` (from ``anchor``) and
+    spans a power of two of those cells along each axis, so every midpoint cut lands on the
+    lattice."""
+    ul = np.floor((np.asarray(lo) - anchor) / h + 1e-9)
+    uh = np.ceil((np.asarray(hi) - anchor) / h - 1e-9)
+    size = 2.0 ** np.ceil(np.log2(np.maximum(uh - ul, 1.0)))
+    return anchor + ul * h, anchor + (ul + size) * h
+
 
 def _as_points(points) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)

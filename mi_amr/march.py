@@ -1,17 +1,18 @@
-"""Finding isosurface crossings along rays: one kd-leaf traversal shared by four methods.
+"""Finding isosurface crossings along rays: one kd-tree traversal shared by four methods.
 
 A ray ``p(t) = o + t d`` (volume world space, ``d`` need not be unit length; ``t`` is the same
-parameter as the caller's) is walked leaf by leaf: at the current position the kd-tree is
-descended, the leaf's box gives the distance to its exit, and a leaf whose value range holds no
-isovalue (or that has no data) is skipped whole. Inside a leaf the method decides what to look
-at (pbrt's majorant-segment shape: traversal hands ``[t, t_exit]`` segments to the consumer):
+parameter as the caller's) is walked through the kd-tree by :func:`seek`: every node carries the
+range of the reconstructed values inside it, and a node whose range holds no isovalue (or that
+has no data) is skipped whole -- the ray jumps to the node's exit and restarts its descent at the
+node's rope. So the consumer only ever sees leaves that may hold a crossing (pbrt's
+majorant-segment shape: traversal hands ``[t, t_exit]`` stretches to the method):
 
 * ``exact``: the ray is cut at every dual-cell plane of the levels that contribute (the owner's
   level for ``finest``, all active levels for ``basis``); inside each piece the field is
   ``N(s) / D(s)`` with cubic ``N`` and ``D`` (:func:`mi_amr.reconstruct.segment_cubic`), so each
   isovalue's crossings are the roots of the cubic ``N - iso D``, found without fail by
-  :mod:`mi_amr.roots`. A jump of the field across a piece boundary (``finest`` at grid edges)
-  counts as a crossing at the boundary.
+  :mod:`mi_amr.roots`. A jump of the field across an isovalue between pieces or skipped nodes
+  (``finest`` at grid edges) counts as a crossing where the jump is.
 * ``uniform``: samples every ``step_scale * h_min`` (``h_min``: the finest cell width of the
   volume) from the ray's entry; a crossing between two samples that straddle an isovalue is put
   where the line through them meets it.
@@ -21,9 +22,12 @@ at (pbrt's majorant-segment shape: traversal hands ``[t, t_exit]`` segments to t
 * ``bisect``: ``adaptive``, then bisection between two straddling samples (the course report's
   "advanced adaptive sampling") down to ``0.005`` cells, then linear interpolation.
 
-Skipping a leaf does not change what the sampling methods see: the first and last sample inside a
-skipped leaf are still taken (all samples in between lie on the same side of every isovalue), so
-skipping only saves work.
+Skipping does not change what the sampling methods find: every value in a skipped node lies on
+one side of each isovalue, which its range tells. When that side differs from the previous
+sample's, the first sample inside the node is taken after all (and interpolated against the
+previous one, as without skipping); when the next sample after a skipped node changes side, the
+last position before it is evaluated. Uniform sampling is thereby unchanged; the adaptive methods
+may place that last sample at the node's end instead of a sub-interval's middle.
 """
 
 from __future__ import annotations
@@ -44,9 +48,9 @@ BISECT_TARGET = 0.005    # cells: bisection stops at this interval (course repor
 
 @dataclass
 class MarchConfig:
-    """What a march looks for. ``method`` and ``basis`` and the number of isovalues shape the
-    kernel; ``isovalues`` (an array of that length) and ``step_scale`` are opaque values that
-    may change between frames without recompiling."""
+    """What a march looks for. ``method``, ``basis``, the number of isovalues and the band shape
+    the kernel; ``isovalues`` (an array of that length) and ``step_scale`` are opaque values
+    that may change between frames without recompiling."""
 
     method: str
     basis: bool
@@ -58,6 +62,7 @@ class MarchConfig:
     preintegrated: bool = False
 
     def iso(self, dev, k):
+        """Isovalue ``k`` (a Python int, or a per-lane index array)."""
         m = dev.m
         return gather(m.Float, self.isovalues, m.UInt32(k))
 
@@ -72,7 +77,27 @@ class Crossing:
     samples: Any     # field evaluations (``exact``: cubic pieces) along the ray
 
 
-# ---------------------------------------------------------------------- traversal helpers
+@dataclass
+class Stretch:
+    """Result of :func:`seek`: the leaf to work on from ``t`` to ``t_exit`` (``found``), or the
+    start ``t`` of a skipped node on the other side of an isovalue than ``side`` was
+    (``turned``; ``turn_value`` is a value on that node's side). ``side`` is a value on the side
+    of every isovalue that the last skipped node lies on (NaN: unknown), and ``t_side`` the end
+    of that node."""
+
+    node: Any
+    leaf: Any
+    t: Any
+    t_exit: Any
+    face: Any
+    found: Any
+    turned: Any
+    turn_value: Any
+    side: Any
+    t_side: Any
+
+
+# ---------------------------------------------------------------------- traversal
 
 def box_interval(lo, hi, o, d):
     """Parametric interval ``(t_in, t_out)`` of the ray inside the box ``[lo, hi]``."""
@@ -86,49 +111,122 @@ def box_interval(lo, hi, o, d):
     return dr.max(near), dr.min(far)
 
 
-def leaf_exit(m, lo, hi, o, d):
+def box_exit(m, lo, hi, o, d):
     """Parameter where the ray leaves the box ``[lo, hi]`` and the face it leaves through
     (``2 * axis + 1`` for the high face of ``axis``, ``2 * axis`` for the low one)."""
     face = dr.select(d > 0.0, hi, lo)
     t = dr.select(d != 0.0, (face - o) / d, dr.inf)
     t_exit = dr.min(t)
-    axis = dr.select(t.x == t_exit, m.UInt32(0), dr.select(t.y == t_exit, m.UInt32(1), m.UInt32(2)))
+    axis = dr.select(t.x == t_exit, m.UInt32(0), dr.select(t.y == t_exit, m.UInt32(1),
+                                                             m.UInt32(2)))
     up = dr.select(axis == 0, d.x > 0.0, dr.select(axis == 1, d.y > 0.0, d.z > 0.0))
     return t_exit, 2 * axis + dr.select(up, m.UInt32(1), m.UInt32(0))
 
 
-def enter_leaf(dev, cfg, o, d, t_probe, prev_leaf, prev_face, active):
-    """The leaf at ``o + t_probe d``, found from the rope of the face the ray left the previous
-    leaf through (``prev_face`` >= 6: no previous leaf). Returns
-    ``(leaf, t_exit, exit_face, skip, mid_value)``: ``skip`` is set when the leaf has no data or
-    its value range contains no isovalue; ``mid_value`` is then a value on the same side of
-    every isovalue as the whole leaf."""
+def _epsilon(dev, t, dnorm):
+    """A step in ``t`` well below a cell yet large enough to move ``t`` in float32."""
+    return dr.maximum(1e-4 * dev.min_h / dnorm, dr.abs(t) * 4e-7)
+
+
+def _holds(dev, cfg, r_lo, r_hi):
+    """Can a value range ``[r_lo, r_hi]`` hold a crossing (or band opacity)?"""
     m = dev.m
-    p = dr.fma(d, t_probe, o)
-    # Start the descent at the rope's node when it holds the point, else at the root.
-    roped = active & (prev_face < 6)
-    node = gather(m.UInt32, dev.leaf_ropes, prev_leaf * 6 + prev_face, roped)
-    n_lo = gather(m.Array3f, dev.node_lo, node, roped)
-    n_hi = gather(m.Array3f, dev.node_hi, node, roped)
-    inside = roped & dr.all((p >= n_lo) & (p <= n_hi))
-    leaf = rec.locate(dev, p, active, dr.select(inside, node, m.UInt32(0)))
-    lo = gather(m.Array3f, dev.leaf_lo, leaf, active)
-    hi = gather(m.Array3f, dev.leaf_hi, leaf, active)
-    t_exit, face = leaf_exit(m, lo, hi, o, d)
-    owner = gather(m.UInt32, dev.leaf_owner, leaf, active)
-    range_lo, range_hi = dev.ranges(cfg.basis)
-    r_lo = gather(m.Float, range_lo, leaf, active)
-    r_hi = gather(m.Float, range_hi, leaf, active)
-    holds = m.Bool(False)
     if cfg.band is not None:
         centre = cfg.iso(dev, 0)
-        holds = (r_lo < centre + cfg.band.hi) & (r_hi > centre + cfg.band.lo)
-    for k in range(cfg.num_iso if cfg.band is None else 0):
+        return (r_lo < centre + cfg.band.hi) & (r_hi > centre + cfg.band.lo)
+    holds = m.Bool(False)
+    for k in range(cfg.num_iso):
         iso = cfg.iso(dev, k)
         holds |= (r_lo <= iso) & (iso <= r_hi)
-    skip = (owner == NO_GRID) | ~holds
-    mid = dr.select(owner == NO_GRID, dr.nan, 0.5 * (r_lo + r_hi))
-    return leaf, t_exit, face, skip, mid
+    return holds
+
+
+def _sides_differ(dev, cfg, a, b):
+    """Does some isovalue lie strictly between values ``a`` and ``b``? (False if one is NaN.)"""
+    m = dev.m
+    out = m.Bool(False)
+    for k in range(cfg.num_iso):
+        iso = cfg.iso(dev, k)
+        out |= (a - iso) * (b - iso) < 0.0
+    return out
+
+
+def _restart_node(dev, o, d, t, node, face, active):
+    """Where to resume the descent at ``o + t d`` after leaving ``node`` through ``face``: its
+    rope when that node holds the point, else the root (also for ``face`` >= 6: no node yet)."""
+    m = dev.m
+    p = dr.fma(d, t, o)
+    roped = active & (face < 6)
+    rope = gather(m.UInt32, dev.node_ropes, node * 6 + dr.minimum(face, 5), roped)
+    lo = gather(m.Array3f, dev.node_lo, rope, roped)
+    hi = gather(m.Array3f, dev.node_hi, rope, roped)
+    inside = roped & dr.all((p >= lo) & (p <= hi))
+    return dr.select(inside, rope, m.UInt32(0))
+
+
+@dr.syntax
+def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
+    """From parameter ``t`` (having left ``node`` through ``face``; ``face`` = 6 at the start)
+    walk to the first leaf whose value range may hold a crossing, skipping every node that
+    cannot. Stops early at a skipped node on the other side of an isovalue than ``side``."""
+    m = dev.m
+    r_lo, r_hi = dev.node_ranges(cfg.basis)
+    dnorm = dr.norm(d)
+    t = m.Float(t)
+    side = m.Float(side)
+    eps = _epsilon(dev, t, dnorm)
+    node = _restart_node(dev, o, d, t + eps, node, face, active)
+    leaf = m.UInt32(0)
+    t_exit = m.Float(t)
+    face = m.UInt32(6)
+    t_side = m.Float(dr.nan)
+    found = m.Bool(False)
+    turned = m.Bool(False)
+    turn_value = m.Float(dr.nan)
+    searching = m.Bool(active)
+    while searching:
+        eps = _epsilon(dev, t, dnorm)
+        p = dr.fma(d, t + eps, o)
+        code = gather(m.UInt32, dev.node_code, node, searching)
+        lo = gather(m.Float, r_lo, node, searching)
+        hi = gather(m.Float, r_hi, node, searching)
+        b_lo = gather(m.Array3f, dev.node_lo, node, searching)
+        b_hi = gather(m.Array3f, dev.node_hi, node, searching)
+        t_out, f_out = box_exit(m, b_lo, b_hi, o, d)
+        empty = ~_holds(dev, cfg, lo, hi)
+        rep = dr.select(lo <= hi, 0.5 * (lo + hi), dr.nan)
+
+        # --- A leaf worth working on.
+        take = searching & ~empty & ((code & 3) == 3)
+        found |= take
+        leaf = dr.select(take, code >> 2, leaf)
+        t_exit = dr.select(take, t_out, t_exit)
+        face = dr.select(take, f_out, face)
+
+        # --- An empty node on the other side: let the caller look at its first sample.
+        turn = searching & empty & _sides_differ(dev, cfg, side, rep)
+        turned |= turn
+        turn_value = dr.select(turn, rep, turn_value)
+
+        # --- Skip an empty node: jump to its exit and continue from its rope.
+        skip = searching & empty & ~turn
+        side = dr.select(skip, rep, side)
+        t_side = dr.select(skip, t_out, t_side)
+        t_next = dr.maximum(t_out, t + eps)
+        after = _restart_node(dev, o, d, t_next + _epsilon(dev, t_next, dnorm), node, f_out, skip)
+
+        # --- Otherwise go down to the child holding the point.
+        down = searching & ~empty & ((code & 3) != 3)
+        axis = code & 3
+        split = gather(m.Float, dev.node_split, node, down)
+        coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
+        child = (code >> 2) + dr.select(coord >= split, m.UInt32(1), m.UInt32(0))
+
+        node = dr.select(skip, after, dr.select(down, child, node))
+        t = dr.select(skip, t_next, t)
+        searching &= ~take & ~turn & (t < t1)
+    return Stretch(node=node, leaf=leaf, t=t, t_exit=t_exit, face=face, found=found,
+                   turned=turned, turn_value=turn_value, side=side, t_side=t_side)
 
 
 def next_dual_plane(dev, levels_mask, o, d, t_probe):
@@ -149,12 +247,17 @@ def next_dual_plane(dev, levels_mask, o, d, t_probe):
     return best
 
 
-def _epsilon(dev, t, dnorm):
-    """A step in ``t`` well below a cell yet large enough to move ``t`` in float32."""
-    return dr.maximum(1e-4 * dev.min_h / dnorm, dr.abs(t) * 4e-7)
+def _clip_to_volume(dev, o, d, t_start, t_end, active):
+    m = dev.m
+    lo = m.Array3f(*dev.bounds_lo)
+    hi = m.Array3f(*dev.bounds_hi)
+    t_in, t_out = box_interval(lo, hi, o, d)
+    t0 = dr.maximum(t_start, t_in)
+    t1 = dr.minimum(t_end, t_out)
+    return t0, t1, m.Bool(active) & (t0 < t1)
 
 
-# ---------------------------------------------------------------------- the march
+# ---------------------------------------------------------------------- surfaces
 
 def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active) -> Crossing:
     """First crossing of any isovalue by the reconstructed field on ``(t_start, t_end)``.
@@ -163,12 +266,7 @@ def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active) 
     per-ray offset in ``[0, 1)`` for the adaptive methods (ignored by ``exact`` and ``uniform``).
     """
     m = dev.m
-    lo = m.Array3f(*dev.bounds_lo)
-    hi = m.Array3f(*dev.bounds_hi)
-    t_in, t_out = box_interval(lo, hi, o, d)
-    t0 = dr.maximum(t_start, t_in)
-    t1 = dr.minimum(t_end, t_out)
-    active = m.Bool(active) & (t0 < t1)
+    t0, t1, active = _clip_to_volume(dev, o, d, t_start, t_end, active)
     if cfg.method == "exact":
         return _march_exact(dev, cfg, o, d, t0, t1, active)
     return _march_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), active)
@@ -181,10 +279,10 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
     values = [dev.leaf_values if cfg.basis else dev.values]
     level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
     t = m.Float(t0)
+    node = m.UInt32(0)
     leaf = m.UInt32(0)
-    t_exit = m.Float(-dr.inf)
     face = m.UInt32(6)
-    skip = m.Bool(True)
+    t_exit = m.Float(-dr.inf)
     v_prev = m.Float(dr.nan)
     samples = m.UInt32(0)
     hit = m.Bool(False)
@@ -194,29 +292,35 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
     s_a, s_b = m.Float(0.0), m.Float(0.0)
     c0, c1, c2, c3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     while active:
-        eps = _epsilon(dev, t, dnorm)
-        # --- Enter the leaf holding the next stretch of the ray.
+        # --- Find the next leaf that may hold a crossing (skipping all that cannot).
         new = t >= t_exit
-        n_leaf, n_exit, n_face, n_skip, skip_value = enter_leaf(dev, cfg, o, d, t + eps, leaf,
-                                                                face, active & new)
-        leaf = dr.select(new, n_leaf, leaf)
-        t_exit = dr.select(new, n_exit, t_exit)
-        face = dr.select(new, n_face, face)
-        skip = dr.select(new, n_skip, skip)
+        st = seek(dev, cfg, o, d, t, t1, node, face, v_prev, active & new)
+        node = dr.select(new, st.node, node)
+        leaf = dr.select(new, st.leaf, leaf)
+        face = dr.select(new, st.face, face)
+        t_exit = dr.select(new, st.t_exit, t_exit)
+        t = dr.select(new, st.t, t)
+        v_prev = dr.select(new & dr.isfinite(st.side), st.side, v_prev)
+        # A skipped node across an isovalue from what came before: the jump is the crossing.
+        turned = new & st.turned
+        hit |= turned
+        jump = dr.select(turned, True, jump)
+        t_seg = dr.select(turned, t, t_seg)
+        k_hit = dr.select(turned, _first_between(dev, cfg, v_prev, st.turn_value), k_hit)
+        active &= ~turned & (~new | st.found)
 
         # --- The piece [t, t_b]: up to the next dual-cell plane of a contributing level.
-        work = active & ~skip
-        mask = gather(m.UInt32, level_masks, leaf, work)
+        eps = _epsilon(dev, t, dnorm)
+        mask = gather(m.UInt32, level_masks, leaf, active)
         t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, t + eps), t_exit), t1)
         t_b = dr.maximum(t_b, t + eps)
         L = t_b - t
         p0 = dr.fma(d, t, o)
-        nums, den = rec.segment_cubic(dev, cfg.basis, leaf, p0, d, 0.5 * L, values, work)
+        nums, den = rec.segment_cubic(dev, cfg.basis, leaf, p0, d, 0.5 * L, values, active)
         num = nums[0]
-        samples += dr.select(work, 1, 0)
+        samples += dr.select(active, 1, 0)
         d_mid = roots.cubic(den, 0.5 * L)
-        have = work & (roots.cubic(den, 0.0 * L) > 1e-3) & (roots.cubic(den, L) > 1e-3) & \
-            (d_mid > 1e-3)
+        have = active & (den[0] > 1e-3) & (roots.cubic(den, L) > 1e-3) & (d_mid > 1e-3)
         v_start = num[0] / den[0]
         v_end = roots.cubic(num, L) / roots.cubic(den, L)
         n_mid = roots.cubic(num, 0.5 * L)
@@ -244,15 +348,24 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         hit |= got
         t_seg = dr.select(got, t, t_seg)
 
-        # --- Advance: to the piece's end, or past a skipped leaf (entered in this iteration, so
-        # skip_value is its value on the right side of every isovalue).
-        v_prev = dr.select(skip, skip_value, dr.select(have, v_end, dr.nan))
-        t = dr.select(skip, dr.maximum(t_exit, t + eps), t_b)
+        # --- Advance to the piece's end.
+        v_prev = dr.select(active, dr.select(have, v_end, dr.nan), v_prev)
+        t = dr.select(active, t_b, t)
         active &= ~got & (t < t1)
 
     s = roots.refine_root([c0, c1, c2, c3], s_a, s_b)
     t_hit = dr.select(hit, t_seg + dr.select(jump, 0.0, s), dr.inf)
     return Crossing(hit=hit, t=t_hit, k=k_hit, samples=samples)
+
+
+def _first_between(dev, cfg, a, b):
+    """Index of an isovalue strictly between values ``a`` and ``b`` (the first one listed)."""
+    m = dev.m
+    out = m.UInt32(0)
+    for k in range(cfg.num_iso - 1, -1, -1):
+        iso = cfg.iso(dev, k)
+        out = dr.select((a - iso) * (b - iso) < 0.0, m.UInt32(k), out)
+    return out
 
 
 @dr.syntax
@@ -262,52 +375,79 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
     values = [dev.leaf_values if cfg.basis else dev.values]
     uniform = cfg.method == "uniform"
     rho = m.Float(0.0) if uniform else jitter
-    global_dt = cfg.step_scale * dev.min_h / dnorm
     t_anchor = m.Float(t0)
     t = m.Float(t0)
+    node = m.UInt32(0)
     leaf = m.UInt32(0)
-    t_exit = m.Float(-dr.inf)
     face = m.UInt32(6)
-    skip = m.Bool(True)
-    dt = m.Float(global_dt)
+    t_exit = m.Float(-dr.inf)
+    dt = m.Float(cfg.step_scale * dev.min_h / dnorm)
     t_prev = m.Float(dr.nan)
     v_prev = m.Float(dr.nan)
+    known = m.Bool(True)          # v_prev is a sample, not a skipped node's representative
+    forced = m.Bool(False)        # sample this stretch once although its node was skipped
     samples = m.UInt32(0)
     hit = m.Bool(False)
     k_hit = m.UInt32(0)
     t_a, t_b = m.Float(0.0), m.Float(0.0)
     v_a, v_b = m.Float(0.0), m.Float(0.0)
     while active:
-        eps = _epsilon(dev, t, dnorm)
-        # --- Enter the leaf holding the next stretch of the ray.
+        # --- Find the next leaf that may hold a crossing, or a skipped node across one.
         new = t >= t_exit
-        n_leaf, n_exit, n_face, n_skip, _ = enter_leaf(dev, cfg, o, d, t + eps, leaf, face,
-                                                       active & new)
-        leaf = dr.select(new, n_leaf, leaf)
-        t_exit = dr.select(new, n_exit, t_exit)
-        face = dr.select(new, n_face, face)
-        skip = dr.select(new, n_skip, skip)
+        st = seek(dev, cfg, o, d, t, t1, node, face, v_prev, active & new)
+        turned = new & st.turned
+        # Past skipped nodes the previous sample becomes "their last one", on their side.
+        skipped = new & dr.isfinite(st.side)
+        if dr.hint(uniform, mode="scalar"):
+            t_last = t_anchor + dr.floor((st.t_side - t_anchor) / dt - 1e-4) * dt
+        else:
+            t_last = st.t_side
+        moved_on = skipped & (t_last > t_prev)
+        t_prev = dr.select(moved_on, t_last, t_prev)
+        v_prev = dr.select(moved_on, st.side, v_prev)
+        known = dr.select(moved_on, False, known)
+        # A turn: take the first sample of that node after all, in the leaf where it starts.
+        at = rec.locate(dev, dr.fma(d, st.t + _epsilon(dev, st.t, dnorm), o), turned)
+        at_exit, _ = box_exit(m, gather(m.Array3f, dev.leaf_lo, at, turned),
+                              gather(m.Array3f, dev.leaf_hi, at, turned), o, d)
+        node = dr.select(new, st.node, node)
+        leaf = dr.select(turned, at, dr.select(new, st.leaf, leaf))
+        face = dr.select(turned, m.UInt32(6), dr.select(new, st.face, face))
+        t_exit = dr.select(turned, at_exit, dr.select(new, st.t_exit, t_exit))
+        t = dr.select(new, st.t, t)
+        forced = dr.select(new, turned, forced)
+        active &= ~new | st.found | turned
         if dr.hint(not uniform, mode="scalar"):
             leaf_h = gather(m.Float, dev.leaf_min_h, leaf, active & new)
             dt = dr.select(new, cfg.step_scale * leaf_h / dnorm, dt)
 
         # --- The next sub-interval [t, b] ends at a step position or the leaf's end.
+        eps = _epsilon(dev, t, dnorm)
         step = dr.floor((t - t_anchor) / dt - rho + 1e-4) + 1.0
         b_lattice = t_anchor + (rho + step) * dt
-        b = dr.minimum(dr.minimum(b_lattice, t_exit), t1)
-        b = dr.maximum(b, t + eps)
+        limit = dr.minimum(t_exit, t1)
+        b = dr.maximum(dr.minimum(b_lattice, limit), t + eps)
         if dr.hint(uniform, mode="scalar"):
-            # Uniform samples sit on the step positions themselves.
+            # Uniform samples sit on the step positions themselves (a forced sample is the next
+            # one, wherever it falls).
             t_s = b_lattice
-            take = active & (b_lattice <= dr.minimum(t_exit, t1))
+            take = active & ((b_lattice <= limit) | forced)
         else:
             t_s = 0.5 * (t + b)
             take = m.Bool(active)
-        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), values, take, leaf=leaf)
-        v = vals[0]
+        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), values, take & ~forced,
+                                  leaf=leaf)
+        vals_f, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), values, take & forced)
+        v = dr.select(forced, vals_f[0], vals[0])
         samples += dr.select(take, 1, 0)
 
-        # --- A straddled isovalue between the previous sample and this one.
+        # --- A straddled isovalue between the previous sample and this one. If the previous
+        # one stands for a skipped node, evaluate it where it is first.
+        straddle = take & _sides_differ(dev, cfg, v_prev, v)
+        fix = straddle & ~known
+        vals_p, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_prev, o), values, fix)
+        v_prev = dr.select(fix, vals_p[0], v_prev)
+        samples += dr.select(fix, 1, 0)
         best = m.Float(dr.inf)
         for k in range(cfg.num_iso):
             iso = cfg.iso(dev, k)
@@ -325,25 +465,19 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
         v_b = dr.select(got, v, v_b)
         t_prev = dr.select(take, t_s, t_prev)
         v_prev = dr.select(take, v, v_prev)
+        known = dr.select(take, True, known)
 
-        # --- Advance; in a skipped leaf, jump to its last sample (all samples in between lie on
-        # the same side of every isovalue).
-        last = t_anchor + (rho + dr.floor((t_exit - t_anchor) / dt - rho - 1e-4)) * dt
-        if dr.hint(uniform, mode="scalar"):
-            last = last - 0.5 * dt
-        t = dr.select(skip, dr.maximum(b, last), b)
+        # --- Advance. After a forced sample, the rest of its node is skipped by the next seek.
+        t = dr.select(forced & (t_s > b), t_s, b)
+        t_exit = dr.select(forced, -dr.inf, t_exit)
+        forced = m.Bool(False)
         active &= ~got & (t < t1)
 
-    iso_hit = _iso_of(dev, cfg, k_hit)
+    iso_hit = cfg.iso(dev, k_hit)
     t_hit = dr.select(hit, t_a + (iso_hit - v_a) / (v_b - v_a) * (t_b - t_a), dr.inf)
     if dr.hint(cfg.method == "bisect", mode="scalar"):
         t_hit = _bisect(dev, cfg, o, d, t_a, t_b, v_a, k_hit, hit)
     return Crossing(hit=hit, t=t_hit, k=k_hit, samples=samples)
-
-
-def _iso_of(dev, cfg, k):
-    """The isovalue with index ``k`` (a per-lane array)."""
-    return gather(dev.m.Float, cfg.isovalues, k)
 
 
 @dr.syntax
@@ -352,11 +486,10 @@ def _bisect(dev, cfg, o, d, t_a, t_b, v_a, k, active):
     :data:`BISECT_TARGET` cells, then linear interpolation in the last interval."""
     m = dev.m
     values = [dev.leaf_values if cfg.basis else dev.values]
-    iso = _iso_of(dev, cfg, k)
+    iso = cfg.iso(dev, k)
     fa = v_a - iso
     depth = dr.maximum(dr.ceil(dr.log2(cfg.step_scale / BISECT_TARGET)), 1.0)
     i = m.Float(0.0)
-    fb = m.Float(0.0)
     while active & (i < depth):
         mid = 0.5 * (t_a + t_b)
         vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, mid, o), values, active)
@@ -401,12 +534,7 @@ def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lig
     sample into the band when two samples straddle it (the course report's method).
     """
     m = dev.m
-    lo = m.Array3f(*dev.bounds_lo)
-    hi = m.Array3f(*dev.bounds_hi)
-    t_in, t_out = box_interval(lo, hi, o, d)
-    t0 = dr.maximum(t_start, t_in)
-    t1 = dr.minimum(t_end, t_out)
-    active = m.Bool(active) & (t0 < t1)
+    t0, t1, active = _clip_to_volume(dev, o, d, t_start, t_end, active)
     if cfg.method == "exact":
         return _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active)
     return _composite_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), color_of, lighting, active)
@@ -438,22 +566,23 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     t = m.Float(t0)
+    node = m.UInt32(0)
     leaf = m.UInt32(0)
     t_exit = m.Float(-dr.inf)
     face = m.UInt32(6)
-    skip = m.Bool(True)
     samples = m.UInt32(0)
     while active:
-        eps = _epsilon(dev, t, dnorm)
         new = t >= t_exit
-        n_leaf, n_exit, n_face, n_skip, _ = enter_leaf(dev, cfg, o, d, t + eps, leaf, face,
-                                                       active & new)
-        leaf = dr.select(new, n_leaf, leaf)
-        t_exit = dr.select(new, n_exit, t_exit)
-        face = dr.select(new, n_face, face)
-        skip = dr.select(new, n_skip, skip)
+        st = seek(dev, cfg, o, d, t, t1, node, face, m.Float(dr.nan), active & new)
+        node = dr.select(new, st.node, node)
+        leaf = dr.select(new, st.leaf, leaf)
+        face = dr.select(new, st.face, face)
+        t_exit = dr.select(new, st.t_exit, t_exit)
+        t = dr.select(new, st.t, t)
+        active &= ~new | st.found
 
-        work = active & ~skip
+        eps = _epsilon(dev, t, dnorm)
+        work = m.Bool(active)
         mask = gather(m.UInt32, level_masks, leaf, work)
         t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, t + eps), t_exit), t1)
         t_b = dr.maximum(t_b, t + eps)
@@ -497,7 +626,7 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
                 C += dr.select(a > 0.0, T * a * (color_of(cval) * A + S), 0.0)
             T *= 1.0 - a
 
-        t = dr.select(skip, dr.maximum(t_exit, t + eps), t_b)
+        t = dr.select(active, t_b, t)
         active &= (t < t1) & (T > 0.01)
     T = dr.select(T <= 0.01, 0.0, T)
     return Composite(C=C, T=T, samples=samples)
@@ -519,10 +648,10 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
     rho = m.Float(0.0) if uniform else jitter
     t_anchor = m.Float(t0)
     t = m.Float(t0)
+    node = m.UInt32(0)
     leaf = m.UInt32(0)
     t_exit = m.Float(-dr.inf)
     face = m.UInt32(6)
-    skip = m.Bool(True)
     dt = m.Float(cfg.step_scale * dev.min_h / dnorm)
     t_prev = m.Float(t0)
     v_prev = m.Float(dr.nan)
@@ -530,14 +659,18 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
     T = m.Float(1.0)
     samples = m.UInt32(0)
     while active:
-        eps = _epsilon(dev, t, dnorm)
+        # Skipped nodes have no opacity; the sample before them no longer borders the next one.
         new = t >= t_exit
-        n_leaf, n_exit, n_face, n_skip, _ = enter_leaf(dev, cfg, o, d, t + eps, leaf, face,
-                                                       active & new)
-        leaf = dr.select(new, n_leaf, leaf)
-        t_exit = dr.select(new, n_exit, t_exit)
-        face = dr.select(new, n_face, face)
-        skip = dr.select(new, n_skip, skip)
+        st = seek(dev, cfg, o, d, t, t1, node, face, m.Float(dr.nan), active & new)
+        v_prev = dr.select(new & (st.t > t), dr.nan, v_prev)
+        node = dr.select(new, st.node, node)
+        leaf = dr.select(new, st.leaf, leaf)
+        face = dr.select(new, st.face, face)
+        t_exit = dr.select(new, st.t_exit, t_exit)
+        t = dr.select(new, st.t, t)
+        t_prev = dr.select(new, dr.maximum(t_prev, t - dt), t_prev)
+        active &= ~new | st.found
+        eps = _epsilon(dev, t, dnorm)
         if dr.hint(not uniform, mode="scalar"):
             leaf_h = gather(m.Float, dev.leaf_min_h, leaf, active & new)
             dt = dr.select(new, cfg.step_scale * leaf_h / dnorm, dt)
@@ -593,10 +726,7 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
         t_prev = dr.select(take, t_s, t_prev)
         v_prev = dr.select(take, v, v_prev)
 
-        last = t_anchor + (rho + dr.floor((t_exit - t_anchor) / dt - rho - 1e-4)) * dt
-        if dr.hint(uniform, mode="scalar"):
-            last = last - 0.5 * dt
-        t = dr.select(skip, dr.maximum(b, last), b)
+        t = dr.select(active, b, t)
         active &= (t < t1) & (T > 0.01)
     T = dr.select(T <= 0.01, 0.0, T)
     return Composite(C=C, T=T, samples=samples)

@@ -8,14 +8,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import AMRError
-from . import amrex, native
+from . import amrex, native, vdb
 
 
 def load(path, fields=None, **options):
     """Read an AMR volume from ``path``.
 
-    Recognised: mi_amr's ``.npz`` files (see :mod:`mi_amr.readers.native`) and AMReX plotfile
-    folders (a ``Header`` plus ``Level_N/`` data; see :mod:`mi_amr.readers.amrex`). ``fields``
+    Recognised: mi_amr's ``.npz`` files (see :mod:`mi_amr.readers.native`), AMReX plotfile
+    folders (a ``Header`` plus ``Level_N/`` data; see :mod:`mi_amr.readers.amrex`) and OpenVDB
+    ``.vdb`` files, one grid per patch (see :mod:`mi_amr.readers.vdb`). ``fields``
     (a list of names) reads only those fields from disk. Derived fields (``speed``,
     ``q_criterion``) are not read here; see :func:`mi_amr.derive`. Raises
     :class:`~mi_amr.AMRError` for a missing file, an unrecognised format or a malformed file.
@@ -29,9 +30,12 @@ def load(path, fields=None, **options):
     if amrex.is_plotfile(path):
         _no_options(path, options, "an AMReX plotfile")
         return amrex.load(path, fields)
-    raise AMRError(f"{path}: unrecognised format; mi_amr reads its own .npz volumes and AMReX "
+    if vdb.is_vdb(path):
+        _no_options(path, options, "an OpenVDB file")
+        return vdb.load(path, fields)
+    raise AMRError(f"{path}: unrecognised format; mi_amr reads its own .npz volumes, AMReX "
                    f"plotfile folders (a folder with a Header whose first line is e.g. "
-                   f"HyperCLaw-V1.1)")
+                   f"HyperCLaw-V1.1) and OpenVDB .vdb files")
 
 
 def available_fields(path) -> list:
@@ -43,6 +47,8 @@ def available_fields(path) -> list:
         return native.field_names(path)
     if amrex.is_plotfile(path):
         return list(amrex.read_header(path).field_names)
+    if vdb.is_vdb(path):
+        return vdb.field_names(path)
     return list(load(path).field_names)
 
 
