@@ -68,6 +68,15 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--force", action="store_true", help="replace an existing image")
     s.set_defaults(run=_render)
 
+    s = sub.add_parser("bench", help="measure speed (and, in full, speed against accuracy)")
+    s.add_argument("--frames", action="store_true",
+                   help="only the frame timings of the default scene (first, warm, new "
+                        "isovalue, new camera)")
+    s.add_argument("--resolution", type=int, nargs=2, default=[1024, 1024], metavar=("W", "H"))
+    s.add_argument("--variant", default="llvm_ad_rgb")
+    s.add_argument("--out", default="out/bench", help="folder for the results")
+    s.set_defaults(run=_bench)
+
     s = sub.add_parser("demo", help="create the scenes' data, then render the default scene")
     s.add_argument("-o", "--output", default="out/sphere_wake.png")
     s.set_defaults(run=_demo)
@@ -123,6 +132,13 @@ def _render(args) -> None:
         defines[name] = value
     render_file(args.scene, args.output, spp=args.spp, resolution=args.resolution,
                 defines=defines, variant=args.variant, overwrite=args.force)
+
+
+def _bench(args) -> None:
+    from .bench import run_frames
+
+    scene_data()
+    run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
 
 
 def _demo(args) -> None:

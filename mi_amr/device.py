@@ -22,6 +22,9 @@ import drjit as dr
 import numpy as np
 
 NO_GRID = 0xFFFFFFFF
+NO_BRICK = 0xFFFFFFFF
+BRICK = 8                 # cells per brick side; a brick stores BRICK + 1 (one cell of apron)
+BRICK_N = BRICK + 1
 
 
 def backend_of(float_type):
@@ -70,9 +73,19 @@ class DeviceVolume:
         f32 = lambda a: self._floats(np.asarray(a, dtype=np.float32).ravel())  # noqa: E731
         u32 = lambda a: self._uints(np.asarray(a, dtype=np.uint32).ravel())    # noqa: E731
 
-        # kd-tree nodes and leaves
+        # kd-tree nodes (code and split side by side, boxes as 2 x 4 floats) and leaves
         self.node_code = u32(tree.node_code)
         self.node_split = f32(tree.node_split)
+        code_split = np.empty((tree.num_nodes, 2), dtype=np.uint32)
+        code_split[:, 0] = tree.node_code
+        code_split[:, 1] = tree.node_split.astype(np.float32).view(np.uint32)
+        self.node_code_split = u32(code_split)
+        box = np.zeros((tree.num_nodes, 2, 4), dtype=np.float32)
+        box[:, 0, :3] = tree.node_lo
+        box[:, 1, :3] = tree.node_hi
+        self.node_box = f32(box)
+        self.root_lo = tuple(float(x) for x in np.float32(tree.node_lo[0]))
+        self.root_hi = tuple(float(x) for x in np.float32(tree.node_hi[0]))
         self.leaf_lo = f32(tree.leaf_lo)
         self.leaf_hi = f32(tree.leaf_hi)
         self.leaf_owner = u32(np.where(tree.leaf_owner >= 0, tree.leaf_owner, NO_GRID))
@@ -87,8 +100,6 @@ class DeviceVolume:
         self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h))
         self.leaf_grids = u32(tree.leaf_grids)
         self.node_ropes = u32(tree.node_ropes)
-        self.node_lo = f32(tree.node_lo)
-        self.node_hi = f32(tree.node_hi)
         self.tree_depth = int(tree.depth)
         self._ranges = {}
 
@@ -107,18 +118,87 @@ class DeviceVolume:
         self.grid_offset = u32(offsets)
         self.grid_level = u32(volume.levels)
 
-        self.values, self.leaf_values = self._field_arrays(field)
-        if self.color_field == field:
-            self.color_values, self.color_leaf_values = self.values, self.leaf_values
-        else:
-            self.color_values, self.color_leaf_values = self._field_arrays(self.color_field)
+        self.values = self._field_values(field)
+        self.color_values = self.values if self.color_field == field else \
+            self._field_values(self.color_field)
+        self._build_bricks()
 
-    def _field_arrays(self, name):
+    def arrays(self, basis: bool, color: bool = False) -> list:
+        """The value arrays a reconstruction reads: brick pools of leaf values for the basis
+        blend, the grids' raw values for the finest level; the field, then the colour field."""
+        if basis:
+            return [self.brick_values] + ([self.brick_colors] if color else [])
+        return [self.values] + ([self.color_values] if color else [])
+
+    def _field_values(self, name):
+        raw = np.concatenate([g.fields[name].ravel() for g in self.volume.grids])
+        return self._floats(raw.astype(np.float32))
+
+    def _build_bricks(self):
+        """Per level, the *leaf* cells of all its grids gathered into bricks of
+        ``BRICK_N^3`` values (NaN where the level has no leaf cell or the value is not finite),
+        found through a dense table of the level's bounding box. Brick ``b`` of a level holds
+        the cells ``lo + b * BRICK .. lo + b * BRICK + BRICK`` (inclusive) on each axis, so the
+        8 corners of any dual cell lie in the brick of its lower corner: one table lookup finds
+        them whichever grids hold them. This is what the basis reconstruction reads."""
         vol = self.volume
-        raw = np.concatenate([g.fields[name].ravel() for g in vol.grids]).astype(np.float32)
-        leaf = np.concatenate([np.where(vol.leaf_mask(i), g.fields[name], np.nan).ravel()
-                               for i, g in enumerate(vol.grids)]).astype(np.float32)
-        return self._floats(raw), self._floats(leaf)
+        ilo, ihi = vol.index_boxes()
+        levels = vol.levels
+        names = [self.field] + ([self.color_field] if self.color_field != self.field else [])
+        tables, pools = [], [[] for _ in names]
+        level_lo, level_dims, level_off = [], [], []
+        count, table_at = 0, 0
+        for level in range(vol.num_levels):
+            ids = np.flatnonzero(levels == level)
+            lo = ilo[ids].min(axis=0) - 1
+            hi = ihi[ids].max(axis=0)
+            dims = -(-(hi - lo) // BRICK)
+            table = np.full(tuple(dims), NO_BRICK, dtype=np.uint32)
+            # Bricks touched by a grid, its apron included (a dual cell may start one cell
+            # below a grid).
+            spans = [((ilo[g] - 1 - lo) // BRICK, (ihi[g] - 1 - lo) // BRICK) for g in ids]
+            for a, b in spans:
+                table[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = 0
+            used = table == 0
+            n = int(used.sum())
+            table[used] = np.arange(count, count + n, dtype=np.uint32)
+            level_pools = [np.full((n, BRICK_N, BRICK_N, BRICK_N), np.nan, dtype=np.float32)
+                           for _ in names]
+            for g, (a, b) in zip(ids, spans):
+                arrays = [np.where(vol.leaf_mask(g), vol.grids[g].fields[nm], np.nan)
+                          for nm in names]
+                for bx in range(a[0], b[0] + 1):
+                    for by in range(a[1], b[1] + 1):
+                        for bz in range(a[2], b[2] + 1):
+                            start = lo + np.array([bx, by, bz]) * BRICK
+                            c0 = np.maximum(start, ilo[g])
+                            c1 = np.minimum(start + BRICK_N, ihi[g])
+                            if np.any(c1 <= c0):
+                                continue
+                            k = table[bx, by, bz] - count
+                            dst = tuple(slice(x, y) for x, y in zip(c0 - start, c1 - start))
+                            src = tuple(slice(x, y) for x, y in zip(c0 - ilo[g], c1 - ilo[g]))
+                            for pool, arr in zip(level_pools, arrays):
+                                pool[k][dst] = arr[src]
+            for i, pool in enumerate(level_pools):
+                pools[i].append(pool.ravel())
+            tables.append(table.ravel())
+            level_lo.append(lo)
+            level_dims.append(dims)
+            level_off.append(table_at)
+            table_at += table.size
+            count += n
+        i32 = lambda a: dr.scalar.ArrayXi(a) if self.m is dr.scalar else self.m.Int32(a)  # noqa
+        self.brick_table = self._uints(np.concatenate(tables))
+        self.level_lo = i32(np.asarray(level_lo, dtype=np.int32).ravel())
+        self.level_dims = self._uints(np.asarray(level_dims, dtype=np.uint32).ravel())
+        self.level_table_offset = self._uints(np.asarray(level_off, dtype=np.uint32))
+        self.level_inv_h = self._floats(np.asarray([1.0 / np.asarray(h) for h in self.level_h],
+                                                   dtype=np.float32).ravel())
+        self.brick_values = self._floats(np.concatenate(pools[0]))
+        self.brick_colors = self.brick_values if len(names) == 1 else \
+            self._floats(np.concatenate(pools[1]))
+        self.num_bricks = count
 
     def _floats(self, a):
         m = self.m
@@ -129,11 +209,12 @@ class DeviceVolume:
         return dr.scalar.ArrayXu(a) if m is dr.scalar else m.UInt32(a)
 
     def node_ranges(self, basis: bool):
-        """Per-node value range ``(lo, hi)`` of the field for one reconstruction (computed on
-        first use: each costs a pass over the cells). A leaf with no data has ``(+inf, -inf)``."""
+        """Per-node value range of the field for one reconstruction, ``lo, hi`` side by side
+        (computed on first use: each costs a pass over the cells). A node with no data has
+        ``(+inf, -inf)``."""
         key = "basis" if basis else "finest"
         if key not in self._ranges:
             rlo, rhi = self.tree.node_ranges(*self.tree.leaf_ranges(self.field, key))
-            self._ranges[key] = (self._floats(rlo.astype(np.float32)),
-                                 self._floats(rhi.astype(np.float32)))
+            self._ranges[key] = self._floats(np.stack([rlo, rhi], axis=1).astype(np.float32)
+                                             .ravel())
         return self._ranges[key]

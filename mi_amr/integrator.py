@@ -92,9 +92,26 @@ def load_scene(path, **params):
     if not path.is_file():
         raise AMRError(f"{path}: no such scene file")
     try:
-        return mi.load_file(str(path), **{k: v for k, v in params.items()})
+        scene = mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
     except RuntimeError as e:
         raise _unwrap(e, path) from None
+    _opaque_cameras(scene)
+    return scene
+
+
+def _opaque_cameras(scene) -> None:
+    """Write each camera's ``to_world`` back through ``mi.traverse``: Mitsuba then keeps it as an
+    opaque value, so moving the camera later does not recompile the rendering kernel."""
+    params = mi.traverse(scene)
+    keys = [k[: -len(".film.size")] + ".to_world" for k in params.keys()
+            if k.endswith(".film.size")]
+    keys = [k for k in keys if k in params]
+    for k in keys:
+        # The same update a moved camera goes through (a computed transform), so the kernel
+        # compiled for the first frame is the one every later camera position reuses.
+        params[k] = mi.Transform4f() @ params[k]
+    if keys:
+        params.update()
 
 
 def _unwrap(error: RuntimeError, path) -> AMRError:
@@ -246,10 +263,7 @@ def _make_class():
             return out
 
         def _arrays(self):
-            dev = self.dev
-            if self.opt.reconstruction == "basis":
-                return [dev.leaf_values, dev.color_leaf_values]
-            return [dev.values, dev.color_values]
+            return self.dev.arrays(self.opt.reconstruction == "basis", color=True)
 
         def _shade_iso(self, scene, light_u, ray, o, d, c: Crossing, hit):
             """Phong shading of the isosurface point of crossing ``c`` (world normal from the

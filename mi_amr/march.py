@@ -151,31 +151,45 @@ def _sides_differ(dev, cfg, a, b):
     return out
 
 
-def _restart_node(dev, o, d, t, node, face, active):
+def _node_box(dev, node, active):
+    """Box of ``node`` (two packet loads of 4 floats)."""
+    m = dev.m
+    lo = gather(m.Array4f, dev.node_box, 2 * node, active)
+    hi = gather(m.Array4f, dev.node_box, 2 * node + 1, active)
+    return m.Array3f(lo.x, lo.y, lo.z), m.Array3f(hi.x, hi.y, hi.z)
+
+
+def _restart(dev, o, d, t, node, face, active):
     """Where to resume the descent at ``o + t d`` after leaving ``node`` through ``face``: its
-    rope when that node holds the point, else the root (also for ``face`` >= 6: no node yet)."""
+    rope when that node holds the point, else the root (also for ``face`` >= 6: no node yet).
+    Returns the node and its box."""
     m = dev.m
     p = dr.fma(d, t, o)
     roped = active & (face < 6)
     rope = gather(m.UInt32, dev.node_ropes, node * 6 + dr.minimum(face, 5), roped)
-    lo = gather(m.Array3f, dev.node_lo, rope, roped)
-    hi = gather(m.Array3f, dev.node_hi, rope, roped)
+    lo, hi = _node_box(dev, rope, roped)
     inside = roped & dr.all((p >= lo) & (p <= hi))
-    return dr.select(inside, rope, m.UInt32(0))
+    root_lo, root_hi = m.Array3f(*dev.root_lo), m.Array3f(*dev.root_hi)
+    return (dr.select(inside, rope, m.UInt32(0)), dr.select(inside, lo, root_lo),
+            dr.select(inside, hi, root_hi))
 
 
 @dr.syntax
 def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
     """From parameter ``t`` (having left ``node`` through ``face``; ``face`` = 6 at the start)
     walk to the first leaf whose value range may hold a crossing, skipping every node that
-    cannot. Stops early at a skipped node on the other side of an isovalue than ``side``."""
+    cannot. Stops early at a skipped node on the other side of an isovalue than ``side``.
+
+    One step either goes down one level (the child's box is the parent's, cut at the split, so
+    it costs two packet loads: code and split, value range) or skips a node and restarts at its
+    rope."""
     m = dev.m
-    r_lo, r_hi = dev.node_ranges(cfg.basis)
+    ranges = dev.node_ranges(cfg.basis)
     dnorm = dr.norm(d)
     t = m.Float(t)
     side = m.Float(side)
     eps = _epsilon(dev, t, dnorm)
-    node = _restart_node(dev, o, d, t + eps, node, face, active)
+    node, b_lo, b_hi = _restart(dev, o, d, t + eps, node, face, active)
     leaf = m.UInt32(0)
     t_exit = m.Float(t)
     face = m.UInt32(6)
@@ -187,17 +201,17 @@ def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
     while searching:
         eps = _epsilon(dev, t, dnorm)
         p = dr.fma(d, t + eps, o)
-        code = gather(m.UInt32, dev.node_code, node, searching)
-        lo = gather(m.Float, r_lo, node, searching)
-        hi = gather(m.Float, r_hi, node, searching)
-        b_lo = gather(m.Array3f, dev.node_lo, node, searching)
-        b_hi = gather(m.Array3f, dev.node_hi, node, searching)
+        cs = gather(m.Array2u, dev.node_code_split, node, searching)
+        code = cs.x
+        rng = gather(m.Array2f, ranges, node, searching)
+        lo, hi = rng.x, rng.y
         t_out, f_out = box_exit(m, b_lo, b_hi, o, d)
         empty = ~_holds(dev, cfg, lo, hi)
         rep = dr.select(lo <= hi, 0.5 * (lo + hi), dr.nan)
+        is_leaf = (code & 3) == 3
 
         # --- A leaf worth working on.
-        take = searching & ~empty & ((code & 3) == 3)
+        take = searching & ~empty & is_leaf
         found |= take
         leaf = dr.select(take, code >> 2, leaf)
         t_exit = dr.select(take, t_out, t_exit)
@@ -213,16 +227,25 @@ def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
         side = dr.select(skip, rep, side)
         t_side = dr.select(skip, t_out, t_side)
         t_next = dr.maximum(t_out, t + eps)
-        after = _restart_node(dev, o, d, t_next + _epsilon(dev, t_next, dnorm), node, f_out, skip)
+        r_node, r_lo, r_hi = _restart(dev, o, d, t_next + _epsilon(dev, t_next, dnorm), node,
+                                      f_out, skip)
 
         # --- Otherwise go down to the child holding the point.
-        down = searching & ~empty & ((code & 3) != 3)
+        down = searching & ~empty & ~is_leaf
         axis = code & 3
-        split = gather(m.Float, dev.node_split, node, down)
+        split = dr.reinterpret_array(m.Float, cs.y)
         coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
-        child = (code >> 2) + dr.select(coord >= split, m.UInt32(1), m.UInt32(0))
+        upper = coord >= split
+        child = (code >> 2) + dr.select(upper, m.UInt32(1), m.UInt32(0))
+        c_lo, c_hi = m.Array3f(b_lo), m.Array3f(b_hi)
+        for a in range(3):
+            cut = down & (axis == a)
+            c_lo[a] = dr.select(cut & upper, split, c_lo[a])
+            c_hi[a] = dr.select(cut & ~upper, split, c_hi[a])
 
-        node = dr.select(skip, after, dr.select(down, child, node))
+        node = dr.select(skip, r_node, dr.select(down, child, node))
+        b_lo = dr.select(skip, r_lo, c_lo)
+        b_hi = dr.select(skip, r_hi, c_hi)
         t = dr.select(skip, t_next, t)
         searching &= ~take & ~turn & (t < t1)
     return Stretch(node=node, leaf=leaf, t=t, t_exit=t_exit, face=face, found=found,
@@ -276,7 +299,7 @@ def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active) 
 def _march_exact(dev, cfg, o, d, t0, t1, active):
     m = dev.m
     dnorm = dr.norm(d)
-    values = [dev.leaf_values if cfg.basis else dev.values]
+    values = dev.arrays(cfg.basis)
     level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
     t = m.Float(t0)
     node = m.UInt32(0)
@@ -372,7 +395,7 @@ def _first_between(dev, cfg, a, b):
 def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
     m = dev.m
     dnorm = dr.norm(d)
-    values = [dev.leaf_values if cfg.basis else dev.values]
+    values = dev.arrays(cfg.basis)
     uniform = cfg.method == "uniform"
     rho = m.Float(0.0) if uniform else jitter
     t_anchor = m.Float(t0)
@@ -485,7 +508,7 @@ def _bisect(dev, cfg, o, d, t_a, t_b, v_a, k, active):
     """Bisection of ``[t_a, t_b]`` (whose ends straddle isovalue ``k``) down to
     :data:`BISECT_TARGET` cells, then linear interpolation in the last interval."""
     m = dev.m
-    values = [dev.leaf_values if cfg.basis else dev.values]
+    values = dev.arrays(cfg.basis)
     iso = cfg.iso(dev, k)
     fa = v_a - iso
     depth = dr.maximum(dr.ceil(dr.log2(cfg.step_scale / BISECT_TARGET)), 1.0)
@@ -556,10 +579,7 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     band = cfg.band
     dnorm = dr.norm(d)
     shade = lighting is not None
-    if dr.hint(cfg.basis, mode="scalar"):
-        arrays = [dev.leaf_values, dev.color_leaf_values]
-    else:
-        arrays = [dev.values, dev.color_values]
+    arrays = dev.arrays(cfg.basis, color=True)
     level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
     centre = cfg.iso(dev, 0)
     marks = [centre + band.lo, centre, centre + band.hi]
@@ -639,10 +659,7 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
     dnorm = dr.norm(d)
     shade = lighting is not None
     uniform = cfg.method == "uniform"
-    if dr.hint(cfg.basis, mode="scalar"):
-        arrays = [dev.leaf_values, dev.color_leaf_values]
-    else:
-        arrays = [dev.values, dev.color_values]
+    arrays = dev.arrays(cfg.basis, color=True)
     centre = cfg.iso(dev, 0)
     band_lo, band_hi = centre + band.lo, centre + band.hi
     rho = m.Float(0.0) if uniform else jitter
@@ -737,7 +754,7 @@ def _bisect_band(dev, cfg, o, d, t_a, t_b, v_a, band_lo, band_hi, active):
     """A point of ``[t_a, t_b]`` whose value lies in ``(band_lo, band_hi)``, by bisection on the
     side of the band that ``v_a`` is on; returns ``(t, found)``."""
     m = dev.m
-    values = [dev.leaf_values if cfg.basis else dev.values]
+    values = dev.arrays(cfg.basis)
     below = v_a < band_lo
     depth = dr.maximum(dr.ceil(dr.log2(cfg.step_scale / BISECT_TARGET)), 1.0)
     i = m.Float(0.0)

@@ -68,7 +68,7 @@ def trace(volume, origins, directions, *, field: str, isovalue, method: str = "e
     c = first_crossing(dev, cfg, o, d, m.Float(0.0), m.Float(np.broadcast_to(
         np.asarray(t_max, dtype=np.float32), (n,)).copy()), m.Float(np.asarray(
             jitter, dtype=np.float32)), m.Bool(True))
-    arrays = [dev.leaf_values if cfg.basis else dev.values]
+    arrays = dev.arrays(cfg.basis)
     _, grad = reconstruct(dev, cfg.basis, dr.fma(d, c.t, o), arrays, c.hit)
     normal = dr.normalize(grad)
     dr.eval(c.t, c.hit, c.samples, c.k, normal)

@@ -28,7 +28,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
-from .device import NO_GRID, gather
+from .device import BRICK, BRICK_N, NO_BRICK, NO_GRID, gather
 
 
 # ---------------------------------------------------------------------- kd-tree point location
@@ -103,40 +103,69 @@ def finest_point(dev, leaf, p, arrays, active):
     return values, grad
 
 
+def brick_cell(dev, level, i0, active):
+    """Position in the brick pool of level ``level``'s cell ``i0`` (``Array3i``, level index
+    space) and whether it exists; the other 7 corners of the dual cell starting at ``i0`` are at
+    the offsets of :func:`corner_offset`."""
+    m = dev.m
+    lo = gather(m.Array3i, dev.level_lo, level, active)
+    dims = gather(m.Array3u, dev.level_dims, level, active)
+    toff = gather(m.UInt32, dev.level_table_offset, level, active)
+    rel = i0 - lo
+    inside = dr.all(rel >= 0)
+    r = m.Array3u(dr.maximum(rel, 0))
+    b = r // BRICK
+    inside &= dr.all(b < dims)
+    brick = gather(m.UInt32, dev.brick_table, toff + (b.x * dims.y + b.y) * dims.z + b.z,
+                   active & inside)
+    ok = active & inside & (brick != NO_BRICK)
+    local = r - b * BRICK
+    base = brick * (BRICK_N ** 3) + (local.x * BRICK_N + local.y) * BRICK_N + local.z
+    return base, ok
+
+
+def corner_offset(bx, by, bz):
+    """Offset in the brick pool from a dual cell's lower corner to corner ``(bx, by, bz)``."""
+    return (bx * BRICK_N + by) * BRICK_N + bz
+
+
+def _level_frame(dev, level, p, active):
+    """Local coordinate of ``p`` in level ``level``'s cell-centre lattice and its inverse cell
+    size: ``u = (p - anchor) / h - 0.5`` (cell ``i`` has its centre at ``u = i``)."""
+    m = dev.m
+    ih = gather(m.Array3f, dev.level_inv_h, level, active)
+    return (p - m.Array3f(*dev.anchor)) * ih - 0.5, ih
+
+
 @dr.syntax
 def basis_point(dev, leaf, p, arrays, active):
-    """Basis-blend reconstruction at ``p`` over the active grids of ``leaf``.
+    """Basis-blend reconstruction at ``p``: the leaf cells of every level active in ``leaf``.
 
-    ``arrays`` (one or two) are flat *leaf-value* arrays (NaN = no weight). Returns
+    ``arrays`` (one or two) are brick pools of *leaf values* (NaN = no weight). Returns
     ``(values, gradient_of_first)``; NaN where no cell has weight.
     """
     m = dev.m
-    start = gather(m.UInt32, dev.leaf_start, leaf, active)
-    count = gather(m.UInt32, dev.leaf_nactive, leaf, active)
+    levels = gather(m.UInt32, dev.leaf_levels, leaf, active)
     second = arrays[1] if len(arrays) > 1 else arrays[0]
     num0, num1, den = m.Float(0.0), m.Float(0.0), m.Float(0.0)
     dnum, dden = m.Array3f(0.0), m.Array3f(0.0)
-    j = m.UInt32(0)
-    while active & (j < count):
-        g = gather(m.UInt32, dev.leaf_grids, start + j, active)
-        o, ih, n, off = grid_frame(dev, g, active)
-        u = (p - o) * ih - 0.5
-        base = dr.floor(u)
-        f = u - base
-        i0 = m.Array3i(base)
-        ni = m.Array3i(n)
+    while active & (levels != 0):
+        level = dr.tzcnt(levels)
+        levels &= levels - 1
+        u, ih = _level_frame(dev, level, p, active)
+        base_f = dr.floor(u)
+        f = u - base_f
+        base, ok = brick_cell(dev, level, m.Array3i(base_f), active)
         for corner in range(8):
             b = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
-            i = i0 + m.Array3i(*b)
-            valid = active & dr.all((i >= 0) & (i < ni))
-            idx = _cell_index(n, off, m.UInt32(i.x), m.UInt32(i.y), m.UInt32(i.z))
+            idx = base + corner_offset(*b)
             wx = f.x if b[0] else 1.0 - f.x
             wy = f.y if b[1] else 1.0 - f.y
             wz = f.z if b[2] else 1.0 - f.z
             dw = m.Array3f((1.0 if b[0] else -1.0) * wy * wz, (1.0 if b[1] else -1.0) * wx * wz,
                            (1.0 if b[2] else -1.0) * wx * wy) * ih
-            v0 = gather(m.Float, arrays[0], idx, valid)
-            has = valid & dr.isfinite(v0)
+            v0 = gather(m.Float, arrays[0], idx, ok)
+            has = ok & dr.isfinite(v0)
             v0 = dr.select(has, v0, 0.0)
             w = dr.select(has, wx * wy * wz, 0.0)
             dw = dr.select(has, dw, 0.0)
@@ -146,7 +175,6 @@ def basis_point(dev, leaf, p, arrays, active):
             dnum += dw * v0
             if dr.hint(len(arrays) > 1, mode="scalar"):
                 num1 += w * dr.select(has, gather(m.Float, second, idx, has), 0.0)
-        j += 1
     ok = den > 0.0
     inv = dr.select(ok, dr.rcp(den), dr.nan)
     values = [num0 * inv] + ([num1 * inv] if len(arrays) > 1 else [])
@@ -156,7 +184,7 @@ def basis_point(dev, leaf, p, arrays, active):
 
 def reconstruct(dev, basis: bool, p, arrays, active, leaf=None):
     """Values (one per array) and the gradient of the first at world ``p``; locates the leaf
-    unless given. ``arrays`` must be leaf-value arrays for ``basis`` and raw ones otherwise."""
+    unless given. ``arrays`` come from :meth:`DeviceVolume.arrays` for the same ``basis``."""
     if leaf is None:
         leaf = locate(dev, p, active)
     if basis:
@@ -166,68 +194,91 @@ def reconstruct(dev, basis: bool, p, arrays, active, leaf=None):
 
 # ---------------------------------------------------------------------- cubic along a ray
 
-def _axis_factors(m, ua, du, um, n, clamp):
-    """Linear weight factors ``alpha + beta * s`` of the two dual-cell corners along one axis,
-    and their indices. ``ua``/``du``: local coordinate at s = 0 and its rate; ``um``: at the
+def _clamped_factors(m, ua, du, um, n):
+    """Finest-level rule along one axis: the two corners' weights ``alpha + beta * s`` and their
+    (clamped) indices. ``ua``/``du``: local coordinate at s = 0 and its rate; ``um``: at the
     segment's middle (chooses the dual cell)."""
-    if clamp:
-        last = m.Float(n) - 1.0
-        below = um < 0.0
-        above = um > last
-        i0 = dr.minimum(m.UInt32(dr.maximum(dr.floor(um), 0.0)), dr.maximum(n, 2) - 2)
-        i1 = dr.minimum(i0 + 1, n - 1)
-        e = ua - m.Float(i0)
-        a0 = dr.select(below, 1.0, dr.select(above, 0.0, 1.0 - e))
-        b0 = dr.select(below | above, 0.0, -du)
-        a1 = dr.select(below, 0.0, dr.select(above, 1.0, e))
-        b1 = dr.select(below | above, 0.0, du)
-        return (a0, b0, i0, True), (a1, b1, i1, True)
-    base = dr.floor(um)
-    e = ua - base
-    i0 = m.Int32(base)
-    ni = m.Int32(n)
-    return (1.0 - e, -du, i0, (i0 >= 0) & (i0 < ni)), (e, du, i0 + 1, (i0 + 1 >= 0) & (i0 + 1 < ni))
+    last = m.Float(n) - 1.0
+    below = um < 0.0
+    above = um > last
+    i0 = dr.minimum(m.UInt32(dr.maximum(dr.floor(um), 0.0)), dr.maximum(n, 2) - 2)
+    i1 = dr.minimum(i0 + 1, n - 1)
+    e = ua - m.Float(i0)
+    a0 = dr.select(below, 1.0, dr.select(above, 0.0, 1.0 - e))
+    b0 = dr.select(below | above, 0.0, -du)
+    a1 = dr.select(below, 0.0, dr.select(above, 1.0, e))
+    b1 = dr.select(below | above, 0.0, du)
+    return (a0, b0, i0), (a1, b1, i1)
 
 
-def stencil_cubic(dev, g, p0, d, s_mid, arrays, clamp: bool, active):
-    """Cubic coefficients (in ``s``, along ``p0 + s d``) of the weighted sums of grid ``g``'s
-    dual cell that contains ``p0 + s_mid d``: ``num[a]`` for each value array and ``den`` for
-    the weights. ``clamp`` selects the finest-level rule (clamped indices, raw values);
-    otherwise corners outside the grid or holding NaN get no weight (basis rule)."""
-    m = dev.m
-    o, ih, n, off = grid_frame(dev, g, active)
-    ua = (p0 - o) * ih - 0.5
-    du = d * ih
-    um = ua + s_mid * du
-    fx = _axis_factors(m, ua.x, du.x, um.x, n.x, clamp)
-    fy = _axis_factors(m, ua.y, du.y, um.y, n.y, clamp)
-    fz = _axis_factors(m, ua.z, du.z, um.z, n.z, clamp)
-    # Distinct zero objects: Dr.Jit's += updates an array in place, so aliases would share sums.
-    num = [[m.Float(0.0) for _ in range(4)] for _ in arrays]
+def _cubics(m, fx, fy, fz, fetch, count):
+    """Cubic coefficients of ``sum_C w_C(s) v_C`` (one per value array) and of ``sum_C w_C(s)``
+    over the 8 corners, with ``w_C`` the product of the corners' linear factors (``fx`` etc.:
+    two ``(alpha, beta, index)`` per axis) and ``fetch(ix, iy, iz) -> (values, has)``."""
+    num = [[m.Float(0.0) for _ in range(4)] for _ in range(count)]
     den = [m.Float(0.0) for _ in range(4)]
-    for ax, bx, ix, okx in fx:
-        for ay, by, iy, oky in fy:
+    for ax, bx, ix in fx:
+        for ay, by, iy in fy:
             # (ax + bx s)(ay + by s) = q0 + q1 s + q2 s^2
             q0, q1, q2 = ax * ay, ax * by + bx * ay, bx * by
-            lin_num = [[m.Float(0.0), m.Float(0.0)] for _ in arrays]
+            lin_num = [[m.Float(0.0), m.Float(0.0)] for _ in range(count)]
             lin_den = [m.Float(0.0), m.Float(0.0)]
-            for az, bz, iz, okz in fz:
-                valid = active & okx & oky & okz
-                idx = _cell_index(n, off, m.UInt32(ix), m.UInt32(iy), m.UInt32(iz))
-                vals = [gather(m.Float, arr, idx, valid) for arr in arrays]
-                has = valid & dr.isfinite(vals[0])
+            for az, bz, iz in fz:
+                vals, has = fetch(ix, iy, iz)
                 wa = dr.select(has, az, 0.0)
                 wb = dr.select(has, bz, 0.0)
                 lin_den = [lin_den[0] + wa, lin_den[1] + wb]
-                for a in range(len(arrays)):
+                for a in range(count):
                     v = dr.select(has, vals[a], 0.0)
                     lin_num[a] = [lin_num[a][0] + wa * v, lin_num[a][1] + wb * v]
-            for target, lin in [(den, lin_den)] + [(num[a], lin_num[a]) for a in range(len(arrays))]:
+            for target, lin in [(den, lin_den)] + [(num[a], lin_num[a]) for a in range(count)]:
                 target[0] += q0 * lin[0]
                 target[1] += q0 * lin[1] + q1 * lin[0]
                 target[2] += q1 * lin[1] + q2 * lin[0]
                 target[3] += q2 * lin[1]
     return num, den
+
+
+def finest_cubic(dev, g, p0, d, s_mid, arrays, active):
+    """Cubic coefficients (in ``s``, along ``p0 + s d``) of the finest-level reconstruction in
+    grid ``g`` for the piece whose middle is at ``s_mid``: ``num[a]`` per value array and
+    ``den`` (1 unless a value is missing)."""
+    m = dev.m
+    o, ih, n, off = grid_frame(dev, g, active)
+    ua = (p0 - o) * ih - 0.5
+    du = d * ih
+    um = ua + s_mid * du
+    fx = _clamped_factors(m, ua.x, du.x, um.x, n.x)
+    fy = _clamped_factors(m, ua.y, du.y, um.y, n.y)
+    fz = _clamped_factors(m, ua.z, du.z, um.z, n.z)
+
+    def fetch(i, j, k):
+        idx = _cell_index(n, off, i, j, k)
+        vals = [gather(m.Float, arr, idx, active) for arr in arrays]
+        return vals, active & dr.isfinite(vals[0])
+
+    return _cubics(m, fx, fy, fz, fetch, len(arrays))
+
+
+def level_cubic(dev, level, p0, d, s_mid, arrays, active):
+    """Cubic coefficients of the basis sums of one level's leaf cells along ``p0 + s d`` for
+    the piece whose middle is at ``s_mid`` (corners with no leaf cell get no weight)."""
+    m = dev.m
+    ua, ih = _level_frame(dev, level, p0, active)
+    du = d * ih
+    base_f = dr.floor(ua + s_mid * du)
+    e = ua - base_f
+    base, ok = brick_cell(dev, level, m.Array3i(base_f), active)
+    fx = [(1.0 - e.x, -du.x, 0), (e.x, du.x, 1)]
+    fy = [(1.0 - e.y, -du.y, 0), (e.y, du.y, 1)]
+    fz = [(1.0 - e.z, -du.z, 0), (e.z, du.z, 1)]
+
+    def fetch(bx, by, bz):
+        idx = base + corner_offset(bx, by, bz)
+        vals = [gather(m.Float, arr, idx, ok) for arr in arrays]
+        return vals, ok & dr.isfinite(vals[0])
+
+    return _cubics(m, fx, fy, fz, fetch, len(arrays))
 
 
 def segment_cubic(dev, basis: bool, leaf, p0, d, s_mid, arrays, active):
@@ -236,27 +287,25 @@ def segment_cubic(dev, basis: bool, leaf, p0, d, s_mid, arrays, active):
     if basis:
         return _basis_segment_cubic(dev, leaf, p0, d, s_mid, arrays, active)
     g = gather(dev.m.UInt32, dev.leaf_owner, leaf, active)
-    return stencil_cubic(dev, g, p0, d, s_mid, arrays, True, active & (g != NO_GRID))
+    return finest_cubic(dev, g, p0, d, s_mid, arrays, active & (g != NO_GRID))
 
 
 @dr.syntax
 def _basis_segment_cubic(dev, leaf, p0, d, s_mid, arrays, active):
     m = dev.m
-    start = gather(m.UInt32, dev.leaf_start, leaf, active)
-    count = gather(m.UInt32, dev.leaf_nactive, leaf, active)
+    levels = gather(m.UInt32, dev.leaf_levels, leaf, active)
     n0, n1, n2, n3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     c0, c1, c2, c3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     d0, d1, d2, d3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     two = len(arrays) > 1
-    j = m.UInt32(0)
-    while active & (j < count):
-        g = gather(m.UInt32, dev.leaf_grids, start + j, active)
-        num, den = stencil_cubic(dev, g, p0, d, s_mid, arrays, False, active)
+    while active & (levels != 0):
+        level = dr.tzcnt(levels)
+        levels &= levels - 1
+        num, den = level_cubic(dev, level, p0, d, s_mid, arrays, active)
         n0, n1, n2, n3 = n0 + num[0][0], n1 + num[0][1], n2 + num[0][2], n3 + num[0][3]
         if dr.hint(two, mode="scalar"):
             c0, c1, c2, c3 = c0 + num[1][0], c1 + num[1][1], c2 + num[1][2], c3 + num[1][3]
         d0, d1, d2, d3 = d0 + den[0], d1 + den[1], d2 + den[2], d3 + den[3]
-        j += 1
     nums = [[n0, n1, n2, n3]] + ([[c0, c1, c2, c3]] if two else [])
     return nums, [d0, d1, d2, d3]
 

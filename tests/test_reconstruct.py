@@ -64,7 +64,7 @@ def numpy3(v):
 
 def evaluate(dev, basis, points):
     """Values and gradients of the Dr.Jit reconstruction at ``points`` (float64 arrays)."""
-    arrays = [dev.leaf_values if basis else dev.values]
+    arrays = dev.arrays(basis)
     active = dr.full(M.Bool, True, len(points))
     vals, grad = rec.reconstruct(dev, basis, array3(points), arrays, active)
     dr.eval(vals[0], grad)
@@ -305,7 +305,7 @@ def test07_segment_cubic_equals_the_point_reconstruction_inside_one_piece(hierar
 
     active = dr.full(M.Bool, True, len(p0))
     leaf = rec.locate(dev, array3(mids), active)
-    arrays = [dev.leaf_values if basis else dev.values]
+    arrays = dev.arrays(basis)
     nums, den = rec.segment_cubic(dev, basis, leaf, array3(p0), array3(dirs),
                                   M.Float(0.5 * length.astype(np.float32)), arrays, active)
     dr.eval(nums, den)

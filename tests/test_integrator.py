@@ -1,0 +1,444 @@
+"""The ``amr_iso`` Mitsuba integrator: every shipped scene renders, parameter mistakes give the
+documented :class:`AMRError` messages, isovalue and step scale change between frames without a
+kernel recompile, opacity correction, meshes occluding and shadowing isosurfaces (and the
+reverse), and registration across Mitsuba variants.
+
+Runs on ``llvm_ad_rgb``; the scalar checks are tiny. Images are small (32 to 96 pixels a side)
+and compared with themselves under a controlled change (a mesh moved, shadows switched off),
+so no reference image is needed: colours tell the objects apart (the isosurface green, the
+floor blue, the blocking ball red).
+"""
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+dr = pytest.importorskip("drjit")
+
+import mi_amr  # noqa: E402
+from mi_amr import AMRError, datasets  # noqa: E402
+from mi_amr.cli import SCENES, scene_data  # noqa: E402
+
+VARIANT = "llvm_ad_rgb"
+if VARIANT not in mi.variants():
+    pytest.skip(f"Mitsuba variant {VARIANT} is not available", allow_module_level=True)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def variant():
+    mi.set_variant(VARIANT)
+    mi_amr.register()
+    yield
+    mi.set_variant(VARIANT)
+
+
+@pytest.fixture(scope="module")
+def sphere_file(tmp_path_factory):
+    """The analytic sphere dataset (isosurface 0.3: radius 0.3 around (0.5, 0.5, 0.5))."""
+    path = tmp_path_factory.mktemp("data") / "sphere.npz"
+    datasets.sphere().save(path)
+    return path
+
+
+def load_scene(path, **params):
+    from mi_amr.integrator import load_scene as load
+    return load(path, **params)
+
+
+def render(scene, **kw):
+    img = mi.render(scene, seed=0, **kw)
+    return np.array(img, dtype=np.float64)
+
+
+# ---------------------------------------------------------------------- the shipped scenes
+
+SCENE_FILES = sorted(SCENES.glob("*.xml"))
+
+
+def data_missing(path: Path):
+    """The AMReX scene reads ../../shared/data/amrex/plt_eb_3d (relative to the XML), which
+    lives outside the repository."""
+    if path.name == "plt_eb_3d.xml":
+        data = path.parent / "../../shared/data/amrex/plt_eb_3d"
+        if not data.is_dir():
+            return f"{data.resolve()} not found (see shared/data/amrex/SOURCE.md)"
+    return None
+
+
+@pytest.fixture(scope="module")
+def scene_files_ready():
+    scene_data(verbose=False)
+
+
+@pytest.fixture(scope="module", params=SCENE_FILES, ids=[p.stem for p in SCENE_FILES])
+def shipped_scene(request, scene_files_ready):
+    reason = data_missing(request.param)
+    if reason:
+        pytest.skip(reason)
+    return request.param, load_scene(request.param, resx=32, resy=32)
+
+
+def test01_the_analytic_scenes_are_shipped():
+    names = {p.name for p in SCENE_FILES}
+    assert {"analytic_sphere.xml", "analytic_spike.xml", "analytic_torus.xml",
+            "sphere_wake.xml", "sphere_wake_volume.xml", "plt_eb_3d.xml"} <= names
+
+
+def test02_every_scene_renders_without_nan_or_inf(shipped_scene):
+    """At 32 x 32 pixels (the scenes' ``resx``/``resy`` defaults overridden) every scene gives
+    a finite image in which something is lit."""
+    path, scene = shipped_scene
+    img = render(scene)
+    assert img.shape == (32, 32, 3)
+    assert np.all(np.isfinite(img)), f"{path.name}: {np.sum(~np.isfinite(img))} NaN/Inf values"
+    assert img.max() > 0.05 and img.std() > 0.01, f"{path.name}: the image is blank"
+
+
+OLD_SCENES_WITHOUT_ID = {"sphere_wake", "sphere_wake_volume", "plt_eb_3d"}
+
+
+def test03_every_scene_exposes_integrator_isovalue_and_step_scale(shipped_scene, request):
+    """The integrator docstring promises ``integrator.isovalue`` and ``integrator.step_scale``
+    in ``mi.traverse(scene)``; Mitsuba names parameters after the object's id, so this holds
+    only where the scene gives its integrator ``id="integrator"``."""
+    path, scene = shipped_scene
+    if path.stem in OLD_SCENES_WITHOUT_ID:
+        request.applymarker(pytest.mark.xfail(
+            strict=True, reason="<integrator type=\"amr_iso\"> has no id=\"integrator\": the keys "
+            "are object_<address>.isovalue and object_<address>.step_scale"))
+    keys = set(mi.traverse(scene).keys())
+    assert {"integrator.isovalue", "integrator.step_scale"} <= keys, sorted(keys)
+
+
+# ---------------------------------------------------------------------- parameter mistakes
+
+SENSOR = """
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0.5, 0.5, 3" target="0.5, 0.5, 0.5" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+    </sensor>
+"""
+
+
+def write_scene(path, params):
+    """A scene file whose amr_iso integrator gets ``params``: name -> (tag, value)."""
+    body = "\n".join(f'        <{tag} name="{name}" value="{value}"/>'
+                     for name, (tag, value) in params.items())
+    path.write_text(f'<scene version="3.0.0">\n    <integrator type="amr_iso">\n{body}\n'
+                    f'    </integrator>\n{SENSOR}</scene>\n')
+    return path
+
+
+BASE = {"filename": ("string", "sphere.npz"), "field": ("string", "f"),
+        "isovalue": ("float", "0.3")}
+
+MISTAKES = {
+    "unknown-parameter": ({"colour": ("string", "red")},
+                          r"amr_iso: unknown parameter\(s\) \['colour'\]; allowed: filename, field"),
+    "bad-method": ({"method": ("string", "fast")},
+                   r"amr_iso: parameter 'method' must be one of exact, bisect, adaptive, "
+                   r"uniform; got 'fast'"),
+    "bad-reconstruction": ({"reconstruction": ("string", "cubic")},
+                           r"parameter 'reconstruction' must be one of basis, finest; got 'cubic'"),
+    "bad-mode": ({"mode": ("string", "cloud")},
+                 r"amr_iso: parameter 'mode' must be one of surface, volume; got 'cloud'"),
+    "step-scale-zero": ({"step_scale": ("float", "0")},
+                        r"amr_iso: parameter 'step_scale' must be a number in \[0\.0001, 64\], "
+                        r"got 0"),
+    "step-scale-negative": ({"step_scale": ("float", "-0.5")},
+                            r"parameter 'step_scale' must be a number in \[0\.0001, 64\], got -0\.5"),
+    "colormap-short-colour": ({"color_field": ("string", "f"),
+                               "colormap": ("string", "0.1: 1 0 0, 0.5: 0 1")},
+                              r"colormap: '0\.5: 0 1' needs a value and 3 colour components"),
+    "colormap-unreadable": ({"color_field": ("string", "f"),
+                             "colormap": ("string", "0.1: 1 0 0, high: 0 1 0")},
+                            r"colormap: cannot read 'high: 0 1 0'; expected 'value: r g b' pairs"),
+    "colormap-unknown-name": ({"color_field": ("string", "f"),
+                               "colormap": ("string", "not_a_map")},
+                              r"colormap 'not_a_map' is not a matplotlib colour map"),
+    "colormap-without-field": ({"colormap": ("string", "viridis")},
+                               r"'color_field' and 'colormap' go together"),
+    "isovalue-missing": ({"isovalue": None}, r"amr_iso: parameter 'isovalue' is required"),
+    "iso-opacity-above-1": ({"iso_opacity": ("float", "1.5")},
+                            r"amr_iso: parameter 'iso_opacity' needs 1 or 1 values in \(0, 1\], "
+                            r"got 1\.5"),
+    "iso-opacity-zero": ({"iso_opacity": ("float", "0")},
+                         r"parameter 'iso_opacity' needs 1 or 1 values in \(0, 1\]"),
+    "missing-data-file": ({"filename": ("string", "data/nothing.npz")},
+                          r"amr_iso: parameter 'filename': data/nothing\.npz not found .*"
+                          r"'python -m mi_amr data'"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(MISTAKES))
+def test04_parameter_mistakes_give_the_documented_messages(tmp_path, sphere_file, case):
+    """Each mistake ends as one AMRError naming the parameter and what is allowed (through
+    :func:`mi_amr.integrator.load_scene`, which unwraps Mitsuba's plugin error), never as a
+    traceback."""
+    changes, message = MISTAKES[case]
+    (tmp_path / "sphere.npz").symlink_to(sphere_file)
+    params = {**BASE, **changes}
+    params = {k: v for k, v in params.items() if v is not None}
+    path = write_scene(tmp_path / "scene.xml", params)
+    with pytest.raises(AMRError, match=message) as info:
+        load_scene(path)
+    assert "Traceback" not in str(info.value)
+
+
+def test05_a_valid_scene_file_of_the_same_shape_loads(tmp_path, sphere_file):
+    """The baseline of the mistakes above is itself correct (so each error is the mistake's)."""
+    (tmp_path / "sphere.npz").symlink_to(sphere_file)
+    scene = load_scene(write_scene(tmp_path / "scene.xml", BASE))
+    assert "amr_iso" in str(scene.integrator()) or "AMRIso" in str(scene.integrator())
+
+
+# ---------------------------------------------------------------------- changing parameters
+
+def render_kernels_compiled(scene):
+    """Render, returning the image and how many JIT kernels launched during the render were
+    compiled (not found in Dr.Jit's kernel cache)."""
+    dr.kernel_history()  # clear
+    img = render(scene)
+    history = dr.kernel_history()
+    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
+    assert jit, "no kernel launched"
+    return img, sum(1 for k in jit if not k.get("cache_hit", False))
+
+
+def test06_isovalue_and_step_scale_change_without_recompiling(scene_files_ready):
+    """``integrator.isovalue`` and ``integrator.step_scale`` from ``mi.traverse``: a new value
+    renders a different image with the kernels already compiled."""
+    scene = load_scene(SCENES / "analytic_sphere.xml", resx=32, resy=32, method="adaptive")
+    params = mi.traverse(scene)
+    assert list(params["integrator.isovalue"]) == pytest.approx([0.3])
+    assert list(np.atleast_1d(params["integrator.step_scale"])) == pytest.approx([0.5])
+    before = render(scene)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        same, compiled = render_kernels_compiled(scene)
+        assert compiled == 0
+        np.testing.assert_allclose(same, before, rtol=0, atol=1e-5)
+
+        params["integrator.isovalue"] = mi.Float([0.22])
+        params.update()
+        smaller, compiled = render_kernels_compiled(scene)
+        assert compiled == 0, f"{compiled} kernel(s) compiled after an isovalue change"
+        # A smaller sphere: fewer pixels covered.
+        assert (smaller.sum(axis=2) > 0).sum() < (before.sum(axis=2) > 0).sum()
+
+        params["integrator.step_scale"] = 2.0
+        params.update()
+        coarse, compiled = render_kernels_compiled(scene)
+        assert compiled == 0, f"{compiled} kernel(s) compiled after a step_scale change"
+        assert np.abs(coarse - smaller).max() > 1e-3
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
+def volume_scene(sphere_file, res=48, **integrator):
+    return {
+        "type": "scene",
+        "integrator": {"type": "amr_iso", "filename": str(sphere_file), "field": "f",
+                       "isovalue": 0.3, **integrator},
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0.5, 0.5, 3],
+                                                             target=[0.5, 0.5, 0.5], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res,
+                            "pixel_format": "rgb", "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 4}},
+        "light": {"type": "directional", "direction": [0.3, -0.2, -1],
+                  "irradiance": {"type": "rgb", "value": 2.5}},
+    }
+
+
+def test07_opacity_correction_keeps_volume_brightness_when_the_step_changes(sphere_file):
+    """Volume mode, adaptive sampling, an opacity band two cells thick: at step scale 0.25 and
+    0.1 (2.5 times as many samples in the band) the mean brightness is within 3 %."""
+    scene = mi.load_dict(volume_scene(sphere_file, mode="volume", method="adaptive",
+                                      band_width=0.02, step_scale=0.25))
+    params = mi.traverse(scene)
+    coarse = render(scene)
+    params["integrator.step_scale"] = 0.1
+    params.update()
+    fine = render(scene)
+    assert np.all(np.isfinite(coarse)) and np.all(np.isfinite(fine))
+    assert fine.mean() > 0.05
+    assert abs(coarse.mean() / fine.mean() - 1.0) < 0.03, (coarse.mean(), fine.mean())
+
+
+# ---------------------------------------------------------------------- meshes and isosurfaces
+
+LIGHT = np.array([0.8, 0.0, -1.0])     # direction the light travels: from the upper left (-x)
+TOWARDS_LIGHT = -LIGHT / np.linalg.norm(LIGHT)
+CENTRE = np.array([0.5, 0.5, 0.5])
+
+
+def mesh_scene(sphere_file, blocker=None, res=96, **integrator):
+    """The analytic sphere isosurface (green) above a blue floor at z = -0.3, seen from above,
+    lit by a directional light from the upper left; ``blocker`` = (centre, radius) adds a red
+    ball."""
+    scene = {
+        "type": "scene",
+        "integrator": {"type": "amr_iso", "filename": str(sphere_file), "field": "f",
+                       "isovalue": 0.3, "iso_color": "0.1 0.8 0.1", **integrator},
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0.5, 0.5, 4],
+                                                             target=[0.5, 0.5, 0.5], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res,
+                            "pixel_format": "rgb", "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": 1}},
+        "light": {"type": "directional", "direction": LIGHT.tolist(),
+                  "irradiance": {"type": "rgb", "value": 3.0}},
+        "floor": {"type": "rectangle",
+                  "to_world": mi.ScalarTransform4f().translate([0.5, 0.5, -0.3]).scale(3.0),
+                  "bsdf": {"type": "diffuse",
+                           "reflectance": {"type": "rgb", "value": [0.15, 0.15, 0.8]}}},
+    }
+    if blocker is not None:
+        scene["blocker"] = {"type": "sphere", "center": list(blocker[0]), "radius": blocker[1],
+                            "bsdf": {"type": "diffuse",
+                                     "reflectance": {"type": "rgb", "value": [0.85, 0.1, 0.1]}}}
+    return mi.load_dict(scene)
+
+
+def dominant(img, channel):
+    """Pixels whose ``channel`` (0 red, 1 green, 2 blue) is at least twice each other one."""
+    others = [c for c in range(3) if c != channel]
+    return np.all(img[..., [channel]] > 2 * img[..., others], axis=-1) & (img[..., channel] > 0)
+
+
+def luminance(img):
+    return img.sum(axis=-1)
+
+
+def test08_a_mesh_in_front_occludes_the_isosurface(sphere_file):
+    """A small red ball between the camera and the isosurface: the pixels of its silhouette
+    show the ball alone, where without it they show the isosurface."""
+    plain = render(mesh_scene(sphere_file))
+    front = render(mesh_scene(sphere_file, blocker=(CENTRE + [0, 0, 0.8], 0.08)))
+    ball = dominant(front, 0)
+    iso = dominant(plain, 1)
+    assert ball.sum() >= 12
+    assert np.all(iso[ball]), "the ball covers pixels that are not isosurface without it"
+    # Nothing of the green surface shows through the ball.
+    assert np.all(front[ball][:, 1] < 0.3 * front[ball][:, 0])
+    # The centre of the image is the ball's.
+    assert ball[48, 48] and iso[48, 48]
+
+
+def test09_a_mesh_shadows_the_isosurface(sphere_file):
+    """A ball between the light and the isosurface darkens the isosurface pixels in its shadow
+    (compared with the ball moved out of the light), and brightens none."""
+    spot = CENTRE + 0.3 * TOWARDS_LIGHT              # where the light meets the surface first
+    shadowing = render(mesh_scene(sphere_file, blocker=(spot + 0.5 * TOWARDS_LIGHT, 0.08)))
+    away = render(mesh_scene(sphere_file, blocker=(spot + 0.5 * TOWARDS_LIGHT - [0, 3, 0], 0.08)))
+    iso = dominant(away, 1)
+    assert iso.sum() > 300
+    darker = iso & (luminance(shadowing) < 0.6 * luminance(away))
+    assert darker.sum() >= 4, "no shadow of the ball on the isosurface"
+    # The shadowed pixels still show the (green, ambient-lit) isosurface, not the ball.
+    assert np.all(dominant(shadowing, 1)[darker])
+    assert np.all(luminance(shadowing)[iso] <= luminance(away)[iso] * 1.01 + 1e-6)
+
+
+def test10_the_isosurface_shadows_the_floor_unless_shadows_are_off(sphere_file):
+    """The isosurface casts a shadow onto the floor on the side away from the light; with
+    ``shadows=false`` the floor is evenly lit."""
+    lit = render(mesh_scene(sphere_file))
+    unshadowed = render(mesh_scene(sphere_file, shadows=False))
+    floor = dominant(unshadowed, 2)
+    iso = dominant(unshadowed, 1)
+    assert floor.sum() > 3000 and iso.sum() > 300
+    shadow = floor & (luminance(lit) < 0.6 * luminance(unshadowed))
+    assert shadow.sum() > 100, "no isosurface shadow on the floor"
+    # shadows=false: every floor pixel gets the same light.
+    f = luminance(unshadowed)[floor]
+    assert f.max() < 1.02 * f.min()
+    # The shadow lies on the far side of the surface from the light: compare with the image
+    # position of a point of the floor towards the light.
+    cols = np.nonzero(shadow)[1].mean() - np.nonzero(iso)[1].mean()
+    towards = render(mesh_scene(sphere_file, blocker=(CENTRE + 0.6 * TOWARDS_LIGHT, 0.05)))
+    ball = dominant(towards, 0)
+    assert ball.sum() > 0
+    ball_cols = np.nonzero(ball)[1].mean() - np.nonzero(iso)[1].mean()
+    assert cols * ball_cols < 0, (cols, ball_cols)
+
+
+# ---------------------------------------------------------------------- variants
+
+def test11_importing_after_set_variant_registers_amr_iso(sphere_file):
+    """In a fresh interpreter: ``mi.set_variant`` then ``import mi_amr`` is all it takes."""
+    code = textwrap.dedent(f"""
+        import mitsuba as mi
+        mi.set_variant("{VARIANT}")
+        import mi_amr
+        integrator = mi.load_dict({{"type": "amr_iso", "filename": {str(sphere_file)!r},
+                                    "field": "f", "isovalue": 0.3}})
+        print(type(integrator).__name__, isinstance(integrator, mi.SamplingIntegrator))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["AMRIsoIntegrator", "True"]
+
+
+def sphere_scene_dict(sphere_file, res):
+    return {
+        "type": "scene",
+        "integrator": {"type": "amr_iso", "filename": str(sphere_file), "field": "f",
+                       "isovalue": 0.3},
+        "sensor": {"type": "perspective", "fov": 40,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0.5, 0.5, 2],
+                                                             target=[0.5, 0.5, 0.5], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res,
+                            "pixel_format": "rgb", "rfilter": {"type": "box"}}},
+        "light": {"type": "directional", "direction": [0, 0, -1]},
+    }
+
+
+def test12_register_again_after_switching_variants(sphere_file):
+    """llvm_ad_rgb -> scalar_rgb -> llvm_ad_rgb, calling :func:`mi_amr.register` after each
+    switch: in scalar_rgb the plugin is the integrator's own class (its parameter check runs),
+    and back on llvm_ad_rgb a scene renders."""
+    if "scalar_rgb" not in mi.variants():
+        pytest.skip("scalar_rgb is not available")
+    try:
+        mi.set_variant("scalar_rgb")
+        mi_amr.register()
+        with pytest.raises(RuntimeError, match=r"amr_iso: unknown parameter\(s\) \['nope'\]"):
+            mi.load_dict({"type": "amr_iso", "filename": str(sphere_file), "field": "f",
+                          "isovalue": 0.3, "nope": 1})
+    finally:
+        mi.set_variant(VARIANT)
+    mi_amr.register()
+    img = render(mi.load_dict(sphere_scene_dict(sphere_file, 16)))
+    assert np.all(np.isfinite(img)) and img[8, 8].sum() > 0.1
+
+
+@pytest.mark.xfail(strict=True, raises=(AMRError, RuntimeError, TypeError),
+                   reason="scalar_rgb: AMRIsoIntegrator.__init__ does "
+                   "'self.isovalue = mi.Float(opt.isovalues)' and mi.Float is the Python float "
+                   "there: TypeError: float() argument must be a string or a real number, "
+                   "not 'list'")
+def test13_scalar_variant_renders_a_tiny_image(sphere_file):
+    """scalar_rgb, 8 x 8 pixels: the isosurface covers the centre of the image, like on
+    llvm_ad_rgb."""
+    if "scalar_rgb" not in mi.variants():
+        pytest.skip("scalar_rgb is not available")
+    llvm = render(mi.load_dict(sphere_scene_dict(sphere_file, 8)))
+    try:
+        mi.set_variant("scalar_rgb")
+        mi_amr.register()
+        scalar = render(mi.load_dict(sphere_scene_dict(sphere_file, 8)))
+    finally:
+        mi.set_variant(VARIANT)
+        mi_amr.register()
+    assert np.all(np.isfinite(scalar))
+    # The samplers differ between variants, so compare the smooth middle and the coverage.
+    np.testing.assert_allclose(scalar[3:5, 3:5], llvm[3:5, 3:5], atol=0.05)
+    assert abs(int((scalar.sum(axis=2) > 0).sum()) - int((llvm.sum(axis=2) > 0).sum())) <= 6
