@@ -77,6 +77,13 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--out", default="out/bench", help="folder for the results")
     s.set_defaults(run=_bench)
 
+    s = sub.add_parser("reference", help="regenerate the exact reference images and hit "
+                                         "buffers in reference/")
+    s.add_argument("--regenerate", action="store_true", required=True,
+                   help="required: this overwrites reference/")
+    s.add_argument("--scene", action="append", help="only these scenes (repeatable)")
+    s.set_defaults(run=_reference)
+
     s = sub.add_parser("demo", help="create the scenes' data, then render the default scene")
     s.add_argument("-o", "--output", default="out/sphere_wake.png")
     s.set_defaults(run=_demo)
@@ -139,6 +146,15 @@ def _bench(args) -> None:
 
     scene_data()
     run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
+
+
+def _reference(args) -> None:
+    from .reference import SCENES, regenerate
+
+    unknown = [n for n in (args.scene or []) if n not in SCENES]
+    if unknown:
+        raise AMRError(f"unknown reference scene(s) {unknown}; choose from {list(SCENES)}")
+    regenerate(args.scene or SCENES)
 
 
 def _demo(args) -> None:

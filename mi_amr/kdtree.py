@@ -47,19 +47,33 @@ class KDTree:
         self.shape = np.array([g.shape for g in volume.grids], dtype=np.int64)
         self.support_lo = self.grid_lo - self.spacing
         self.support_hi = self.grid_hi + self.spacing
-        self.lo, self.hi = _dyadic_box(self.support_lo.min(axis=0), self.support_hi.max(axis=0),
-                                       volume.anchor, volume.level_spacing(volume.num_levels - 1))
+        # The build works in exact integer coordinates: cells of the finest level from the
+        # anchor. Every grid face and support face is on that lattice.
+        self.h_fine = volume.level_spacing(volume.num_levels - 1)
+        lattice = lambda x: np.round((x - volume.anchor) / self.h_fine)  # noqa: E731
+        self._glo, self._ghi = lattice(self.grid_lo), lattice(self.grid_hi)
+        step = np.round(self.spacing / self.h_fine)
+        self._slo, self._shi = self._glo - step, self._ghi + step
+        root_lo = self._slo.min(axis=0)
+        size = 2.0 ** np.ceil(np.log2(np.maximum(self._shi.max(axis=0) - root_lo, 1.0)))
+        self._root = (root_lo, root_lo + size)
+        self.lo, self.hi = self._world(root_lo), self._world(root_lo + size)
         self._build(max_depth)
         self._order_active()
         self._ropes()
 
+    def _world(self, u, axis=None):
+        """World coordinates of lattice coordinates ``u`` (all axes, or one ``axis``)."""
+        if axis is None:
+            return self.volume.anchor + u * self.h_fine
+        return self.volume.anchor[axis] + u * self.h_fine[axis]
+
     # ------------------------------------------------------------------ build
     def _build(self, max_depth: int) -> None:
         G = len(self.grid_lo)
-        anchor = self.volume.anchor
-        level_h = np.array([self.volume.level_spacing(l) for l in range(self.volume.num_levels)])
-        finest_h = level_h[-1]
-        f_lo, f_hi = self.lo[None, :].copy(), self.hi[None, :].copy()
+        level_h = np.array([np.round(self.volume.level_spacing(l) / self.h_fine)
+                            for l in range(self.volume.num_levels)])
+        f_lo, f_hi = self._root[0][None, :].copy(), self._root[1][None, :].copy()
         # (node, grid) pairs whose open support overlaps the node; pairs that can no longer
         # matter (support-only, no finer than the node's owner) are dropped as we go.
         p_node = np.zeros(G, dtype=np.int64)
@@ -70,7 +84,7 @@ class KDTree:
         for depth in range(max_depth + 1):
             n = len(f_lo)
             pl, ph = f_lo[p_node], f_hi[p_node]
-            gl, gh = self.grid_lo[p_grid], self.grid_hi[p_grid]
+            gl, gh = self._glo[p_grid], self._ghi[p_grid]
             p_level = self.level[p_grid]
             overlap = np.all(np.minimum(gh, ph) > np.maximum(gl, pl), axis=1)
             contains = np.all(gl <= pl, axis=1) & np.all(gh >= ph, axis=1)
@@ -111,7 +125,7 @@ class KDTree:
                 cells = np.where(np.isfinite(node_h), ext / node_h, 0.0)
             big = (~has_partial) & (owner >= 0) & np.any(cells > self.leaf_cells, axis=1)
             cut = np.flatnonzero(has_partial | big)
-            ax = np.argmax(np.round(ext[cut] / finest_h), axis=1)
+            ax = np.argmax(ext[cut], axis=1)
             axis[cut] = ax
             plane[cut] = 0.5 * (f_lo[cut, ax] + f_hi[cut, ax])
             if depth == max_depth:
@@ -149,20 +163,24 @@ class KDTree:
             keep = child_of[p_node] >= 0
             kn, kg = p_node[keep], p_grid[keep]
             ka, kpos = axis[kn], plane[kn]
-            go_left = self.support_lo[kg, ka] < kpos
-            go_right = self.support_hi[kg, ka] > kpos
+            go_left = self._slo[kg, ka] < kpos
+            go_right = self._shi[kg, ka] > kpos
             p_node = np.concatenate([child_of[kn][go_left], child_of[kn][go_right] + 1])
             p_grid = np.concatenate([kg[go_left], kg[go_right]])
             f_lo, f_hi = c_lo, c_hi
 
-        self.node_split = np.concatenate(split_out)
         self.node_code = np.concatenate(code_out)
-        self.node_lo = np.concatenate(box_lo)
-        self.node_hi = np.concatenate(box_hi)
+        self._node_split = np.concatenate(split_out)
+        self._node_lo = np.concatenate(box_lo)
+        self._node_hi = np.concatenate(box_hi)
+        axis = np.minimum(self.node_code & 3, 2)
+        self.node_split = self._world(self._node_split, axis)
+        self.node_lo = self._world(self._node_lo)
+        self.node_hi = self._world(self._node_hi)
         self.node_depth = np.concatenate(depth_out)
         self.depth = len(code_out)
-        self.leaf_lo = np.concatenate(leaf_lo)
-        self.leaf_hi = np.concatenate(leaf_hi)
+        self.leaf_lo = self._world(np.concatenate(leaf_lo))
+        self.leaf_hi = self._world(np.concatenate(leaf_hi))
         self.leaf_owner = np.concatenate(leaf_owner)
 
     def _order_active(self) -> None:
@@ -195,14 +213,13 @@ class KDTree:
         ray leaving a node restarts its descent there instead of at the root. Faces on the
         tree's boundary get the root. ``leaf_node[l]`` is the node of leaf ``l``."""
         N = self.num_nodes
-        extent = float(np.max(self.hi - self.lo))
-        delta = 1e-9 * extent
-        lo = np.repeat(self.node_lo, 6, axis=0)
-        hi = np.repeat(self.node_hi, 6, axis=0)
+        lo = np.repeat(self._node_lo, 6, axis=0)
+        hi = np.repeat(self._node_hi, 6, axis=0)
         face = np.tile(np.arange(6), N)
         axis, side = face // 2, face % 2
         rows = np.arange(6 * N)
-        plane = np.where(side == 1, hi[rows, axis] + delta, lo[rows, axis] - delta)
+        # Half a finest cell beyond the face: exact, and inside the neighbour.
+        plane = np.where(side == 1, hi[rows, axis] + 0.5, lo[rows, axis] - 0.5)
         lo[rows, axis] = plane
         hi[rows, axis] = plane
         node = np.zeros(6 * N, dtype=np.int64)
@@ -210,7 +227,7 @@ class KDTree:
         for _ in range(self.depth + 1):
             code = self.node_code[node[todo]]
             ax = code & 3
-            split = self.node_split[node[todo]]
+            split = self._node_split[node[todo]]
             inner = ax != LEAF
             a = np.where(inner, ax, 0)
             below = inner & (hi[todo, a] < split)
@@ -220,7 +237,7 @@ class KDTree:
             todo = todo[go]
             if len(todo) == 0:
                 break
-        outside = np.any((lo < self.lo) | (hi > self.hi), axis=1)
+        outside = np.any((lo < self._root[0]) | (hi > self._root[1]), axis=1)
         self.node_ropes = np.where(outside, 0, node).reshape(N, 6)
         is_leaf = (self.node_code & 3) == LEAF
         self.leaf_node = np.empty(self.num_leaves, dtype=np.int64)
@@ -394,16 +411,6 @@ def support_grids_bruteforce(volume, points) -> list:
 
 
 # ---------------------------------------------------------------------- helpers
-
-def _dyadic_box(lo, hi, anchor, h):
-    """A box holding ``[lo, hi]`` that starts on the lattice of cells ``h`` (from ``anchor``) and
-    spans a power of two of those cells along each axis, so every midpoint cut lands on the
-    lattice."""
-    ul = np.floor((np.asarray(lo) - anchor) / h + 1e-9)
-    uh = np.ceil((np.asarray(hi) - anchor) / h - 1e-9)
-    size = 2.0 ** np.ceil(np.log2(np.maximum(uh - ul, 1.0)))
-    return anchor + ul * h, anchor + (ul + size) * h
-
 
 def _as_points(points) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
