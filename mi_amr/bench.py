@@ -127,3 +127,198 @@ def run_frames(out_dir=None, resolution=(1024, 1024), variant="llvm_ad_rgb") -> 
         raise AMRError("a frame after the first compiled a kernel: per-frame values are not "
                        "opaque (this is a bug)")
     return results
+
+
+# ---------------------------------------------------------------------- speed against accuracy
+
+STEP_SCALES = (2.0, 1.0, 0.5, 0.25, 0.1, 0.05, 0.01)
+SWEEP_SCENES = ("sphere_wake", "plt_eb_3d", "analytic_spike", "analytic_torus")
+QUICK = {"scenes": ("analytic_spike", "sphere_wake"), "step_scales": (1.0, 0.25),
+         "reconstructions": ("basis",), "frames": 2}
+CSV_COLUMNS = ("scene", "method", "reconstruction", "step_scale", "frame_s", "compile_s",
+               "missed", "false", "depth_mean", "depth_p99", "normal_mean", "rmse",
+               "samples_per_ray")
+
+
+def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int = 3,
+          variant: str = "llvm_ad_rgb", progress: bool = True) -> list:
+    """Time and score every (scene, method, reconstruction, step_scale) against the exact
+    references in ``reference/`` (see :mod:`mi_amr.reference`). Writes ``sweep.csv``,
+    ``sweep.md`` and ``chart.png`` into ``out_dir``; returns the rows.
+
+    Frames are rendered at the references' resolution with 1 sample per pixel: the frame time is
+    the median of ``frames`` warm frames, the compile time is the first frame's extra time. Hit
+    scores come from the primary hit buffers; the image RMSE compares with an ``exact``/``basis``
+    frame rendered in the same run with the same seed (so pixel positions agree)."""
+    import drjit as dr
+    import mitsuba as mi
+    from tqdm import tqdm
+
+    from . import reference as ref
+    from .cli import scene_data
+
+    mi.set_variant(variant)
+    from .integrator import load_scene, register
+
+    register()
+    scene_data(verbose=progress)
+    methods = ("exact", "bisect", "adaptive", "uniform")
+    recons = QUICK["reconstructions"] if quick else ("basis", "finest")
+    steps = QUICK["step_scales"] if quick else STEP_SCALES
+    frames = QUICK["frames"] if quick else frames
+    names = [n for n in (scenes or (QUICK["scenes"] if quick else SWEEP_SCENES))
+             if ref.available(n)]
+    skipped = sorted(set(scenes or SWEEP_SCENES) - set(names)) if not quick else []
+    jobs = [(n, r, m, s) for n in names for r in recons for m in methods
+            for s in ((None,) if m == "exact" else steps)]
+    bar = tqdm(total=len(jobs), desc="bench", unit="config", disable=not progress)
+    rows = []
+    w, h = ref.RESOLUTION
+    for name in names:
+        ref_hits = ref.HitBuffers.load(ref.REFERENCE_DIR / f"{name}_hits.npz")
+        base_image = None
+        for recon in recons:
+            for method in methods:
+                scene = load_scene(ref.scene_path(name), resx=w, resy=h, spp=1, method=method,
+                                   reconstruction=recon)
+                params = mi.traverse(scene)
+                step_key = _key(params, "step_scale")
+                t0 = time.perf_counter()
+                ref.render(scene, 1)
+                first = time.perf_counter() - t0
+                for step in ((None,) if method == "exact" else steps):
+                    if step is not None:
+                        params[step_key] = mi.Float(step)
+                        params.update()
+                    times = []
+                    for i in range(frames):
+                        t0 = time.perf_counter()
+                        image = ref.render(scene, 1, seed=0)
+                        times.append(time.perf_counter() - t0)
+                    if base_image is None:
+                        base_image = image  # exact + basis comes first
+                    hits = ref.hit_buffers(scene)
+                    sc = ref.score(hits, ref_hits, image, base_image)
+                    rows.append({"scene": name, "method": method, "reconstruction": recon,
+                                 "step_scale": step if step is not None else "",
+                                 "frame_s": statistics.median(times),
+                                 "compile_s": max(first - statistics.median(times), 0.0),
+                                 **sc.as_dict(),
+                                 "samples_per_ray": _samples_per_ray(scene)})
+                    bar.update(1)
+                del scene, params
+                dr.flush_malloc_cache()
+    bar.close()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    _write_csv(rows, out / "sweep.csv")
+    table = sweep_table(rows)
+    (out / "sweep.md").write_text(table + "\n")
+    chart(rows, out / "chart.png")
+    if skipped:
+        print(f"skipped scenes without data: {', '.join(skipped)}")
+    print(f"wrote {out / 'sweep.csv'}, {out / 'sweep.md'} and {out / 'chart.png'}")
+    return rows
+
+
+def _samples_per_ray(scene) -> float:
+    """Mean field evaluations per camera ray through a pixel centre (``exact``: cubic pieces)."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from .march import first_crossing
+
+    integ = scene.integrator()
+    sensor = scene.sensors()[0]
+    w, h = sensor.film().crop_size()
+    idx = dr.arange(mi.UInt32, w * h)
+    pos = mi.Vector2f(mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5) / mi.Vector2f(w, h)
+    ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), pos, mi.Point2f(0.5, 0.5))
+    m = integ.m
+    o, d = integ._local_ray(ray.o, ray.d)
+    c = first_crossing(integ.dev, integ.config(), o, d, m.Float(0.0), m.Float(dr.inf),
+                       m.Float(0.5), m.Bool(True))
+    return float(dr.mean(m.Float(c.samples)).numpy()[0]) if hasattr(
+        dr.mean(m.Float(c.samples)), "numpy") else float(dr.mean(m.Float(c.samples)))
+
+
+def _write_csv(rows, path):
+    import csv
+
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        for r in rows:
+            writer.writerow({k: r[k] for k in CSV_COLUMNS})
+
+
+def sweep_table(rows) -> str:
+    """Markdown table of the sweep (times in ms, error rates in %)."""
+    lines = ["| scene | method | reconstruction | step | frame (ms) | compile (s) | missed (%) "
+             "| false (%) | depth mean (cells) | depth p99 (cells) | normal (deg) | RMSE "
+             "| samples/ray |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['method']} | {r['reconstruction']} | "
+                     f"{r['step_scale']} | {1000 * r['frame_s']:.0f} | {r['compile_s']:.1f} | "
+                     f"{100 * r['missed']:.3f} | {100 * r['false']:.3f} | "
+                     f"{r['depth_mean']:.2e} | {r['depth_p99']:.2e} | {r['normal_mean']:.2f} | "
+                     f"{r['rmse']:.4f} | {r['samples_per_ray']:.1f} |")
+    return "\n".join(lines)
+
+
+def pareto(points) -> list:
+    """Indices of the points (time, error) that no other point beats on both."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], float("inf")
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def chart(rows, path):
+    """Time per frame against error, one curve per method and reconstruction, per scene, with
+    the Pareto front marked. Errors: missed-hit rate (left) and the 99th percentile depth error
+    in finest cells (right)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    colors = {"exact": "black", "bisect": "tab:green", "adaptive": "tab:blue",
+              "uniform": "tab:orange"}
+    metrics = (("missed", "missed hits (% of pixels)", 100.0),
+               ("depth_p99", "depth error p99 (finest cells)", 1.0))
+    fig, axes = plt.subplots(len(scenes), 2, figsize=(11, 3.6 * len(scenes)), squeeze=False)
+    floor = {"missed": 1e-3, "depth_p99": 1e-6}
+    for row_axes, scene in zip(axes, scenes):
+        sub = [r for r in rows if r["scene"] == scene]
+        for ax, (key, label, scale) in zip(row_axes, metrics):
+            for (method, recon) in dict.fromkeys((r["method"], r["reconstruction"]) for r in sub):
+                pts = sorted([(1000 * r["frame_s"], max(scale * r[key], floor[key]))
+                              for r in sub if r["method"] == method and
+                              r["reconstruction"] == recon])
+                style = "-" if recon == "basis" else "--"
+                marker = "*" if method == "exact" else "o"
+                ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker=marker,
+                        color=colors[method], label=f"{method} / {recon}", ms=7 if
+                        method == "exact" else 4)
+            allpts = [(1000 * r["frame_s"], max(scale * r[key], floor[key])) for r in sub]
+            front = [allpts[i] for i in pareto(allpts)]
+            ax.plot([p[0] for p in front], [p[1] for p in front], ":", color="crimson", lw=2,
+                    label="Pareto front", zorder=0)
+            ax.scatter([p[0] for p in front], [p[1] for p in front], s=120, facecolors="none",
+                       edgecolors="crimson", zorder=5)
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("time per frame (ms)")
+            ax.set_ylabel(label)
+            ax.set_title(scene)
+            ax.grid(True, which="both", alpha=0.3)
+        row_axes[0].legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -74,6 +74,9 @@ def _parser() -> argparse.ArgumentParser:
                         "isovalue, new camera)")
     s.add_argument("--resolution", type=int, nargs=2, default=[1024, 1024], metavar=("W", "H"))
     s.add_argument("--variant", default="llvm_ad_rgb")
+    s.add_argument("--quick", action="store_true",
+                   help="a small sweep (two scenes, two step scales) for CI-sized checks")
+    s.add_argument("--scene", action="append", help="sweep only these scenes (repeatable)")
     s.add_argument("--out", default="out/bench", help="folder for the results")
     s.set_defaults(run=_bench)
 
@@ -142,10 +145,13 @@ def _render(args) -> None:
 
 
 def _bench(args) -> None:
-    from .bench import run_frames
+    from .bench import run_frames, sweep
 
     scene_data()
-    run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
+    if args.frames:
+        run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
+    else:
+        sweep(args.out, quick=args.quick, scenes=args.scene, variant=args.variant)
 
 
 def _reference(args) -> None:

@@ -36,6 +36,19 @@ def backend_of(float_type):
     return importlib.import_module(float_type.__module__)
 
 
+def lnot(mask):
+    """Logical not of a Dr.Jit mask or of a plain bool (the masks of Mitsuba's scalar
+    variants, where ``~True`` would be the integer -2)."""
+    return ~mask if dr.is_array_v(mask) else not mask
+
+
+def float_from_bits(m, bits):
+    """The float32 whose bit pattern is the uint32 ``bits`` (any backend)."""
+    if dr.is_array_v(bits):
+        return dr.reinterpret_array(m.Float, bits)
+    return float(np.uint32(bits).view(np.float32))
+
+
 def gather(T, source, index, active=True):
     """``dr.gather`` that also works for the scalar backend (Python numbers, static arrays)."""
     if dr.is_jit_v(source):

@@ -63,7 +63,7 @@ import mitsuba as mi
 import numpy as np
 
 from . import options as opts
-from .device import backend_of
+from .device import backend_of, lnot
 from .errors import AMRError
 from .march import Crossing, MarchConfig, composite, first_crossing
 from .prepared import prepare_file
@@ -142,7 +142,12 @@ def _make_class():
             to_world = values.pop("to_world", None)
             opt = opts.parse(values)
             self.opt = opt
-            self.m = m = backend_of(mi.Float)
+            # Scalar variants run the volume kernels on one-element LLVM arrays: the same code
+            # as the vectorised variants, and IEEE arithmetic where Python floats would raise.
+            self.m = m = backend_of(mi.Float) if dr.is_jit_v(mi.Float) else dr.llvm.ad
+            if not dr.is_jit_v(mi.Float) and opt.mode == "volume":
+                raise AMRError("amr_iso: mode 'volume' needs a vectorised variant (llvm_ad_rgb "
+                               "or cuda_ad_rgb); scalar variants render surfaces only")
             self.prep = prepare_file(_resolve(opt.filename), opt.field, opt.color_field,
                                      leaf_cells=opt.leaf_cells, m=m)
             self.dev = self.prep.device
@@ -152,8 +157,8 @@ def _make_class():
                 raise AMRError("amr_iso: parameter 'to_world' must be an invertible transform")
             self.to_world = mi.Transform4f(matrix.astype(np.float32))
             self.to_local = self.to_world.inverse()
-            self.isovalue = mi.Float(opt.isovalues)
-            self.step_scale = mi.Float(opt.step_scale)
+            self.isovalue = m.Float(opt.isovalues)
+            self.step_scale = m.Float(opt.step_scale)
             self._make_opaque()
             self.colormap = None
             if opt.colormap is not None:
@@ -173,6 +178,8 @@ def _make_class():
             dr.make_opaque(self.isovalue, self.step_scale)
 
         def traverse(self, callback):
+            if not dr.is_jit_v(mi.Float):
+                return
             callback.put("isovalue", self.isovalue, mi.ParamFlags.NonDifferentiable)
             callback.put("step_scale", self.step_scale, mi.ParamFlags.NonDifferentiable)
 
@@ -203,7 +210,7 @@ def _make_class():
             si = scene.ray_intersect(ray, active)
             t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
             o, d = self._local_ray(ray.o, ray.d)
-            jitter = m.Float(sampler.next_1d(active))
+            jitter = self._kernel_float(sampler.next_1d(active))
             # One light sample per emitter and ray, drawn here: the sampler's state must not
             # change inside the symbolic loops below.
             light_u = [sampler.next_2d(active) for _ in scene.emitters()]
@@ -216,11 +223,36 @@ def _make_class():
             hit_any = si.is_valid() | (T < 1.0)
             return L, active & (hit_any | (dr.max(L) > 0.0)), []
 
+        # ---- values between Mitsuba's types (mi.*) and the kernels' (self.m.*); the same
+        # types in vectorised variants, Python numbers against one-element arrays in scalar ones.
+        def _mi(self, x, T):
+            if dr.is_jit_v(mi.Float):
+                return T(x)
+            dr.eval(x)
+            return T(x.numpy()[0])
+
+        def _mi3(self, v, T):
+            if dr.is_jit_v(mi.Float):
+                return T(v.x, v.y, v.z)
+            dr.eval(v)
+            return T(float(v.x.numpy()[0]), float(v.y.numpy()[0]), float(v.z.numpy()[0]))
+
         def _local_ray(self, o, d):
             m = self.m
             ol = self.to_local @ o
             dl = self.to_local @ d
-            return m.Array3f(ol.x, ol.y, ol.z), m.Array3f(dl.x, dl.y, dl.z)
+            o, d = m.Array3f(ol.x, ol.y, ol.z), m.Array3f(dl.x, dl.y, dl.z)
+            if not dr.is_jit_v(mi.Float):
+                # Python numbers would enter the kernels as literals; the loops need variables.
+                dr.make_opaque(o, d)
+            return o, d
+
+        def _kernel_float(self, x):
+            """A Mitsuba float as a kernel value (opaque in scalar variants, see _local_ray)."""
+            v = self.m.Float(x)
+            if not dr.is_jit_v(mi.Float):
+                dr.make_opaque(v)
+            return v
 
         @dr.syntax
         def _surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
@@ -231,15 +263,15 @@ def _make_class():
             t = mi.Float(0.0)
             layer = mi.UInt32(0)
             alive = mi.Bool(active)
-            while alive:
-                c = first_crossing(self.dev, cfg, o, d, self.m.Float(t), self.m.Float(t_mesh),
-                                   jitter, self.m.Bool(alive))
-                hit = mi.Bool(c.hit) & alive
+            while dr.hint(alive, exclude=[self, cfg]):
+                c = first_crossing(self.dev, cfg, o, d, self._kernel_float(t),
+                                   self._kernel_float(t_mesh), jitter, self.m.Bool(alive))
+                hit = self._mi(c.hit, mi.Bool) & alive
                 shade = self._shade_iso(scene, light_u, ray, o, d, c, hit)
-                alpha = self._iso_opacity(c.k)
+                alpha = self._iso_opacity(self._mi(c.k, mi.UInt32))
                 L += dr.select(hit, T * alpha * shade, 0.0)
                 T = dr.select(hit, T * (1.0 - alpha), T)
-                t = mi.Float(c.t) + 1e-3 * self.dev.min_h / dr.norm(mi.Vector3f(d.x, d.y, d.z))
+                t = self._mi(c.t + 1e-3 * self.dev.min_h / dr.norm(d), mi.Float)
                 layer += 1
                 alive = hit & (T > 0.01) & (layer < self.opt.max_layers)
             T = dr.select(T <= 0.01, 0.0, T)
@@ -253,9 +285,10 @@ def _make_class():
             return out
 
         def _iso_color(self, k, value):
+            """Colour of isovalue ``k`` (mi type) at colour-field ``value`` (kernel type)."""
             if self.colormap is not None:
-                c = ColorMap.lookup(self.m, self.colormap, self.m.Float(value))
-                return mi.Color3f(c.x, c.y, c.z)
+                return self._mi3(ColorMap.lookup(self.m, self.colormap, self.m.Float(value)),
+                                 mi.Color3f)
             cols = self.opt.iso_colors
             out = mi.Color3f(*cols[0])
             for i in range(1, len(cols)):
@@ -269,18 +302,21 @@ def _make_class():
             """Phong shading of the isosurface point of crossing ``c`` (world normal from the
             analytic gradient, turned towards the viewer)."""
             m = self.m
+            if not dr.is_jit_v(mi.Float) and not hit:
+                return mi.Spectrum(0.0)
             basis = self.opt.reconstruction == "basis"
             p = o + d * c.t
             vals, grad = reconstruct(self.dev, basis, p, self._arrays(), m.Bool(hit))
-            color = self._iso_color(c.k, vals[1])
-            A, S = self._phong_terms(scene, light_u, ray, mi.Float(c.t), grad, hit)
+            color = self._iso_color(self._mi(c.k, mi.UInt32), vals[1])
+            A, S = self._phong_terms(scene, light_u, ray, self._mi(c.t, mi.Float),
+                                     self._mi3(grad, mi.Normal3f), hit)
             return color * A + S
 
         def _phong_terms(self, scene, light_u, ray, t, grad, active):
             """``(A, S)`` with the Phong-shaded colour of a point ``ray(t)`` of colour ``c``
             being ``c * A + S``; the normal is the gradient ``grad`` (volume space) taken to the
             world and turned towards the viewer."""
-            n = dr.normalize(self.to_world @ mi.Normal3f(grad.x, grad.y, grad.z))
+            n = dr.normalize(self.to_world @ grad)
             n = dr.select(dr.dot(n, ray.d) > 0.0, -n, n)
             n = dr.select(dr.all(dr.isfinite(n)), n, -ray.d)
             P = ray(t)
@@ -304,8 +340,14 @@ def _make_class():
         def _shade_mesh(self, scene, sampler, ray, si, active):
             """Emission plus direct light through the mesh's BSDF, shadowed by meshes and
             isosurfaces; the environment where the ray escaped."""
-            L = dr.select(active, si.emitter(scene, active).eval(si, active), 0.0)
+            emitter = si.emitter(scene, active)
+            scalar = not dr.is_jit_v(mi.Float)
+            # (Scalar variants give None for "no emitter" / "no BSDF" instead of masked calls.)
+            L = mi.Spectrum(0.0) if scalar and emitter is None else \
+                dr.select(active, emitter.eval(si, active), 0.0)
             on_mesh = active & si.is_valid()
+            if scalar and not on_mesh:
+                return L
             bsdf = si.bsdf(ray)
             ctx = mi.BSDFContext()
             L += dr.select(on_mesh, bsdf.eval_diffuse_reflectance(si, on_mesh) *
@@ -334,25 +376,32 @@ def _make_class():
                 return dr.select(active, mi.Float(1.0), 0.0)
             o, d = self._local_ray(P, ds.d)
             t0 = (1e-3 if offset_iso else 0.0) * self.dev.min_h / dr.norm(d)
-            T = self._transmittance(o, d, t0, self.m.Float(shadow.maxt), active & ~blocked)
-            return vis * T
+            T = self._transmittance(o, d, self._kernel_float(t0), self._kernel_float(shadow.maxt),
+                                    active & lnot(blocked))
+            return vis * self._mi(T, mi.Float)
 
         @dr.syntax
         def _transmittance(self, o, d, t0, t1, active):
-            """Light passing the isosurfaces (or the opacity band) between ``t0`` and ``t1``."""
+            """Light passing the isosurfaces (or the opacity band) between ``t0`` and ``t1``
+            (kernel types in and out)."""
             m = self.m
             if dr.hint(self.opt.mode == "volume", mode="scalar"):
                 T = self._band_transmittance(o, d, t0, t1, active)
             else:
                 cfg = self.config()
-                T = mi.Float(1.0)
+                alphas = self.opt.iso_opacity
+                T = m.Float(1.0)
                 t = m.Float(t0)
-                alive = mi.Bool(active)
-                layer = mi.UInt32(0)
-                while alive:
-                    c = first_crossing(self.dev, cfg, o, d, t, t1, m.Float(0.5), m.Bool(alive))
-                    hit = mi.Bool(c.hit) & alive
-                    T = dr.select(hit, T * (1.0 - self._iso_opacity(c.k)), T)
+                alive = m.Bool(active)
+                layer = m.UInt32(0)
+                # The integrator and the configuration are read, not loop state.
+                while dr.hint(alive, exclude=[self, cfg]):
+                    c = first_crossing(self.dev, cfg, o, d, t, t1, m.Float(0.5), alive)
+                    hit = c.hit & alive
+                    alpha = m.Float(alphas[0])
+                    for i in range(1, len(alphas)):
+                        alpha = dr.select(c.k == i, alphas[i], alpha)
+                    T = dr.select(hit, T * (1.0 - alpha), T)
                     t = c.t + 1e-3 * self.dev.min_h / dr.norm(d)
                     layer += 1
                     alive = hit & (T > 0.01) & (layer < self.opt.max_layers)
@@ -371,7 +420,8 @@ def _make_class():
             def lighting(p, grad, lit):
                 # Back from the volume point to the ray parameter: p = o + t d.
                 t = mi.Float(dr.dot(p - o, d)) / (ray_len * ray_len)
-                A, S = self._phong_terms(scene, light_u, ray, t, grad, mi.Bool(lit))
+                A, S = self._phong_terms(scene, light_u, ray, t,
+                                         mi.Normal3f(grad.x, grad.y, grad.z), mi.Bool(lit))
                 return m.Array3f(A.x, A.y, A.z), m.Array3f(S.x, S.y, S.z)
 
             res = composite(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh), jitter,
@@ -382,6 +432,6 @@ def _make_class():
             m = self.m
             res = composite(self.dev, self.config(), o, d, m.Float(t0), m.Float(t1),
                             m.Float(0.5), None, None, m.Bool(active))
-            return mi.Float(res.T)
+            return res.T
 
     return AMRIsoIntegrator

@@ -39,7 +39,7 @@ import drjit as dr
 
 from . import reconstruct as rec
 from . import roots
-from .device import NO_GRID, gather
+from .device import NO_GRID, float_from_bits, gather, lnot
 
 METHODS = ("exact", "bisect", "adaptive", "uniform")
 RECONSTRUCTIONS = ("basis", "finest")
@@ -206,12 +206,12 @@ def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
         rng = gather(m.Array2f, ranges, node, searching)
         lo, hi = rng.x, rng.y
         t_out, f_out = box_exit(m, b_lo, b_hi, o, d)
-        empty = ~_holds(dev, cfg, lo, hi)
+        empty = lnot(_holds(dev, cfg, lo, hi))
         rep = dr.select(lo <= hi, 0.5 * (lo + hi), dr.nan)
         is_leaf = (code & 3) == 3
 
         # --- A leaf worth working on.
-        take = searching & ~empty & is_leaf
+        take = searching & lnot(empty) & is_leaf
         found |= take
         leaf = dr.select(take, code >> 2, leaf)
         t_exit = dr.select(take, t_out, t_exit)
@@ -223,7 +223,7 @@ def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
         turn_value = dr.select(turn, rep, turn_value)
 
         # --- Skip an empty node: jump to its exit and continue from its rope.
-        skip = searching & empty & ~turn
+        skip = searching & empty & lnot(turn)
         side = dr.select(skip, rep, side)
         t_side = dr.select(skip, t_out, t_side)
         t_next = dr.maximum(t_out, t + eps)
@@ -231,9 +231,9 @@ def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
                                       f_out, skip)
 
         # --- Otherwise go down to the child holding the point.
-        down = searching & ~empty & ~is_leaf
+        down = searching & lnot(empty) & lnot(is_leaf)
         axis = code & 3
-        split = dr.reinterpret_array(m.Float, cs.y)
+        split = float_from_bits(m, cs.y)
         coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
         upper = coord >= split
         child = (code >> 2) + dr.select(upper, m.UInt32(1), m.UInt32(0))
@@ -241,13 +241,13 @@ def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
         for a in range(3):
             cut = down & (axis == a)
             c_lo[a] = dr.select(cut & upper, split, c_lo[a])
-            c_hi[a] = dr.select(cut & ~upper, split, c_hi[a])
+            c_hi[a] = dr.select(cut & lnot(upper), split, c_hi[a])
 
         node = dr.select(skip, r_node, dr.select(down, child, node))
         b_lo = dr.select(skip, r_lo, c_lo)
         b_hi = dr.select(skip, r_hi, c_hi)
         t = dr.select(skip, t_next, t)
-        searching &= ~take & ~turn & (t < t1)
+        searching &= lnot(take) & lnot(turn) & (t < t1)
     return Stretch(node=node, leaf=leaf, t=t, t_exit=t_exit, face=face, found=found,
                    turned=turned, turn_value=turn_value, side=side, t_side=t_side)
 
@@ -330,7 +330,7 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         jump = dr.select(turned, True, jump)
         t_seg = dr.select(turned, t, t_seg)
         k_hit = dr.select(turned, _first_between(dev, cfg, v_prev, st.turn_value), k_hit)
-        active &= ~turned & (~new | st.found)
+        active &= lnot(turned) & (lnot(new) | st.found)
 
         # --- The piece [t, t_b]: up to the next dual-cell plane of a contributing level.
         eps = _epsilon(dev, t, dnorm)
@@ -355,7 +355,7 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
             jumped = have & ((v_prev - iso) * (v_start - iso) < 0.0)
             c = [num[i] - iso * den[i] for i in range(4)]
             found, a, b = roots.first_root_bracket(c, L, dr.abs(n_mid) + dr.abs(iso * d_mid))
-            found &= have & ~jumped
+            found &= have & lnot(jumped)
             where = dr.select(jumped, 0.0, dr.select(found, a, dr.inf))
             take = where < best
             best = dr.select(take, where, best)
@@ -374,7 +374,7 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         # --- Advance to the piece's end.
         v_prev = dr.select(active, dr.select(have, v_end, dr.nan), v_prev)
         t = dr.select(active, t_b, t)
-        active &= ~got & (t < t1)
+        active &= lnot(got) & (t < t1)
 
     s = roots.refine_root([c0, c1, c2, c3], s_a, s_b)
     t_hit = dr.select(hit, t_seg + dr.select(jump, 0.0, s), dr.inf)
@@ -439,7 +439,7 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
         t_exit = dr.select(turned, at_exit, dr.select(new, st.t_exit, t_exit))
         t = dr.select(new, st.t, t)
         forced = dr.select(new, turned, forced)
-        active &= ~new | st.found | turned
+        active &= lnot(new) | st.found | turned
         if dr.hint(not uniform, mode="scalar"):
             leaf_h = gather(m.Float, dev.leaf_min_h, leaf, active & new)
             dt = dr.select(new, cfg.step_scale * leaf_h / dnorm, dt)
@@ -458,7 +458,7 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
         else:
             t_s = 0.5 * (t + b)
             take = m.Bool(active)
-        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), values, take & ~forced,
+        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), values, take & lnot(forced),
                                   leaf=leaf)
         vals_f, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), values, take & forced)
         v = dr.select(forced, vals_f[0], vals[0])
@@ -467,7 +467,7 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
         # --- A straddled isovalue between the previous sample and this one. If the previous
         # one stands for a skipped node, evaluate it where it is first.
         straddle = take & _sides_differ(dev, cfg, v_prev, v)
-        fix = straddle & ~known
+        fix = straddle & lnot(known)
         vals_p, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_prev, o), values, fix)
         v_prev = dr.select(fix, vals_p[0], v_prev)
         samples += dr.select(fix, 1, 0)
@@ -494,7 +494,7 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
         t = dr.select(forced & (t_s > b), t_s, b)
         t_exit = dr.select(forced, -dr.inf, t_exit)
         forced = m.Bool(False)
-        active &= ~got & (t < t1)
+        active &= lnot(got) & (t < t1)
 
     iso_hit = cfg.iso(dev, k_hit)
     t_hit = dr.select(hit, t_a + (iso_hit - v_a) / (v_b - v_a) * (t_b - t_a), dr.inf)
@@ -599,7 +599,7 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
         face = dr.select(new, st.face, face)
         t_exit = dr.select(new, st.t_exit, t_exit)
         t = dr.select(new, st.t, t)
-        active &= ~new | st.found
+        active &= lnot(new) | st.found
 
         eps = _epsilon(dev, t, dnorm)
         work = m.Bool(active)
@@ -686,7 +686,7 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
         t_exit = dr.select(new, st.t_exit, t_exit)
         t = dr.select(new, st.t, t)
         t_prev = dr.select(new, dr.maximum(t_prev, t - dt), t_prev)
-        active &= ~new | st.found
+        active &= lnot(new) | st.found
         eps = _epsilon(dev, t, dnorm)
         if dr.hint(not uniform, mode="scalar"):
             leaf_h = gather(m.Float, dev.leaf_min_h, leaf, active & new)
@@ -760,9 +760,9 @@ def _bisect_band(dev, cfg, o, d, t_a, t_b, v_a, band_lo, band_hi, active):
     i = m.Float(0.0)
     found = m.Bool(False)
     t_found = m.Float(0.0)
-    while active & ~found & (i < depth):
+    while active & lnot(found) & (i < depth):
         mid = 0.5 * (t_a + t_b)
-        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, mid, o), values, active & ~found)
+        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, mid, o), values, active & lnot(found))
         v = vals[0]
         inside = (v > band_lo) & (v < band_hi)
         found |= inside

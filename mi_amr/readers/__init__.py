@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import AMRError
-from . import amrex, native, vdb
+from . import amrex, native, vdb, ytsource
 
 
 def load(path, fields=None, **options):
@@ -16,7 +16,9 @@ def load(path, fields=None, **options):
 
     Recognised: mi_amr's ``.npz`` files (see :mod:`mi_amr.readers.native`), AMReX plotfile
     folders (a ``Header`` plus ``Level_N/`` data; see :mod:`mi_amr.readers.amrex`) and OpenVDB
-    ``.vdb`` files, one grid per patch (see :mod:`mi_amr.readers.vdb`). ``fields``
+    ``.vdb`` files, one grid per patch (see :mod:`mi_amr.readers.vdb`); last, when yt is
+    installed, every grid-based format yt reads (see :mod:`mi_amr.readers.ytsource`; the
+    ``options`` go to ``yt.load``). ``fields``
     (a list of names) reads only those fields from disk. Derived fields (``speed``,
     ``q_criterion``) are not read here; see :func:`mi_amr.derive`. Raises
     :class:`~mi_amr.AMRError` for a missing file, an unrecognised format or a malformed file.
@@ -33,9 +35,12 @@ def load(path, fields=None, **options):
     if vdb.is_vdb(path):
         _no_options(path, options, "an OpenVDB file")
         return vdb.load(path, fields)
+    ds = ytsource.open_dataset(path, **options)
+    if ds is not None:
+        return ytsource.from_yt(ds, fields, source=str(path))
     raise AMRError(f"{path}: unrecognised format; mi_amr reads its own .npz volumes, AMReX "
                    f"plotfile folders (a folder with a Header whose first line is e.g. "
-                   f"HyperCLaw-V1.1) and OpenVDB .vdb files")
+                   f"HyperCLaw-V1.1) and OpenVDB .vdb files; {ytsource.why_not(path)}")
 
 
 def available_fields(path) -> list:
@@ -49,6 +54,9 @@ def available_fields(path) -> list:
         return list(amrex.read_header(path).field_names)
     if vdb.is_vdb(path):
         return vdb.field_names(path)
+    ds = ytsource.open_dataset(path)
+    if ds is not None:
+        return ytsource.field_names(ds)
     return list(load(path).field_names)
 
 
