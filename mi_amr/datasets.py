@@ -162,7 +162,9 @@ def _progress(enabled, total, desc):
 # ---------------------------------------------------------------------- analytic fields
 
 ISOVALUES = {"sphere": 0.3, "torus": 0.1, "ramp": 0.0, "spike": 0.75}
-SPIKE_CELL = (17, 13, 15)     # the level-1 cell (i, j, k), counted from the cube's corner
+SPIKE_POINT = (0.546875, 0.421875, 0.484375)   # world point inside the spike's cell
+SPIKE_CELL = (17, 13, 15)     # that level-1 cell (i, j, k), counted from the cube's corner,
+                              # for the default base of 16 cells
 
 
 def _two_levels(fn, base: int = 16):
@@ -214,8 +216,10 @@ def spike(base: int = 16) -> AMRVolume:
     def f(p, level):
         out = np.zeros(p.shape[:-1])
         if level == 1:
-            # The level-1 grid starts at x = 0.5, which is level-1 cell ``base``.
-            out[SPIKE_CELL[0] - base, SPIKE_CELL[1], SPIKE_CELL[2]] = 1.0
+            # The level-1 cell holding SPIKE_POINT; the level-1 grid starts at x = 0.5, which is
+            # level-1 cell ``base`` (for base 16 the cell is SPIKE_CELL).
+            cell = np.floor(np.array(SPIKE_POINT) * 2 * base).astype(int)
+            out[cell[0] - base, cell[1], cell[2]] = 1.0
         return out
 
     return _two_levels(f, base)
@@ -233,7 +237,8 @@ def make(name: str, path, *, size: str = "default", seed: int = 0, overwrite: bo
         raise AMRError(f"unknown dataset '{name}'; available: {list(DATASETS)}")
     path = Path(path)
     if path.exists() and not overwrite:
-        raise AMRError(f"{path}: file exists; pass --force to replace it")
+        raise AMRError(f"{path}: file exists; pass overwrite=True (--force on the command line) "
+                       f"to replace it")
     if name == "sphere_wake":
         vol = sphere_wake(size=size, seed=seed, progress=progress)
     else:

@@ -350,8 +350,9 @@ class KDTree:
 
     def leaf_ranges(self, field: str, reconstruction: str | None = None):
         """Conservative ``(lo, hi)`` bounds (each ``(L,)``) of ``field`` reconstructed inside
-        each leaf: min and max of the finite values of the cells whose hat support (centre +- one
-        cell) reaches the leaf. ``reconstruction`` narrows the cells to those that method uses:
+        each leaf: they contain the min and max of the finite values of the cells whose hat
+        support (centre +- one cell) reaches the leaf (the extremes are taken over power-of-two
+        blocks of cells covering that window, so a few cells beyond it may widen them). ``reconstruction`` narrows the cells to those that method uses:
         ``"basis"`` -- leaf cells of the leaf's active grids; ``"finest"`` -- cells of the
         owner grid; ``None`` -- every cell of every grid listed at the leaf (valid for both).
         Leaves with no owner get the empty range ``(+inf, -inf)``."""

@@ -237,6 +237,8 @@ class AMRVolume:
             self._ranges[field] = np.array([_finite_range(g.fields[field]) for g in self.grids])
         ranges = self._ranges[field]
         if grid is not None:
+            if not 0 <= grid < len(self.grids):
+                raise AMRError(f"{self._label()}no grid {grid}; grids are 0..{len(self.grids) - 1}")
             return tuple(float(x) for x in ranges[grid])
         with np.errstate(all="ignore"):
             if np.all(np.isnan(ranges[:, 0])):
@@ -342,6 +344,9 @@ def _float3(value, what: str, positive: bool) -> tuple:
     if positive and isinstance(value, (int, float, np.integer, np.floating)) \
             and not isinstance(value, bool):
         value = (value, value, value)
+    if isinstance(value, (str, bytes)):
+        raise AMRError(f"{what} must be {'a number or ' if positive else ''}3 numbers, "
+                       f"got the text {value!r}")
     try:
         out = tuple(float(x) for x in value)
     except (TypeError, ValueError):

@@ -205,7 +205,8 @@ def test14_cli_dataset_command(tmp_path, capsys):
     assert mi_amr.load(path).num_cells == datasets.sphere().num_cells
     assert main(["dataset", "sphere", "-o", str(path)]) == 2
     err = capsys.readouterr().err
-    assert err.splitlines() == [f"error: {path}: file exists; pass --force to replace it"]
+    assert err.splitlines() == [f"error: {path}: file exists; pass overwrite=True (--force on "
+                                f"the command line) to replace it"]
     assert main(["dataset", "torus", "-o", str(path), "--force"]) == 0
     capsys.readouterr()
     np.testing.assert_array_equal(mi_amr.load(path).grids[1].fields["f"],
