@@ -20,7 +20,9 @@ from .errors import AMRError
 
 DERIVED_FIELDS = ("speed", "q_criterion", "vorticity_magnitude")
 VELOCITY_NAMES = (("vx", "vy", "vz"), ("x_velocity", "y_velocity", "z_velocity"),
-                  ("velocity_x", "velocity_y", "velocity_z"), ("u", "v", "w"))
+                  ("velocity_x", "velocity_y", "velocity_z"), ("x-velocity", "y-velocity",
+                                                               "z-velocity"),
+                  ("velx", "vely", "velz"), ("v_x", "v_y", "v_z"), ("u", "v", "w"))
 
 
 def velocity_fields(volume, velocity=None) -> tuple:

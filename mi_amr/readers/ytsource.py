@@ -57,9 +57,9 @@ def from_yt(ds, fields=None, *, source: str | None = None) -> AMRVolume:
                        f"{type(ds).__name__}; for a path use mi_amr.load(path)")
     label = str(source or getattr(ds, "parameter_filename", None) or ds)
     _check_grid_based(ds, label)
-    chosen = _resolve_fields(ds, fields, label)
     with _reading(label, "its grid index"):
         yt_grids = ds.index.grids
+    chosen = _resolve_fields(ds, fields, label)
     grids = []
     for g in yt_grids:
         shape = tuple(int(n) for n in g.ActiveDimensions)
@@ -98,7 +98,7 @@ def open_dataset(path, **options):
             return None
         # Checked before the index is built: a particle index can take minutes to build.
         _check_grid_based(ds, str(path))
-        ds.index
+        ds.index  # built here so that its errors, too, name the path
     return ds
 
 
