@@ -322,3 +322,75 @@ def chart(rows, path):
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+# ---------------------------------------------------------------------- scaling
+
+def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) -> list:
+    """How the warm frame time of the default scene (exact, basis, shadows) grows with the image
+    size, the number of grids (the same cells cut into smaller grids) and the number of cells
+    (the sphere_wake sizes). Writes ``scaling.md``; returns the rows."""
+    import mitsuba as mi
+    from tqdm import tqdm
+
+    from . import datasets
+    from .cli import SCENES, scene_data
+    from .readers import load
+
+    mi.set_variant(variant)
+    from .integrator import load_scene, register
+
+    register()
+    scene_data()
+    out = Path(out_dir)
+    work = out / "scaling"
+    work.mkdir(parents=True, exist_ok=True)
+    base = SCENES / "sphere_wake.xml"
+    default = load(SCENES / "data" / "sphere_wake.npz")
+    cases = [("image size", f"{n}x{n}", base, n) for n in (256, 512, 1024, 2048)]
+    for max_cells in (16, 8):
+        vol = datasets.split_grids(default, max_cells)
+        cases.append(("grids", f"{len(vol.grids):,} (<= {max_cells}^3 cells each)",
+                      _scene_copy(base, work, f"grids{max_cells}", vol), 512))
+    cases.insert(4, ("grids", f"{len(default.grids):,} (<= 32^3 cells each)", base, 512))
+    for size in ("small", "large"):
+        vol = datasets.sphere_wake(size, progress=False)
+        cases.append(("cells", f"{vol.num_cells:,} ({size})",
+                      _scene_copy(base, work, f"cells_{size}", vol), 512))
+    cases.append(("cells", f"{default.num_cells:,} (default)", base, 512))
+    rows = []
+    for what, value, scene_file, res in tqdm(cases, desc="scaling", unit="case"):
+        t0 = time.perf_counter()
+        scene = load_scene(scene_file, resx=res, resy=res, spp=1)
+        load_s = time.perf_counter() - t0
+        _frame(mi, _dr(), scene, 0)
+        times = [_frame(mi, _dr(), scene, i + 1)[0] for i in range(frames)]
+        rows.append({"what": what, "value": value, "resolution": res, "load_s": load_s,
+                     "frame_s": statistics.median(times)})
+    lines = ["| varied | value | image | scene load (s) | warm frame (s) |", "|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['what']} | {r['value']} | {r['resolution']}x{r['resolution']} | "
+                     f"{r['load_s']:.1f} | {r['frame_s']:.2f} |")
+    table = "\n".join(lines)
+    (out / "scaling.md").write_text(table + "\n")
+    print(table)
+    return rows
+
+
+def _dr():
+    import drjit as dr
+
+    return dr
+
+
+def _scene_copy(scene_file, folder, name, volume):
+    """A copy of ``scene_file`` in ``folder`` reading ``volume`` (saved there) and the ball."""
+    data = folder / f"{name}.npz"
+    volume.save(data, overwrite=True)
+    text = Path(scene_file).read_text()
+    ball = (Path(scene_file).parent / "data" / "ball.ply").resolve()
+    text = text.replace('value="data/sphere_wake.npz"', f'value="{data.resolve()}"')
+    text = text.replace('value="data/ball.ply"', f'value="{ball}"')
+    path = folder / f"{name}.xml"
+    path.write_text(text)
+    return path

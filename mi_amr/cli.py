@@ -77,6 +77,8 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--quick", action="store_true",
                    help="a small sweep (two scenes, two step scales) for CI-sized checks")
     s.add_argument("--scene", action="append", help="sweep only these scenes (repeatable)")
+    s.add_argument("--scaling", action="store_true",
+                   help="only how the frame time grows with image size, grids and cells")
     s.add_argument("--out", default="out/bench", help="folder for the results")
     s.set_defaults(run=_bench)
 
@@ -145,11 +147,13 @@ def _render(args) -> None:
 
 
 def _bench(args) -> None:
-    from .bench import run_frames, sweep
+    from .bench import run_frames, scaling, sweep
 
     scene_data()
     if args.frames:
         run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
+    elif args.scaling:
+        scaling(args.out, variant=args.variant)
     else:
         sweep(args.out, quick=args.quick, scenes=args.scene, variant=args.variant)
 

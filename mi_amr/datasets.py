@@ -248,3 +248,22 @@ def make(name: str, path, *, size: str = "default", seed: int = 0, overwrite: bo
     if name == "sphere_wake":
         written.append(write_ball_mesh(path.parent / "ball.ply"))
     return written
+
+
+def split_grids(volume: AMRVolume, max_cells: int) -> AMRVolume:
+    """The same cells cut into grids of at most ``max_cells`` per side (cuts stay on the coarser
+    level's cell faces), for measuring how rendering scales with the number of grids."""
+    if max_cells < 2 or max_cells % 2:
+        raise AMRError(f"max_cells must be an even number >= 2, got {max_cells}")
+    out = []
+    for g in volume.grids:
+        step = max_cells
+        for i in range(0, g.shape[0], step):
+            for j in range(0, g.shape[1], step):
+                for k in range(0, g.shape[2], step):
+                    sl = (slice(i, i + step), slice(j, j + step), slice(k, k + step))
+                    origin = tuple(o + n * h for o, n, h in zip(g.origin, (i, j, k), g.spacing))
+                    out.append({"level": g.level, "origin": origin, "spacing": g.spacing,
+                                "fields": {n: a[sl] for n, a in g.fields.items()}})
+    return AMRVolume.from_grids(out, allow_nonfinite=volume.allow_nonfinite,
+                                source=volume.source)

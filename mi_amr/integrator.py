@@ -119,8 +119,12 @@ def _unwrap(error: RuntimeError, path) -> AMRError:
     marker = "AMRError: "
     if marker in text:
         return AMRError(text[text.rindex(marker) + len(marker):].strip())
-    first = text.strip().splitlines()[0] if text.strip() else "unknown error"
-    return AMRError(f"{path}: Mitsuba could not load the scene: {first}")
+    lines = [l for l in text.strip().splitlines() if l.strip()]
+    first = lines[0] if lines else "unknown error"
+    # A Python exception inside a plugin ends with "Type: message"; keep that too.
+    cause = lines[-1].strip() if len(lines) > 1 else ""
+    return AMRError(f"{path}: Mitsuba could not load the scene: {first}" +
+                    (f" ... {cause}" if cause and cause != first else ""))
 
 
 def _resolve(filename: str) -> str:

@@ -252,19 +252,21 @@ def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
                    turned=turned, turn_value=turn_value, side=side, t_side=t_side)
 
 
-def next_dual_plane(dev, levels_mask, o, d, t_probe):
+def next_dual_plane(dev, levels_mask, o, d, inv_d, t_probe):
     """Smallest parameter > ``t_probe`` (up to rounding) at which the ray crosses a plane through
-    cell centres of a level in ``levels_mask`` (bit ``l`` for level ``l``)."""
+    cell centres of a level in ``levels_mask`` (bit ``l`` for level ``l``); ``inv_d = 1 / d``
+    (infinite where ``d`` is 0)."""
     m = dev.m
     p = dr.fma(d, t_probe, o)
     anchor = m.Array3f(*dev.anchor)
+    up = d > 0.0
     best = m.Float(dr.inf)
     for level in range(dev.num_levels):
         h = m.Array3f(*dev.level_h[level])
-        u = (p - anchor) / h - 0.5
-        cell = dr.floor(u)
-        plane = dr.select(d > 0.0, cell + 1.0, cell)
-        t = dr.select(d != 0.0, (anchor + (plane + 0.5) * h - o) / d, dr.inf)
+        inv_h = m.Array3f(*[1.0 / x for x in dev.level_h[level]])
+        cell = dr.floor(dr.fma(p - anchor, inv_h, -0.5))
+        plane = dr.select(up, cell + 1.5, cell + 0.5)
+        t = dr.select(d != 0.0, dr.fma(plane, h, anchor - o) * inv_d, dr.inf)
         on = ((levels_mask >> level) & 1) != 0
         best = dr.select(on, dr.minimum(best, dr.min(t)), best)
     return best
@@ -299,6 +301,7 @@ def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active) 
 def _march_exact(dev, cfg, o, d, t0, t1, active):
     m = dev.m
     dnorm = dr.norm(d)
+    inv_d = dr.select(d != 0.0, dr.rcp(d), dr.inf)
     values = dev.arrays(cfg.basis)
     level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
     t = m.Float(t0)
@@ -310,10 +313,12 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
     samples = m.UInt32(0)
     hit = m.Bool(False)
     jump = m.Bool(False)
-    k_hit = m.UInt32(0)
+    k_jump = m.UInt32(0)
     t_seg = m.Float(0.0)
-    s_a, s_b = m.Float(0.0), m.Float(0.0)
-    c0, c1, c2, c3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
+    # The cubics N, D and length of the piece holding the first crossing.
+    n0, n1, n2, n3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
+    d0, d1, d2, d3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
+    L_hit = m.Float(0.0)
     while active:
         # --- Find the next leaf that may hold a crossing (skipping all that cannot).
         new = t >= t_exit
@@ -329,13 +334,14 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         hit |= turned
         jump = dr.select(turned, True, jump)
         t_seg = dr.select(turned, t, t_seg)
-        k_hit = dr.select(turned, _first_between(dev, cfg, v_prev, st.turn_value), k_hit)
+        k_jump = dr.select(turned, _first_between(dev, cfg, v_prev, st.turn_value), k_jump)
         active &= lnot(turned) & (lnot(new) | st.found)
 
         # --- The piece [t, t_b]: up to the next dual-cell plane of a contributing level.
         eps = _epsilon(dev, t, dnorm)
         mask = gather(m.UInt32, level_masks, leaf, active)
-        t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, t + eps), t_exit), t1)
+        t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, inv_d, t + eps), t_exit),
+                         t1)
         t_b = dr.maximum(t_b, t + eps)
         L = t_b - t
         p0 = dr.fma(d, t, o)
@@ -348,36 +354,53 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         v_end = roots.cubic(num, L) / roots.cubic(den, L)
         n_mid = roots.cubic(num, 0.5 * L)
 
-        # --- Crossings: a jump at the piece's start, else the first root of N - iso D.
-        best = m.Float(dr.inf)
+        # --- Crossings: a jump at the piece's start, else a root of N - iso D.
+        jumped = m.Bool(False)
+        found = m.Bool(False)
         for k in range(cfg.num_iso):
             iso = cfg.iso(dev, k)
-            jumped = have & ((v_prev - iso) * (v_start - iso) < 0.0)
+            jump_k = have & lnot(jumped) & ((v_prev - iso) * (v_start - iso) < 0.0)
+            k_jump = dr.select(jump_k, k, k_jump)
+            jumped |= jump_k
             c = [num[i] - iso * den[i] for i in range(4)]
-            found, a, b = roots.first_root_bracket(c, L, dr.abs(n_mid) + dr.abs(iso * d_mid))
-            found &= have & lnot(jumped)
-            where = dr.select(jumped, 0.0, dr.select(found, a, dr.inf))
-            take = where < best
-            best = dr.select(take, where, best)
-            k_hit = dr.select(take, k, k_hit)
-            jump = dr.select(take, jumped, jump)
-            s_a = dr.select(take, a, s_a)
-            s_b = dr.select(take, b, s_b)
-            c0 = dr.select(take, c[0], c0)
-            c1 = dr.select(take, c[1], c1)
-            c2 = dr.select(take, c[2], c2)
-            c3 = dr.select(take, c[3], c3)
-        got = active & (best < dr.inf)
+            found_k, _, _ = roots.first_root_bracket(c, L, dr.abs(n_mid) + dr.abs(iso * d_mid))
+            found |= have & found_k
+        got = active & (jumped | found)
         hit |= got
+        jump = dr.select(got, jumped, jump)
         t_seg = dr.select(got, t, t_seg)
+        n0 = dr.select(got, num[0], n0)
+        n1 = dr.select(got, num[1], n1)
+        n2 = dr.select(got, num[2], n2)
+        n3 = dr.select(got, num[3], n3)
+        d0 = dr.select(got, den[0], d0)
+        d1 = dr.select(got, den[1], d1)
+        d2 = dr.select(got, den[2], d2)
+        d3 = dr.select(got, den[3], d3)
+        L_hit = dr.select(got, L, L_hit)
 
         # --- Advance to the piece's end.
         v_prev = dr.select(active, dr.select(have, v_end, dr.nan), v_prev)
         t = dr.select(active, t_b, t)
         active &= lnot(got) & (t < t1)
 
-    s = roots.refine_root([c0, c1, c2, c3], s_a, s_b)
-    t_hit = dr.select(hit, t_seg + dr.select(jump, 0.0, s), dr.inf)
+    # --- The earliest root among the isovalues in the piece that holds one (refined here, once
+    # per ray: roots of different isovalues are compared where they are, not by their pieces).
+    num, den = [n0, n1, n2, n3], [d0, d1, d2, d3]
+    n_mid = roots.cubic(num, 0.5 * L_hit)
+    d_mid = roots.cubic(den, 0.5 * L_hit)
+    s_best = m.Float(dr.inf)
+    k_hit = m.UInt32(0)
+    for k in range(cfg.num_iso):
+        iso = cfg.iso(dev, k)
+        c = [num[i] - iso * den[i] for i in range(4)]
+        found_k, a, b = roots.first_root_bracket(c, L_hit, dr.abs(n_mid) + dr.abs(iso * d_mid))
+        s_k = dr.select(found_k, roots.refine_root(c, a, b), dr.inf)
+        take = hit & lnot(jump) & (s_k < s_best)
+        s_best = dr.select(take, s_k, s_best)
+        k_hit = dr.select(take, k, k_hit)
+    k_hit = dr.select(jump, k_jump, k_hit)
+    t_hit = dr.select(hit, t_seg + dr.select(jump, 0.0, s_best), dr.inf)
     return Crossing(hit=hit, t=t_hit, k=k_hit, samples=samples)
 
 
@@ -578,6 +601,7 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     m = dev.m
     band = cfg.band
     dnorm = dr.norm(d)
+    inv_d = dr.select(d != 0.0, dr.rcp(d), dr.inf)
     shade = lighting is not None
     arrays = dev.arrays(cfg.basis, color=True)
     level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
@@ -604,7 +628,8 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
         eps = _epsilon(dev, t, dnorm)
         work = m.Bool(active)
         mask = gather(m.UInt32, level_masks, leaf, work)
-        t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, t + eps), t_exit), t1)
+        t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, inv_d, t + eps), t_exit),
+                         t1)
         t_b = dr.maximum(t_b, t + eps)
         L = t_b - t
         p0 = dr.fma(d, t, o)
@@ -662,7 +687,9 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
     arrays = dev.arrays(cfg.basis, color=True)
     centre = cfg.iso(dev, 0)
     band_lo, band_hi = centre + band.lo, centre + band.hi
-    rho = m.Float(0.0) if uniform else jitter
+    # A shadow ray starts inside the band: uniform steps then sample the middle of each step,
+    # so its first half step (the most opaque stretch) is not stepped over.
+    rho = m.Float(-0.5 if not shade else 0.0) if uniform else jitter
     t_anchor = m.Float(t0)
     t = m.Float(t0)
     node = m.UInt32(0)
@@ -679,13 +706,15 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
         # Skipped nodes have no opacity; the sample before them no longer borders the next one.
         new = t >= t_exit
         st = seek(dev, cfg, o, d, t, t1, node, face, m.Float(dr.nan), active & new)
-        v_prev = dr.select(new & (st.t > t), dr.nan, v_prev)
+        # After skipped nodes (no opacity) the next step's stretch starts where the leaf does.
+        skipped = new & (st.t > t)
+        v_prev = dr.select(skipped, dr.nan, v_prev)
+        t_prev = dr.select(skipped, st.t, t_prev)
         node = dr.select(new, st.node, node)
         leaf = dr.select(new, st.leaf, leaf)
         face = dr.select(new, st.face, face)
         t_exit = dr.select(new, st.t_exit, t_exit)
         t = dr.select(new, st.t, t)
-        t_prev = dr.select(new, dr.maximum(t_prev, t - dt), t_prev)
         active &= lnot(new) | st.found
         eps = _epsilon(dev, t, dnorm)
         if dr.hint(not uniform, mode="scalar"):
@@ -729,15 +758,25 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
         else:
             dx = (t_s - t_prev) * dnorm
         if dr.hint(cfg.preintegrated, mode="scalar"):
+            # The value runs from the previous sample to this one: integrate over that distance.
+            # Steps tile the ray from one sample to the next (the first from where the ray
+            # or the leaf starts, at the first sample's value).
+            span = (t_s - t_prev) * dnorm
             a = dr.select(dr.isfinite(v_prev),
-                          band.segment_alpha(m, cfg.band_table, v_prev, v, dx, centre),
-                          band.corrected(band.alpha(m, v, centre), dx))
+                          band.segment_alpha(m, cfg.band_table, v_prev, v, span, centre),
+                          band.corrected(band.alpha(m, v, centre), span))
         else:
             a = band.corrected(band.alpha(m, v, centre), dx)
         a = dr.select(take & dr.isfinite(v), a, 0.0)
         if dr.hint(shade, mode="scalar"):
             lit = take & (a > 1e-3)
-            A, S = lighting(dr.fma(d, t_s, o), grad, lit)
+            t_light = t_s
+            if dr.hint(cfg.preintegrated, mode="scalar"):
+                # The opacity of a pre-integrated step sits where the value ramp passes the
+                # band's centre, not at the step's end: light it there.
+                f = dr.clip((centre - v_prev) / (v - v_prev), 0.0, 1.0)
+                t_light = dr.select(dr.isfinite(f), dr.lerp(t_prev, t_s, f), t_s)
+            A, S = lighting(dr.fma(d, t_light, o), grad, lit)
             C += dr.select(lit, T * a * (color_of(cval) * A + S), 0.0)
         T *= 1.0 - a
         t_prev = dr.select(take, t_s, t_prev)

@@ -78,7 +78,7 @@ def trace(volume, origins, directions, *, field: str, isovalue, method: str = "e
         np.float64)
     nrm[~hit] = np.nan
     return TraceResult(t=t, hit=hit, normal=nrm, samples=c.samples.numpy().astype(np.int64),
-                       iso_index=np.where(hit, c.k.numpy(), -1).astype(np.int64))
+                       iso_index=np.where(hit, c.k.numpy().astype(np.int64), -1))
 
 
 def _prepared(volume, field, leaf_cells, m) -> PreparedVolume:

@@ -9,6 +9,7 @@ so no reference image is needed: colours tell the objects apart (the isosurface 
 floor blue, the blocking ball red).
 """
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -23,6 +24,7 @@ dr = pytest.importorskip("drjit")
 import mi_amr  # noqa: E402
 from mi_amr import AMRError, datasets  # noqa: E402
 from mi_amr.cli import SCENES, scene_data  # noqa: E402
+from mi_amr.integrator import load_scene  # noqa: E402
 
 VARIANT = "llvm_ad_rgb"
 if VARIANT not in mi.variants():
@@ -45,11 +47,6 @@ def sphere_file(tmp_path_factory):
     return path
 
 
-def load_scene(path, **params):
-    from mi_amr.integrator import load_scene as load
-    return load(path, **params)
-
-
 def render(scene, **kw):
     img = mi.render(scene, seed=0, **kw)
     return np.array(img, dtype=np.float64)
@@ -58,16 +55,97 @@ def render(scene, **kw):
 # ---------------------------------------------------------------------- the shipped scenes
 
 SCENE_FILES = sorted(SCENES.glob("*.xml"))
+MEMORY_LIMIT = 3 << 30      # bytes of address space for a child (the sphere wake needs 1.5)
+TIME_LIMIT = 180            # seconds for a child
+
+# Renders scenes given on the command line at 32 x 32, one JSON line per scene (an image file
+# and the mi.traverse keys, or the error), so one scene's failure does not hide the others'.
+CHILD = r"""
+import json, sys, traceback
+import numpy as np
+import mitsuba as mi
+mi.set_variant(sys.argv[1])
+import mi_amr
+from mi_amr.integrator import load_scene
+out = sys.argv[2]
+for i, path in enumerate(sys.argv[3:]):
+    try:
+        scene = load_scene(path, resx=32, resy=32)
+        keys = sorted(mi.traverse(scene).keys())
+        np.save(f"{out}/{i}.npy", np.array(mi.render(scene, seed=0), dtype=np.float64))
+        print(json.dumps({"path": path, "image": f"{out}/{i}.npy", "keys": keys}), flush=True)
+    except Exception as e:
+        print(json.dumps({"path": path, "error": f"{type(e).__name__}: {e}",
+                          "trace": traceback.format_exc()[-3000:]}), flush=True)
+"""
+
+
+def data_path(path: Path) -> Path:
+    """The file or folder the scene's integrator reads (its ``filename``, relative to the
+    scene file)."""
+    import xml.etree.ElementTree as ET
+
+    for node in ET.parse(path).iter("string"):
+        if node.get("name") == "filename":
+            return (path.parent / node.get("value")).resolve()
+    raise AssertionError(f"{path.name}: no amr_iso filename")
 
 
 def data_missing(path: Path):
-    """The AMReX scene reads ../../shared/data/amrex/plt_eb_3d (relative to the XML), which
-    lives outside the repository."""
-    if path.name == "plt_eb_3d.xml":
-        data = path.parent / "../../shared/data/amrex/plt_eb_3d"
-        if not data.is_dir():
-            return f"{data.resolve()} not found (see shared/data/amrex/SOURCE.md)"
+    """Scenes reading AMReX plotfiles from ../shared (outside the repository) are skipped when
+    those are absent; the data in scenes_xml/data is made by :func:`scene_data`."""
+    data = data_path(path)
+    if not data.exists() and (SCENES / "data") not in data.parents:
+        return f"{data} not found (see shared/data/amrex/SOURCE.md)"
     return None
+
+
+def data_size(data: Path) -> int:
+    if data.is_dir():
+        return sum(f.stat().st_size for f in data.rglob("*") if f.is_file())
+    return data.stat().st_size if data.exists() else 0
+
+
+def render_in_children(paths, workdir):
+    """Render ``paths`` in child processes (two at a time), each limited in memory and time:
+    a runaway preparation fails its scenes instead of taking the test run down."""
+    import json
+    import resource
+    from concurrent.futures import ThreadPoolExecutor
+
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
+
+    groups = {}
+    for p in paths:
+        groups.setdefault(data_path(p), []).append(p)
+    # The largest data first, so the two workers finish together.
+    order = sorted(groups, key=data_size, reverse=True)
+
+    def run(index_group):
+        index, group = index_group
+        out = workdir / str(index)
+        out.mkdir()
+        try:
+            proc = subprocess.run([sys.executable, "-c", CHILD, VARIANT, str(out)] +
+                                  [str(p) for p in group], capture_output=True, text=True,
+                                  timeout=TIME_LIMIT, preexec_fn=limit)
+            stdout, why = proc.stdout, f"exit status {proc.returncode}: {proc.stderr[-2000:]}"
+        except subprocess.TimeoutExpired as e:
+            stdout, why = e.stdout or "", f"no result within {TIME_LIMIT} s"
+            stdout = stdout.decode() if isinstance(stdout, bytes) else stdout
+        results = {}
+        for line in stdout.splitlines():
+            if line.startswith("{"):
+                r = json.loads(line)
+                results[Path(r["path"])] = r
+        return {p: results.get(p, {"error": f"the child died: {why}"}) for p in group}
+
+    results = {}
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        for part in pool.map(run, enumerate(groups[d] for d in order)):
+            results.update(part)
+    return results
 
 
 @pytest.fixture(scope="module")
@@ -75,52 +153,81 @@ def scene_files_ready():
     scene_data(verbose=False)
 
 
-@pytest.fixture(scope="module", params=SCENE_FILES, ids=[p.stem for p in SCENE_FILES])
-def shipped_scene(request, scene_files_ready):
-    reason = data_missing(request.param)
+@pytest.fixture(scope="module")
+def shipped_renders(scene_files_ready, tmp_path_factory):
+    paths = [p for p in SCENE_FILES if not data_missing(p)]
+    return render_in_children(paths, tmp_path_factory.mktemp("renders"))
+
+
+@pytest.fixture(params=SCENE_FILES, ids=[p.stem for p in SCENE_FILES])
+def shipped(request, shipped_renders):
+    path = request.param
+    reason = data_missing(path)
     if reason:
         pytest.skip(reason)
-    return request.param, load_scene(request.param, resx=32, resy=32)
+    return path, shipped_renders[path]
+
+
+def rendered(shipped):
+    """The scene's child result, failing the test with the child's error if it has one."""
+    path, result = shipped
+    assert "error" not in result, f"{path.name}: {result['error']}\n{result.get('trace', '')}"
+    return path, result
 
 
 def test01_the_analytic_scenes_are_shipped():
     names = {p.name for p in SCENE_FILES}
     assert {"analytic_sphere.xml", "analytic_spike.xml", "analytic_torus.xml",
             "sphere_wake.xml", "sphere_wake_volume.xml", "plt_eb_3d.xml"} <= names
+    for path in SCENE_FILES:
+        text = path.read_text()
+        for name in ("spp", "resx", "resy", "method", "reconstruction", "step_scale"):
+            assert f'<default name="{name}"' in text, (path.name, name)
 
 
-def test02_every_scene_renders_without_nan_or_inf(shipped_scene):
+def test02_every_scene_renders_without_nan_or_inf(shipped):
     """At 32 x 32 pixels (the scenes' ``resx``/``resy`` defaults overridden) every scene gives
     a finite image in which something is lit."""
-    path, scene = shipped_scene
-    img = render(scene)
+    path, result = rendered(shipped)
+    img = np.load(result["image"])
     assert img.shape == (32, 32, 3)
     assert np.all(np.isfinite(img)), f"{path.name}: {np.sum(~np.isfinite(img))} NaN/Inf values"
     assert img.max() > 0.05 and img.std() > 0.01, f"{path.name}: the image is blank"
 
 
-OLD_SCENES_WITHOUT_ID = {"sphere_wake", "sphere_wake_volume", "plt_eb_3d"}
-
-
-def test03_every_scene_exposes_integrator_isovalue_and_step_scale(shipped_scene, request):
+def test03_every_scene_exposes_integrator_isovalue_and_step_scale(shipped):
     """The integrator docstring promises ``integrator.isovalue`` and ``integrator.step_scale``
-    in ``mi.traverse(scene)``; Mitsuba names parameters after the object's id, so this holds
-    only where the scene gives its integrator ``id="integrator"``."""
-    path, scene = shipped_scene
-    if path.stem in OLD_SCENES_WITHOUT_ID:
-        request.applymarker(pytest.mark.xfail(
-            strict=True, reason="<integrator type=\"amr_iso\"> has no id=\"integrator\": the keys "
-            "are object_<address>.isovalue and object_<address>.step_scale"))
-    keys = set(mi.traverse(scene).keys())
+    in ``mi.traverse(scene)``; Mitsuba names parameters after the object's id, so every scene
+    must give its integrator ``id="integrator"``."""
+    path, result = rendered(shipped)
+    keys = set(result["keys"])
     assert {"integrator.isovalue", "integrator.step_scale"} <= keys, sorted(keys)
+
+
+def test04_the_render_command_writes_an_image(scene_files_ready, tmp_path):
+    """``python -m mi_amr render SCENE -o OUT`` as the README shows it, on a tiny image."""
+    out = tmp_path / "sphere.exr"
+    proc = subprocess.run([sys.executable, "-m", "mi_amr", "render",
+                           str(SCENES / "analytic_sphere.xml"), "-o", str(out),
+                           "--resolution", "24", "24"], capture_output=True, text=True,
+                          timeout=TIME_LIMIT)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    img = np.array(mi.Bitmap(str(out)), dtype=np.float64)
+    assert img.shape[:2] == (24, 24)
+    assert np.all(np.isfinite(img)) and img[12, 12, :3].sum() > 0.1
 
 
 # ---------------------------------------------------------------------- parameter mistakes
 
 SENSOR = """
     <sensor type="perspective">
-        <transform name="to_world"><lookat origin="0.5, 0.5, 3" target="0.5, 0.5, 0.5" up="0, 1, 0"/></transform>
-        <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
+        <transform name="to_world">
+            <lookat origin="0.5, 0.5, 3" target="0.5, 0.5, 0.5" up="0, 1, 0"/>
+        </transform>
+        <film type="hdrfilm">
+            <integer name="width" value="8"/>
+            <integer name="height" value="8"/>
+        </film>
     </sensor>
 """
 
@@ -139,19 +246,22 @@ BASE = {"filename": ("string", "sphere.npz"), "field": ("string", "f"),
 
 MISTAKES = {
     "unknown-parameter": ({"colour": ("string", "red")},
-                          r"amr_iso: unknown parameter\(s\) \['colour'\]; allowed: filename, field"),
+                          r"amr_iso: unknown parameter\(s\) \['colour'\]; allowed: filename, "
+                          r"field"),
     "bad-method": ({"method": ("string", "fast")},
                    r"amr_iso: parameter 'method' must be one of exact, bisect, adaptive, "
                    r"uniform; got 'fast'"),
     "bad-reconstruction": ({"reconstruction": ("string", "cubic")},
-                           r"parameter 'reconstruction' must be one of basis, finest; got 'cubic'"),
+                           r"parameter 'reconstruction' must be one of basis, finest; "
+                           r"got 'cubic'"),
     "bad-mode": ({"mode": ("string", "cloud")},
                  r"amr_iso: parameter 'mode' must be one of surface, volume; got 'cloud'"),
     "step-scale-zero": ({"step_scale": ("float", "0")},
                         r"amr_iso: parameter 'step_scale' must be a number in \[0\.0001, 64\], "
                         r"got 0"),
     "step-scale-negative": ({"step_scale": ("float", "-0.5")},
-                            r"parameter 'step_scale' must be a number in \[0\.0001, 64\], got -0\.5"),
+                            r"parameter 'step_scale' must be a number in \[0\.0001, 64\], "
+                            r"got -0\.5"),
     "colormap-short-colour": ({"color_field": ("string", "f"),
                                "colormap": ("string", "0.1: 1 0 0, 0.5: 0 1")},
                               r"colormap: '0\.5: 0 1' needs a value and 3 colour components"),
@@ -176,7 +286,7 @@ MISTAKES = {
 
 
 @pytest.mark.parametrize("case", sorted(MISTAKES))
-def test04_parameter_mistakes_give_the_documented_messages(tmp_path, sphere_file, case):
+def test05_parameter_mistakes_give_the_documented_messages(tmp_path, sphere_file, case):
     """Each mistake ends as one AMRError naming the parameter and what is allowed (through
     :func:`mi_amr.integrator.load_scene`, which unwraps Mitsuba's plugin error), never as a
     traceback."""
@@ -190,7 +300,7 @@ def test04_parameter_mistakes_give_the_documented_messages(tmp_path, sphere_file
     assert "Traceback" not in str(info.value)
 
 
-def test05_a_valid_scene_file_of_the_same_shape_loads(tmp_path, sphere_file):
+def test06_a_valid_scene_file_of_the_same_shape_loads(tmp_path, sphere_file):
     """The baseline of the mistakes above is itself correct (so each error is the mistake's)."""
     (tmp_path / "sphere.npz").symlink_to(sphere_file)
     scene = load_scene(write_scene(tmp_path / "scene.xml", BASE))
@@ -210,7 +320,7 @@ def render_kernels_compiled(scene):
     return img, sum(1 for k in jit if not k.get("cache_hit", False))
 
 
-def test06_isovalue_and_step_scale_change_without_recompiling(scene_files_ready):
+def test07_isovalue_and_step_scale_change_without_recompiling(scene_files_ready):
     """``integrator.isovalue`` and ``integrator.step_scale`` from ``mi.traverse``: a new value
     renders a different image with the kernels already compiled."""
     scene = load_scene(SCENES / "analytic_sphere.xml", resx=32, resy=32, method="adaptive")
@@ -256,7 +366,7 @@ def volume_scene(sphere_file, res=48, **integrator):
     }
 
 
-def test07_opacity_correction_keeps_volume_brightness_when_the_step_changes(sphere_file):
+def test08_opacity_correction_keeps_volume_brightness_when_the_step_changes(sphere_file):
     """Volume mode, adaptive sampling, an opacity band two cells thick: at step scale 0.25 and
     0.1 (2.5 times as many samples in the band) the mean brightness is within 3 %."""
     scene = mi.load_dict(volume_scene(sphere_file, mode="volume", method="adaptive",
@@ -316,7 +426,7 @@ def luminance(img):
     return img.sum(axis=-1)
 
 
-def test08_a_mesh_in_front_occludes_the_isosurface(sphere_file):
+def test09_a_mesh_in_front_occludes_the_isosurface(sphere_file):
     """A small red ball between the camera and the isosurface: the pixels of its silhouette
     show the ball alone, where without it they show the isosurface."""
     plain = render(mesh_scene(sphere_file))
@@ -331,7 +441,7 @@ def test08_a_mesh_in_front_occludes_the_isosurface(sphere_file):
     assert ball[48, 48] and iso[48, 48]
 
 
-def test09_a_mesh_shadows_the_isosurface(sphere_file):
+def test10_a_mesh_shadows_the_isosurface(sphere_file):
     """A ball between the light and the isosurface darkens the isosurface pixels in its shadow
     (compared with the ball moved out of the light), and brightens none."""
     spot = CENTRE + 0.3 * TOWARDS_LIGHT              # where the light meets the surface first
@@ -346,7 +456,7 @@ def test09_a_mesh_shadows_the_isosurface(sphere_file):
     assert np.all(luminance(shadowing)[iso] <= luminance(away)[iso] * 1.01 + 1e-6)
 
 
-def test10_the_isosurface_shadows_the_floor_unless_shadows_are_off(sphere_file):
+def test11_the_isosurface_shadows_the_floor_unless_shadows_are_off(sphere_file):
     """The isosurface casts a shadow onto the floor on the side away from the light; with
     ``shadows=false`` the floor is evenly lit."""
     lit = render(mesh_scene(sphere_file))
@@ -371,7 +481,7 @@ def test10_the_isosurface_shadows_the_floor_unless_shadows_are_off(sphere_file):
 
 # ---------------------------------------------------------------------- variants
 
-def test11_importing_after_set_variant_registers_amr_iso(sphere_file):
+def test12_importing_after_set_variant_registers_amr_iso(sphere_file):
     """In a fresh interpreter: ``mi.set_variant`` then ``import mi_amr`` is all it takes."""
     code = textwrap.dedent(f"""
         import mitsuba as mi
@@ -401,7 +511,7 @@ def sphere_scene_dict(sphere_file, res):
     }
 
 
-def test12_register_again_after_switching_variants(sphere_file):
+def test13_register_again_after_switching_variants(sphere_file):
     """llvm_ad_rgb -> scalar_rgb -> llvm_ad_rgb, calling :func:`mi_amr.register` after each
     switch: in scalar_rgb the plugin is the integrator's own class (its parameter check runs),
     and back on llvm_ad_rgb a scene renders."""
@@ -420,25 +530,33 @@ def test12_register_again_after_switching_variants(sphere_file):
     assert np.all(np.isfinite(img)) and img[8, 8].sum() > 0.1
 
 
-@pytest.mark.xfail(strict=True, raises=(AMRError, RuntimeError, TypeError),
-                   reason="scalar_rgb: AMRIsoIntegrator.__init__ does "
-                   "'self.isovalue = mi.Float(opt.isovalues)' and mi.Float is the Python float "
-                   "there: TypeError: float() argument must be a string or a real number, "
-                   "not 'list'")
-def test13_scalar_variant_renders_a_tiny_image(sphere_file):
-    """scalar_rgb, 8 x 8 pixels: the isosurface covers the centre of the image, like on
-    llvm_ad_rgb."""
+SCALAR_CHILD = """
+import sys, json, numpy as np, mitsuba as mi
+mi.set_variant("scalar_rgb")
+import mi_amr
+scene = json.loads(sys.argv[1])
+scene["sensor"]["to_world"] = mi.ScalarTransform4f().look_at(**scene["sensor"]["to_world"])
+np.save(sys.argv[2], np.array(mi.render(mi.load_dict(scene), seed=0), dtype=np.float64))
+"""
+
+
+def test14_scalar_variant_renders_a_tiny_image(sphere_file, tmp_path):
+    """scalar_rgb, 8 x 8 pixels, one ray through each pixel centre (a stratified sampler
+    without jitter): the same image as llvm_ad_rgb, since both run the same kernels. (In a
+    fresh process: once dr.JitFlag.KernelHistory has been switched on, as other tests here do,
+    Mitsuba's scalar variants can no longer find a Python integrator's sample().)"""
     if "scalar_rgb" not in mi.variants():
         pytest.skip("scalar_rgb is not available")
-    llvm = render(mi.load_dict(sphere_scene_dict(sphere_file, 8)))
-    try:
-        mi.set_variant("scalar_rgb")
-        mi_amr.register()
-        scalar = render(mi.load_dict(sphere_scene_dict(sphere_file, 8)))
-    finally:
-        mi.set_variant(VARIANT)
-        mi_amr.register()
+    look = {"origin": [0.5, 0.5, 2], "target": [0.5, 0.5, 0.5], "up": [0, 1, 0]}
+    scene = sphere_scene_dict(sphere_file, 8)
+    scene["sensor"]["sampler"] = {"type": "stratified", "sample_count": 1, "jitter": False}
+    llvm = render(mi.load_dict(scene))
+    scene["sensor"]["to_world"] = look
+    out = tmp_path / "scalar.npy"
+    proc = subprocess.run([sys.executable, "-c", SCALAR_CHILD, json.dumps(scene), str(out)],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    scalar = np.load(out)
     assert np.all(np.isfinite(scalar))
-    # The samplers differ between variants, so compare the smooth middle and the coverage.
-    np.testing.assert_allclose(scalar[3:5, 3:5], llvm[3:5, 3:5], atol=0.05)
-    assert abs(int((scalar.sum(axis=2) > 0).sum()) - int((llvm.sum(axis=2) > 0).sum())) <= 6
+    assert (llvm.sum(axis=2) > 0).sum() > 10
+    np.testing.assert_allclose(scalar, llvm, atol=2e-3)
