@@ -14,6 +14,8 @@ import statistics
 import time
 from pathlib import Path
 
+import numpy as np
+
 from .errors import AMRError
 
 DEFAULT_SCENE = Path(__file__).resolve().parent.parent / "scenes_xml" / "sphere_wake.xml"
@@ -218,6 +220,16 @@ def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int 
     if skipped:
         print(f"skipped scenes without data: {', '.join(skipped)}")
     print(f"wrote {out / 'sweep.csv'}, {out / 'sweep.md'} and {out / 'chart.png'}")
+    if not quick:
+        # The tools a user would pick instead, on the same data and machine, in this run.
+        from .peers import peers_table, run_peers
+
+        peers = run_peers(tuple(n for n in ("sphere_wake", "plt_eb_3d") if ref.available(n)),
+                          variant=variant, progress=progress)
+        (out / "peers.md").write_text(peers_table(peers) + "\n")
+        (out / "peers.json").write_text(json.dumps(peers, indent=2))
+        print(peers_table(peers))
+        print(f"wrote {out / 'peers.md'} and {out / 'peers.json'}")
     return rows
 
 
@@ -228,18 +240,15 @@ def _samples_per_ray(scene) -> float:
 
     from .march import first_crossing
 
+    from .reference import pixel_rays
+
     integ = scene.integrator()
-    sensor = scene.sensors()[0]
-    w, h = sensor.film().crop_size()
-    idx = dr.arange(mi.UInt32, w * h)
-    pos = mi.Vector2f(mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5) / mi.Vector2f(w, h)
-    ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), pos, mi.Point2f(0.5, 0.5))
+    ray = pixel_rays(scene.sensors()[0])
     m = integ.m
     o, d = integ._local_ray(ray.o, ray.d)
     c = first_crossing(integ.dev, integ.config(), o, d, m.Float(0.0), m.Float(dr.inf),
                        m.Float(0.5), m.Bool(True))
-    return float(dr.mean(m.Float(c.samples)).numpy()[0]) if hasattr(
-        dr.mean(m.Float(c.samples)), "numpy") else float(dr.mean(m.Float(c.samples)))
+    return float(np.mean(c.samples.numpy()))
 
 
 def _write_csv(rows, path):

@@ -58,6 +58,18 @@ def available(name: str) -> bool:
     return True
 
 
+def pixel_rays(sensor):
+    """One camera ray through each pixel centre (world space, unit directions), row-major."""
+    import drjit as dr
+    import mitsuba as mi
+
+    w, h = sensor.film().crop_size()
+    idx = dr.arange(mi.UInt32, w * h)
+    pos = mi.Vector2f(mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5) / mi.Vector2f(w, h)
+    ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), pos, mi.Point2f(0.5, 0.5))
+    return ray
+
+
 def hit_buffers(scene) -> HitBuffers:
     """Primary-ray hits of the scene's ``amr_iso`` integrator, one ray per pixel centre."""
     import drjit as dr
@@ -72,8 +84,7 @@ def hit_buffers(scene) -> HitBuffers:
     sensor = scene.sensors()[0]
     w, h = sensor.film().crop_size()
     idx = dr.arange(mi.UInt32, w * h)
-    pos = mi.Vector2f(mi.Float(idx % w) + 0.5, mi.Float(idx // w) + 0.5) / mi.Vector2f(w, h)
-    ray, _ = sensor.sample_ray(mi.Float(0.0), mi.Float(0.5), pos, mi.Point2f(0.5, 0.5))
+    ray = pixel_rays(sensor)
     si = scene.ray_intersect(ray)
     t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
     m = integ.m
