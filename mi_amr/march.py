@@ -273,13 +273,18 @@ def next_dual_plane(dev, levels_mask, o, d, inv_d, t_probe):
 
 
 def _clip_to_volume(dev, o, d, t_start, t_end, active):
+    """The ray's stretch inside the volume's bounds: ``(o, t0, t1, active)``. A ray lying in an
+    upper face of the bounds is moved inside by a rounding step: kd points on a split plane go
+    to the upper side, which beyond the upper faces holds no data."""
     m = dev.m
     lo = m.Array3f(*dev.bounds_lo)
     hi = m.Array3f(*dev.bounds_hi)
+    on_top = (d == 0.0) & (o == hi)
+    o = dr.select(on_top, hi - dr.maximum(dr.abs(hi), 1e-30) * 1.2e-7, o)
     t_in, t_out = box_interval(lo, hi, o, d)
     t0 = dr.maximum(t_start, t_in)
     t1 = dr.minimum(t_end, t_out)
-    return t0, t1, m.Bool(active) & (t0 < t1)
+    return o, t0, t1, m.Bool(active) & (t0 < t1)
 
 
 # ---------------------------------------------------------------------- surfaces
@@ -291,7 +296,7 @@ def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active) 
     per-ray offset in ``[0, 1)`` for the adaptive methods (ignored by ``exact`` and ``uniform``).
     """
     m = dev.m
-    t0, t1, active = _clip_to_volume(dev, o, d, t_start, t_end, active)
+    o, t0, t1, active = _clip_to_volume(dev, o, d, t_start, t_end, active)
     if cfg.method == "exact":
         return _march_exact(dev, cfg, o, d, t0, t1, active)
     return _march_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), active)
@@ -349,7 +354,9 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         num = nums[0]
         samples += dr.select(active, 1, 0)
         d_mid = roots.cubic(den, 0.5 * L)
-        have = active & (den[0] > 1e-3) & (roots.cubic(den, L) > 1e-3) & (d_mid > 1e-3)
+        # The blend is undefined only where no cell has weight (next to missing values, the
+        # weights can sum to much less than 1 and the field is still defined).
+        have = active & (den[0] > 1e-6) & (roots.cubic(den, L) > 1e-6) & (d_mid > 1e-6)
         v_start = num[0] / den[0]
         v_end = roots.cubic(num, L) / roots.cubic(den, L)
         n_mid = roots.cubic(num, 0.5 * L)
@@ -396,10 +403,13 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         c = [num[i] - iso * den[i] for i in range(4)]
         found_k, a, b = roots.first_root_bracket(c, L_hit, dr.abs(n_mid) + dr.abs(iso * d_mid))
         s_k = dr.select(found_k, roots.refine_root(c, a, b), dr.inf)
+        # A "root" where no cell has weight (N = D = 0) is not a crossing.
+        s_k = dr.select(roots.cubic(den, s_k) > 1e-6, s_k, dr.inf)
         take = hit & lnot(jump) & (s_k < s_best)
         s_best = dr.select(take, s_k, s_best)
         k_hit = dr.select(take, k, k_hit)
     k_hit = dr.select(jump, k_jump, k_hit)
+    hit &= jump | (s_best < dr.inf)
     t_hit = dr.select(hit, t_seg + dr.select(jump, 0.0, s_best), dr.inf)
     return Crossing(hit=hit, t=t_hit, k=k_hit, samples=samples)
 
@@ -520,7 +530,8 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
         active &= lnot(got) & (t < t1)
 
     iso_hit = cfg.iso(dev, k_hit)
-    t_hit = dr.select(hit, t_a + (iso_hit - v_a) / (v_b - v_a) * (t_b - t_a), dr.inf)
+    t_hit = dr.select(hit, dr.clip(t_a + (iso_hit - v_a) / (v_b - v_a) * (t_b - t_a),
+                                   dr.minimum(t_a, t_b), dr.maximum(t_a, t_b)), dr.inf)
     if dr.hint(cfg.method == "bisect", mode="scalar"):
         t_hit = _bisect(dev, cfg, o, d, t_a, t_b, v_a, k_hit, hit)
     return Crossing(hit=hit, t=t_hit, k=k_hit, samples=samples)
@@ -548,7 +559,9 @@ def _bisect(dev, cfg, o, d, t_a, t_b, v_a, k, active):
     vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_b, o), values, active)
     fb = vals[0] - iso
     t = t_a + fa / (fa - fb) * (t_b - t_a)
-    return dr.select(active, dr.select(dr.isfinite(t), t, 0.5 * (t_a + t_b)), dr.inf)
+    # Where a value is missing (NaN data) the last interval may not straddle: stay inside it.
+    inside = dr.isfinite(t) & (t >= dr.minimum(t_a, t_b)) & (t <= dr.maximum(t_a, t_b))
+    return dr.select(active, dr.select(inside, t, 0.5 * (t_a + t_b)), dr.inf)
 
 
 # ---------------------------------------------------------------------- volume mode
@@ -580,7 +593,7 @@ def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lig
     sample into the band when two samples straddle it (the course report's method).
     """
     m = dev.m
-    t0, t1, active = _clip_to_volume(dev, o, d, t_start, t_end, active)
+    o, t0, t1, active = _clip_to_volume(dev, o, d, t_start, t_end, active)
     if cfg.method == "exact":
         return _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active)
     return _composite_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), color_of, lighting, active)

@@ -12,6 +12,7 @@ import drjit as dr
 import numpy as np
 
 from .errors import AMRError
+from .device import lnot
 from .march import METHODS, RECONSTRUCTIONS, MarchConfig, first_crossing
 from .prepared import PreparedVolume
 from .reconstruct import reconstruct
@@ -21,7 +22,7 @@ from .reconstruct import reconstruct
 class TraceResult:
     """Per ray: ``t`` (inf where no hit; the hit point is ``origin + t * direction``), ``hit``,
     ``normal`` (unit gradient of the reconstructed field at the hit, pointing towards increasing
-    values; NaN where no hit), ``samples`` (field evaluations along the ray; for ``exact`` the
+    values; facing the ray where the gradient is zero; NaN where no hit), ``samples`` (field evaluations along the ray; for ``exact`` the
     number of cubic pieces examined) and ``iso_index`` (which isovalue was crossed)."""
 
     t: np.ndarray
@@ -70,7 +71,10 @@ def trace(volume, origins, directions, *, field: str, isovalue, method: str = "e
             jitter, dtype=np.float32)), m.Bool(True))
     arrays = dev.arrays(cfg.basis)
     _, grad = reconstruct(dev, cfg.basis, dr.fma(d, c.t, o), arrays, c.hit)
-    normal = dr.normalize(grad)
+    # Where the gradient vanishes (the walls that close finest's cracks are flat in the field)
+    # the normal faces the ray instead.
+    flat = lnot(dr.squared_norm(grad) > 0.0)
+    normal = dr.normalize(dr.select(flat, -d, grad))
     dr.eval(c.t, c.hit, c.samples, c.k, normal)
     hit = c.hit.numpy().astype(bool)
     t = np.where(hit, c.t.numpy().astype(np.float64), np.inf)

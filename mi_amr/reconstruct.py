@@ -69,7 +69,9 @@ def finest_point(dev, leaf, p, arrays, active):
     """Trilinear reconstruction in the owner grid of ``leaf`` at ``p``.
 
     ``arrays`` are flat value arrays (the field, maybe a colour field). Returns
-    ``(values, gradient_of_first)``; values are NaN where the leaf has no owner.
+    ``(values, gradient_of_first)``; values are NaN where the leaf has no owner. Corners holding
+    a missing value (NaN) get no weight and the others are renormalised, as in
+    :func:`finest_cubic`, so a crossing found next to missing data has a value and a normal.
     """
     m = dev.m
     g = gather(m.UInt32, dev.leaf_owner, leaf, active)
@@ -83,8 +85,10 @@ def finest_point(dev, leaf, p, arrays, active):
     f = uc - m.Array3f(i0)
     # Along an axis where p is in the clamped outer half cell the value is constant.
     live = m.Array3f(dr.select((u >= 0.0) & (u <= nf - 1.0), 1.0, 0.0))
-    values = [m.Float(0.0) for _ in arrays]
-    grad = m.Array3f(0.0)
+    num = [m.Float(0.0) for _ in arrays]
+    den = m.Float(0.0)
+    dnum = m.Array3f(0.0)
+    dden = m.Array3f(0.0)
     for corner in range(8):
         bx, by, bz = (corner >> 2) & 1, (corner >> 1) & 1, corner & 1
         idx = _cell_index(n, off, i1.x if bx else i0.x, i1.y if by else i0.y,
@@ -92,14 +96,20 @@ def finest_point(dev, leaf, p, arrays, active):
         wx = f.x if bx else 1.0 - f.x
         wy = f.y if by else 1.0 - f.y
         wz = f.z if bz else 1.0 - f.z
-        sx, sy, sz = (1.0 if bx else -1.0), (1.0 if by else -1.0), (1.0 if bz else -1.0)
-        for a, arr in enumerate(arrays):
-            v = gather(m.Float, arr, idx, ok)
-            values[a] += wx * wy * wz * v
-            if a == 0:
-                grad += v * m.Array3f(sx * wy * wz, sy * wx * wz, sz * wx * wy)
-    grad = grad * ih * live
-    values = [dr.select(ok, v, dr.nan) for v in values]
+        dw = m.Array3f((1.0 if bx else -1.0) * wy * wz, (1.0 if by else -1.0) * wx * wz,
+                       (1.0 if bz else -1.0) * wx * wy)
+        vals = [gather(m.Float, arr, idx, ok) for arr in arrays]
+        has = ok & dr.isfinite(vals[0])
+        w = dr.select(has, wx * wy * wz, 0.0)
+        dw = dr.select(has, dw, 0.0)
+        den += w
+        dden += dw
+        for a in range(len(arrays)):
+            num[a] += w * dr.select(has, vals[a], 0.0)
+        dnum += dw * dr.select(has, vals[0], 0.0)
+    inv = dr.select(ok & (den > 0.0), dr.rcp(den), dr.nan)
+    values = [x * inv for x in num]
+    grad = (dnum * den - dden * num[0]) * (inv * inv) * ih * live
     return values, grad
 
 

@@ -52,7 +52,7 @@ def first_root_bracket(c, L, scale, rel_tol=2e-6):
 
     ``scale`` is the magnitude of the terms that make up ``f`` (for the tangent tolerance).
     Returns ``(found, a, b)``: the first monotonic piece ``[a, b]`` whose ends differ in sign,
-    or ``a = b`` at a tangent extremum.
+    or ``a = b`` at a tangent extremum (or at ``L`` where ``f`` touches zero there).
     """
     r1, r2 = extrema(c, L)
     f0, f1, f2, f3 = cubic(c, 0.0 * L), cubic(c, r1), cubic(c, r2), cubic(c, L)
@@ -61,12 +61,16 @@ def first_root_bracket(c, L, scale, rel_tol=2e-6):
     cross1 = pos0 != pos1
     cross2 = pos1 != pos2
     cross3 = pos2 != pos3
-    # A tangent at an interior extremum (r < L).
+    # A tangent at an interior extremum (r < L), or at the interval's end: there the cubic of
+    # the next interval takes over, so an extremum of the field on the boundary (a ray through
+    # a cell centre at the field's maximum, a tangent on a dual plane) shows up only as |f(L)|
+    # near zero without a sign change. (The interval's start is the previous one's end.)
     touch1 = (r1 < L) & (dr.abs(f1) <= tol)
     touch2 = (r2 < L) & (dr.abs(f2) <= tol)
-    found = cross1 | touch1 | cross2 | touch2 | cross3
+    touch3 = dr.abs(f3) <= tol
+    found = cross1 | touch1 | cross2 | touch2 | cross3 | touch3
     a = dr.select(cross1, 0.0 * L, dr.select(touch1, r1, dr.select(cross2, r1,
-                  dr.select(touch2, r2, r2))))
+                  dr.select(touch2, r2, dr.select(cross3, r2, L)))))
     b = dr.select(cross1, r1, dr.select(touch1, r1, dr.select(cross2, r2,
                   dr.select(touch2, r2, L))))
     return found, a, b

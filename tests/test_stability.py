@@ -6,9 +6,8 @@ boundary and ``basis`` does not; an isovalue outside the data renders blank and 
 does not crash; 10^4 grids work; exact does not flicker.
 
 The float64 field behind the references is checked against the slow twins first, and the
-references against analytic crossings. Cases and rays where exact (or another method) is known
-to fail are marked ``xfail(strict=True)`` with the reason; the last tests reproduce each of
-those failures on one ray whose expected answer is derived in the test.
+references against analytic crossings. The last tests reproduce, on one ray each whose expected
+answer is derived in the test, the failures these cases once found in exact (now fixed).
 """
 
 import numpy as np
@@ -32,31 +31,13 @@ RAY_CASES = [k for k in stability.CASES if k not in MITSUBA_CASES]
 BASIS_ONLY = ("step_scale",)
 
 # Where exact is known to fail: the (case, reconstruction) and why (see the tests at the end).
-EXACT_FAILS = {
-    ("spike_maximum", "basis"): "a touch at a cubic piece's end (here the spike's node, a "
-                                "dual-plane corner) is not reported: roots.first_root_bracket "
-                                "only tests interior extrema",
-    ("upper_faces", "basis"): "rays lying in an upper face of the domain (x, y or z = hi) see "
-                              "no data: points on the face go to the kd leaf above it",
-    ("boundary_crossing", "finest"): "a jump from exactly the isovalue to the other side is "
-                                     "not counted: the jump test is (v_prev - iso) * (v_start "
-                                     "- iso) < 0, strict",
-    ("nan_centre_lines", "basis"): "pieces where the basis denominator falls below 1e-3 "
-                                   "(next to a NaN cell) are skipped, with the crossing in them",
-}
-EXACT_FAILS[("spike_maximum", "finest")] = EXACT_FAILS[("spike_maximum", "basis")]
-EXACT_FAILS[("upper_faces", "finest")] = EXACT_FAILS[("upper_faces", "basis")]
-
-OUTPUT_FAILS = {
-    ("nan", "finest"): "exact + finest: the root search drops NaN cells (finest_cubic), the "
-                       "normal does not (finest_point): NaN normals at hits next to NaN cells",
-    ("nan_centre_lines", "basis"): "bisect: a midpoint where the field is undefined (NaN) breaks "
-                                   "the bracket; the final interpolation is not clamped and "
-                                   "returns t far outside the ray's range with a NaN normal",
-    ("many_grids", "finest"): "trace() returns a NaN normal for a hit where the finest "
-                              "gradient is zero (inside the clamped outer half cells of a 2^3 "
-                              "grid on all three axes, e.g. on the wall between two grids)",
-}
+# Failures of exact once found by these cases, now fixed (each has a regression test at the end):
+# a tangent or extremum touching the end of a cubic piece, rays lying in the volume's upper
+# faces, a jump from exactly the isovalue (finest), a crossing beside a NaN cell, and three
+# output bugs (bisect's unclamped interpolation, NaN normals from finest_point next to NaN
+# cells and from trace where finest's gradient vanishes).
+EXACT_FAILS = {}
+OUTPUT_FAILS = {}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -288,7 +269,6 @@ def test15_table_has_a_row_per_case_and_a_column_per_method(rows):
 
 # ---------------------------------------------------------------------- known failures, one ray
 
-@pytest.mark.xfail(strict=True, reason=EXACT_FAILS[("spike_maximum", "basis")])
 @pytest.mark.parametrize("reconstruction", ["basis", "finest"])
 def test16_exact_finds_the_spike_maximum_touched_at_its_node(reconstruction):
     """Isovalue 1.0, the spike's value: the ray along +z through the spike cell's centre
@@ -302,9 +282,6 @@ def test16_exact_finds_the_spike_maximum_touched_at_its_node(reconstruction):
     assert res.hit[0] and abs(res.t[0] - 0.5) < 1e-4
 
 
-@pytest.mark.xfail(strict=True, reason="a tangent whose touching point lies on a dual-cell "
-                   "plane (a kink of the field along the ray, the end of a cubic piece) is not "
-                   "reported, unlike a tangent inside a piece")
 def test17_exact_finds_a_tangent_touching_on_a_cell_centre_plane():
     """A ray tangent to the sphere's reconstructed surface (found by the tangent search of
     the full grazing case): its minimum of ``f - 0.3`` is 6.5e-8 (within
@@ -323,7 +300,6 @@ def test17_exact_finds_a_tangent_touching_on_a_cell_centre_plane():
     assert res.hit[0] and abs(res.t[0] - ref.t_min[0]) < 1e-2 * H_FINE
 
 
-@pytest.mark.xfail(strict=True, reason=EXACT_FAILS[("upper_faces", "basis")])
 def test18_exact_sees_the_domain_upper_faces():
     """The ramp along +x in the face y = 1 (beyond the last cell centres the reconstruction is
     constant in y, so it crosses at x = 0.5 - (0.36 * 0.46875 - 0.48 * 0.1) / 0.8 =
@@ -336,7 +312,6 @@ def test18_exact_sees_the_domain_upper_faces():
     assert upper.hit[0] and abs(upper.t[0] - 1.3490625) < 1e-5
 
 
-@pytest.mark.xfail(strict=True, reason=EXACT_FAILS[("boundary_crossing", "finest")])
 def test19_exact_finest_counts_a_jump_from_the_isovalue():
     """The ramp along +x through the cube's centre (y = z = 0.5): finest is 0.8 (x - 0.5) on
     the coarse side, exactly 0 at x = 0.5, and 0.0125 on the fine side (the clamped outer
@@ -349,7 +324,6 @@ def test19_exact_finest_counts_a_jump_from_the_isovalue():
     assert res.hit[0] and abs(res.t[0] - 1.5) < 1e-5
 
 
-@pytest.mark.xfail(strict=True, reason=EXACT_FAILS[("nan_centre_lines", "basis")])
 def test20_exact_finds_a_crossing_beside_a_nan_cell():
     """Along +x 1e-4 cells beside the line through the NaN cell's centre the basis field is
     defined and changes side at the NaN cell (0.3466 before it, 0.2847 after): the reference
@@ -364,7 +338,6 @@ def test20_exact_finds_a_crossing_beside_a_nan_cell():
     assert res.hit[0] and abs(res.t[0] - ref.t[0]) < 1e-3 * H_FINE
 
 
-@pytest.mark.xfail(strict=True, reason=OUTPUT_FAILS[("nan_centre_lines", "basis")])
 def test21_bisect_hit_lies_on_the_ray_inside_the_volume():
     """Along +x exactly through the NaN cell's centre (jitter 0, step 0.5): a bisection
     midpoint falls on the centre, where the field is undefined. The hit must still lie on
@@ -375,7 +348,6 @@ def test21_bisect_hit_lies_on_the_ray_inside_the_volume():
     assert res.hit[0] and 1.0 <= res.t[0] <= 2.0 and np.all(np.isfinite(res.normal[0]))
 
 
-@pytest.mark.xfail(strict=True, reason=OUTPUT_FAILS[("nan", "finest")])
 def test22_exact_finest_normals_are_finite_next_to_a_nan_cell():
     """A ray hitting the surface 0.3 cells from the NaN cell, finest reconstruction: the hit
     (t = 2.00864) must come with a finite normal, as with basis."""
@@ -390,7 +362,6 @@ def test22_exact_finest_normals_are_finite_next_to_a_nan_cell():
     assert np.all(np.isfinite(res.normal[0]))
 
 
-@pytest.mark.xfail(strict=True, reason=OUTPUT_FAILS[("many_grids", "finest")])
 def test23_trace_normals_are_finite_where_the_finest_gradient_vanishes():
     """10^4 grids of 2^3 cells, finest: the ray hits the wall between two grids at
     p = (0.4414, 0.6496, 0.7000) (the face z = 28 level-1 cells), where the field on the hit's
