@@ -468,54 +468,79 @@ def _box_sum(sat, offset, shape, lo, hi):
 
 def _window_min_max(volume, values, grid, lo, hi):
     """Min and max of the finite ``values`` (all cells of all grids, flat, grid after grid) over
-    inclusive index boxes of grids.
+    inclusive index boxes ``[lo, hi]`` (rows) of the grids ``grid``, widened to power-of-two
+    blocks: a box is covered by the (at most 8) blocks of ``2**k`` cells per axis, ``2**k`` the
+    largest power of two not longer than its longest side, that start at ``lo`` or end at
+    ``hi`` (a block is cut at the grid's end). :func:`_window_min_max_reference` is the slow
+    twin.
 
-    Uses sparse tables over all cells at once: table ``k`` holds, per cell, the extremum over the
-    block of ``2**k`` cells per axis starting there (cut at the grid's end). A box is covered by
-    at most 8 blocks of the largest ``2**k`` not longer than its longest side.
-    """
+    Grids of one shape are stacked into one array; per block size a sparse table holds, per
+    cell, the extremum over the block starting there, built by halving along each axis."""
     shapes = np.array([g.shape for g in volume.grids], dtype=np.int64)
     offsets = _grid_offsets(volume)
-    values = values.astype(np.float64)
     finite = np.isfinite(values)
-    tmin = np.where(finite, values, np.inf)
-    tmax = np.where(finite, values, -np.inf)
-    del values, finite
-    # Per-cell position and the flat stride of each axis within its grid.
-    cell_grid = np.repeat(np.arange(len(shapes)), np.prod(shapes, axis=1))
-    local = np.arange(len(cell_grid)) - offsets[cell_grid]
-    sh = shapes[cell_grid]
-    idx = np.stack([local // (sh[:, 1] * sh[:, 2]), (local // sh[:, 2]) % sh[:, 1],
-                    local % sh[:, 2]], axis=1)
-    stride = np.stack([sh[:, 1] * sh[:, 2], sh[:, 2], np.ones_like(sh[:, 2])], axis=1)
-    del local
-
-    size = hi - lo + 1
-    k_need = np.floor(np.log2(size.max(axis=1))).astype(np.int64)
-    out_min = np.empty(len(grid))
-    out_max = np.empty(len(grid))
-    flat = np.arange(len(cell_grid))
-    for k in range(int(k_need.max()) + 1 if len(k_need) else 0):
-        if k > 0:
-            step = 1 << (k - 1)
-            for a in range(3):
-                nxt = np.where(idx[:, a] + step < sh[:, a], flat + step * stride[:, a], flat)
-                tmin = np.minimum(tmin, tmin[nxt])
-                tmax = np.maximum(tmax, tmax[nxt])
-        sel = np.flatnonzero(k_need == k)
-        if len(sel) == 0:
+    vmin_all = np.where(finite, values, np.inf).astype(np.float64)
+    vmax_all = np.where(finite, values, -np.inf).astype(np.float64)
+    del finite
+    k_need = (np.floor(np.log2((hi - lo + 1).max(axis=1))).astype(np.int64) if len(grid) else
+              np.zeros(0, dtype=np.int64))
+    out_min = np.full(len(grid), np.inf)
+    out_max = np.full(len(grid), -np.inf)
+    kinds, kind_of = np.unique(shapes, axis=0, return_inverse=True)
+    kind_of = kind_of.ravel()
+    for kind, shape in enumerate(kinds):
+        queries = np.flatnonzero(kind_of[grid] == kind)
+        if len(queries) == 0:
             continue
-        block = 1 << k
-        s_lo = lo[sel]
-        s_hi = np.maximum(lo[sel], hi[sel] - block + 1)
-        g = grid[sel]
-        best_min = np.full(len(sel), np.inf)
-        best_max = np.full(len(sel), -np.inf)
-        for cx in (s_lo[:, 0], s_hi[:, 0]):
-            for cy in (s_lo[:, 1], s_hi[:, 1]):
-                for cz in (s_lo[:, 2], s_hi[:, 2]):
-                    at = offsets[g] + (cx * shapes[g, 1] + cy) * shapes[g, 2] + cz
-                    best_min = np.minimum(best_min, tmin[at])
-                    best_max = np.maximum(best_max, tmax[at])
-        out_min[sel], out_max[sel] = best_min, best_max
+        members = np.flatnonzero(kind_of == kind)
+        row = np.empty(len(shapes), dtype=np.int64)
+        row[members] = np.arange(len(members))
+        cells = offsets[members][:, None] + np.arange(int(np.prod(shape)))
+        tmin = vmin_all[cells].reshape(len(members), *shape)
+        tmax = vmax_all[cells].reshape(len(members), *shape)
+        for k in range(int(k_need[queries].max()) + 1):
+            if k > 0:
+                step = 1 << (k - 1)
+                for axis in (1, 2, 3):
+                    n = tmin.shape[axis]
+                    if step >= n:
+                        continue
+                    head = [slice(None)] * 4
+                    tail = [slice(None)] * 4
+                    head[axis], tail[axis] = slice(0, n - step), slice(step, n)
+                    head, tail = tuple(head), tuple(tail)
+                    tmin[head] = np.minimum(tmin[head], tmin[tail])
+                    tmax[head] = np.maximum(tmax[head], tmax[tail])
+            sel = queries[k_need[queries] == k]
+            if len(sel) == 0:
+                continue
+            r = row[grid[sel]]
+            first = lo[sel]
+            last = np.maximum(lo[sel], hi[sel] - (1 << k) + 1)
+            best_min = np.full(len(sel), np.inf)
+            best_max = np.full(len(sel), -np.inf)
+            for cx in (first[:, 0], last[:, 0]):
+                for cy in (first[:, 1], last[:, 1]):
+                    for cz in (first[:, 2], last[:, 2]):
+                        best_min = np.minimum(best_min, tmin[r, cx, cy, cz])
+                        best_max = np.maximum(best_max, tmax[r, cx, cy, cz])
+            out_min[sel], out_max[sel] = best_min, best_max
+    return out_min, out_max
+
+
+def _window_min_max_reference(volume, values, grid, lo, hi):
+    """Slow twin of :func:`_window_min_max`: one box at a time, the min and max of the finite
+    values over the union of its covering blocks, taken directly from the grid's array."""
+    offsets = _grid_offsets(volume)
+    out_min = np.full(len(grid), np.inf)
+    out_max = np.full(len(grid), -np.inf)
+    for q, g in enumerate(grid):
+        shape = volume.grids[g].shape
+        cells = values[offsets[g]:offsets[g] + int(np.prod(shape))].reshape(shape)
+        block = 1 << int(np.floor(np.log2((hi[q] - lo[q] + 1).max())))
+        top = np.maximum(lo[q], hi[q] - block + 1) + block  # the last block's end (exclusive)
+        box = cells[lo[q][0]:top[0], lo[q][1]:top[1], lo[q][2]:top[2]]
+        box = box[np.isfinite(box)]
+        if box.size:
+            out_min[q], out_max[q] = box.min(), box.max()
     return out_min, out_max
