@@ -155,6 +155,16 @@ def test08_failed_save_leaves_no_partial_file(tmp_path, monkeypatch):
     assert (tmp_path / "old.npz").read_bytes() == before
 
 
+def test08b_saved_file_has_the_usual_permissions(tmp_path):
+    """The temporary file the save renames is created 0600; the saved file must not be."""
+    mask = os.umask(0o022)
+    try:
+        mixed_volume().save(tmp_path / "v.npz")
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "v.npz").stat().st_mode & 0o777 == 0o644
+
+
 def test09_save_into_a_missing_folder_is_refused(tmp_path):
     with pytest.raises(AMRError, match="does not exist"):
         mixed_volume().save(tmp_path / "no" / "v.npz")
