@@ -221,16 +221,27 @@ def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int 
         print(f"skipped scenes without data: {', '.join(skipped)}")
     print(f"wrote {out / 'sweep.csv'}, {out / 'sweep.md'} and {out / 'chart.png'}")
     if not quick:
-        # The tools a user would pick instead, on the same data and machine, in this run.
-        from .peers import peers_table, run_peers
-
-        peers = run_peers(tuple(n for n in ("sphere_wake", "plt_eb_3d") if ref.available(n)),
-                          variant=variant, progress=progress)
-        (out / "peers.md").write_text(peers_table(peers) + "\n")
-        (out / "peers.json").write_text(json.dumps(peers, indent=2))
-        print(peers_table(peers))
-        print(f"wrote {out / 'peers.md'} and {out / 'peers.json'}")
+        run_peers_only(out, variant=variant, progress=progress)
     return rows
+
+
+def run_peers_only(out_dir="out/bench", variant: str = "llvm_ad_rgb", progress: bool = True):
+    """The tools a user would pick instead, on the same data and machine, in this run
+    (see :mod:`mi_amr.peers`); writes ``peers.md`` (with notes), ``peers_short.md`` and
+    ``peers.json``."""
+    from . import reference as ref
+    from .peers import peers_table, run_peers
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    peers = run_peers(tuple(n for n in ("sphere_wake", "plt_eb_3d") if ref.available(n)),
+                      variant=variant, progress=progress)
+    (out / "peers.md").write_text(peers_table(peers) + "\n")
+    (out / "peers_short.md").write_text(peers_table(peers, notes=False) + "\n")
+    (out / "peers.json").write_text(json.dumps(peers, indent=2))
+    print(peers_table(peers, notes=False))
+    print(f"wrote {out / 'peers.md'}, {out / 'peers_short.md'} and {out / 'peers.json'}")
+    return peers
 
 
 def _samples_per_ray(scene) -> float:
@@ -287,10 +298,23 @@ def pareto(points) -> list:
     return front
 
 
+def read_csv(path) -> list:
+    """Rows written by :func:`sweep` (numbers as floats)."""
+    import csv
+
+    rows = []
+    with open(path, newline="") as f:
+        for r in csv.DictReader(f):
+            rows.append({k: (v if k in ("scene", "method", "reconstruction") or v == "" else
+                             float(v)) for k, v in r.items()})
+    return rows
+
+
 def chart(rows, path):
-    """Time per frame against error, one curve per method and reconstruction, per scene, with
-    the Pareto front marked. Errors: missed-hit rate (left) and the 99th percentile depth error
-    in finest cells (right)."""
+    """Time per frame against error, one curve per method and reconstruction (filled markers:
+    basis, hollow: finest), per scene, with the Pareto front marked. Errors: missed-hit rate
+    (left) and the 99th percentile depth error in finest cells (right), both against the exact
+    basis reference."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -312,9 +336,10 @@ def chart(rows, path):
                               r["reconstruction"] == recon])
                 style = "-" if recon == "basis" else "--"
                 marker = "*" if method == "exact" else "o"
+                face = colors[method] if recon == "basis" else "white"
                 ax.plot([p[0] for p in pts], [p[1] for p in pts], style, marker=marker,
-                        color=colors[method], label=f"{method} / {recon}", ms=7 if
-                        method == "exact" else 4)
+                        color=colors[method], markerfacecolor=face,
+                        label=f"{method} / {recon}", ms=9 if method == "exact" else 4)
             allpts = [(1000 * r["frame_s"], max(scale * r[key], floor[key])) for r in sub]
             front = [allpts[i] for i in pareto(allpts)]
             ax.plot([p[0] for p in front], [p[1] for p in front], ":", color="crimson", lw=2,
@@ -325,6 +350,8 @@ def chart(rows, path):
             ax.set_yscale("log")
             ax.set_xlabel("time per frame (ms)")
             ax.set_ylabel(label)
+            ax.text(0.99, 0.01, "zero is drawn on the bottom edge", transform=ax.transAxes,
+                    ha="right", va="bottom", fontsize=7, color="gray")
             ax.set_title(scene)
             ax.grid(True, which="both", alpha=0.3)
         row_axes[0].legend(fontsize=7, ncol=2)
@@ -342,7 +369,7 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     import mitsuba as mi
     from tqdm import tqdm
 
-    from . import datasets
+    from . import datasets, prepared
     from .cli import SCENES, scene_data
     from .readers import load
 
@@ -352,23 +379,36 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     register()
     scene_data()
     out = Path(out_dir)
-    work = out / "scaling"
+    # The derived datasets are kept beside the scenes' data (not committed) and reused; delete
+    # scenes_xml/data/scaling/ after changing the dataset code.
+    work = SCENES / "data" / "scaling"
     work.mkdir(parents=True, exist_ok=True)
     base = SCENES / "sphere_wake.xml"
     default = load(SCENES / "data" / "sphere_wake.npz")
-    cases = [("image size", f"{n}x{n}", base, n) for n in (256, 512, 1024, 2048)]
-    for max_cells in (16, 8):
-        vol = datasets.split_grids(default, max_cells)
-        cases.append(("grids", f"{len(vol.grids):,} (<= {max_cells}^3 cells each)",
-                      _scene_copy(base, work, f"grids{max_cells}", vol), 512))
-    cases.insert(4, ("grids", f"{len(default.grids):,} (<= 32^3 cells each)", base, 512))
-    for size in ("small", "large"):
-        vol = datasets.sphere_wake(size, progress=False)
-        cases.append(("cells", f"{vol.num_cells:,} ({size})",
-                      _scene_copy(base, work, f"cells_{size}", vol), 512))
-    cases.append(("cells", f"{default.num_cells:,} (default)", base, 512))
+
+    def split(max_cells):
+        scene = _scene_copy(base, work, f"grids{max_cells}",
+                            lambda: datasets.split_grids(default, max_cells))
+        grids = len(load(scene.with_suffix(".npz")).grids)
+        return f"{grids:,} (<= {max_cells}^3 cells each)", scene
+
+    def size(name):
+        scene = _scene_copy(base, work, f"cells_{name}",
+                            lambda: datasets.sphere_wake(name, progress=True))
+        return f"{load(scene.with_suffix('.npz')).num_cells:,} ({name})", scene
+
+    # (varied, image size, how to get (value, scene file)); datasets are made when their case
+    # comes, so the big ones do not sit in memory while the others are timed.
+    cases = [("image size", n, lambda n=n: (f"{n}x{n}", base)) for n in (256, 512, 1024, 2048)]
+    cases += [("grids", 512, lambda: (f"{len(default.grids):,} (<= 32^3 cells each)", base)),
+              ("grids", 512, lambda: split(16)), ("grids", 512, lambda: split(8)),
+              ("cells", 512, lambda: size("small")),
+              ("cells", 512, lambda: (f"{default.num_cells:,} (default)", base)),
+              ("cells", 512, lambda: size("large"))]
     rows = []
-    for what, value, scene_file, res in tqdm(cases, desc="scaling", unit="case"):
+    for what, res, make in tqdm(cases, desc="scaling", unit="case"):
+        value, scene_file = make()
+        prepared._CACHE.clear()  # every load from the file, as a user's first load would be
         t0 = time.perf_counter()
         scene = load_scene(scene_file, resx=res, resy=res, spp=1)
         load_s = time.perf_counter() - t0
@@ -376,6 +416,7 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
         times = [_frame(mi, _dr(), scene, i + 1)[0] for i in range(frames)]
         rows.append({"what": what, "value": value, "resolution": res, "load_s": load_s,
                      "frame_s": statistics.median(times)})
+        del scene
     lines = ["| varied | value | image | scene load (s) | warm frame (s) |", "|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['what']} | {r['value']} | {r['resolution']}x{r['resolution']} | "
@@ -392,10 +433,12 @@ def _dr():
     return dr
 
 
-def _scene_copy(scene_file, folder, name, volume):
-    """A copy of ``scene_file`` in ``folder`` reading ``volume`` (saved there) and the ball."""
+def _scene_copy(scene_file, folder, name, make_volume):
+    """A copy of ``scene_file`` in ``folder`` reading the volume ``make_volume()`` (saved there as
+    ``name.npz``, or reused when that file exists) and the scene's ball."""
     data = folder / f"{name}.npz"
-    volume.save(data, overwrite=True)
+    if not data.exists():
+        make_volume().save(data)
     text = Path(scene_file).read_text()
     ball = (Path(scene_file).parent / "data" / "ball.ply").resolve()
     text = text.replace('value="data/sphere_wake.npz"', f'value="{data.resolve()}"')

@@ -79,6 +79,10 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--scene", action="append", help="sweep only these scenes (repeatable)")
     s.add_argument("--scaling", action="store_true",
                    help="only how the frame time grows with image size, grids and cells")
+    s.add_argument("--peers", action="store_true",
+                   help="only the peers (marching cubes + Mitsuba, yt) beside mi_amr exact")
+    s.add_argument("--stability", action="store_true",
+                   help="only the failure cases, every method on each (mi_amr.stability)")
     s.add_argument("--out", default="out/bench", help="folder for the results")
     s.set_defaults(run=_bench)
 
@@ -154,6 +158,19 @@ def _bench(args) -> None:
         run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
     elif args.scaling:
         scaling(args.out, variant=args.variant)
+    elif args.peers:
+        from .bench import run_peers_only
+
+        run_peers_only(args.out, variant=args.variant)
+    elif args.stability:
+        from .stability import run, stability_table
+
+        table = stability_table(run(quick=args.quick, progress=True))
+        out = Path(args.out)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "stability.md").write_text(table + "\n")
+        print(table)
+        print(f"wrote {out / 'stability.md'}")
     else:
         sweep(args.out, quick=args.quick, scenes=args.scene, variant=args.variant)
 
