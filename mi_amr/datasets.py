@@ -267,3 +267,25 @@ def split_grids(volume: AMRVolume, max_cells: int) -> AMRVolume:
                                 "fields": {n: a[sl] for n, a in g.fields.items()}})
     return AMRVolume.from_grids(out, allow_nonfinite=volume.allow_nonfinite,
                                 source=volume.source)
+
+
+def many_grids(per_axis: int = 20, fine: int = 2000, seed: int = 0) -> list:
+    """Grid records (for :meth:`AMRVolume.from_grids`) of a hierarchy with very many tiny grids:
+    ``per_axis^3`` level-0 grids of 2^3 cells (size 1) tiling a box ``2 per_axis`` wide, and
+    ``fine`` level-1 grids of 2^3 cells (size 1/2), each filling one random octant of a
+    distinct level-0 grid. Field ``f``: 0 on level 0, 1 on level 1. For the kd-tree's scaling
+    (``per_axis=40, fine=36000`` gives 10^5 grids)."""
+    if fine > per_axis ** 3:
+        raise AMRError(f"fine ({fine}) must not exceed the number of level-0 grids "
+                       f"({per_axis ** 3})")
+    rng = np.random.default_rng(seed)
+    coarse_values, fine_values = np.zeros((2, 2, 2)), np.ones((2, 2, 2))
+    axis = np.arange(per_axis)
+    origins = 2.0 * np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    grids = [{"level": 0, "origin": tuple(o), "spacing": 1.0, "fields": {"f": coarse_values}}
+             for o in origins]
+    parents = rng.choice(len(origins), fine, replace=False)
+    for o in origins[parents] + rng.integers(0, 2, (fine, 3)):
+        grids.append({"level": 1, "origin": tuple(o), "spacing": 0.5,
+                      "fields": {"f": fine_values}})
+    return grids

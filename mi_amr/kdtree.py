@@ -191,7 +191,7 @@ class KDTree:
         active = np.all(hi >= lo, axis=1)
         # Grids with covered cells: is there a leaf cell in the window? (Count it from a
         # summed-area table of the leaf mask.)
-        partly = np.array([not self.volume.leaf_mask(i).all() for i in range(len(self.shape))])
+        partly = self.volume.partly_covered()
         sel = np.flatnonzero(active & partly[pg])
         if len(sel):
             sat, offsets = _leaf_count_tables(self.volume, np.flatnonzero(partly))
@@ -211,20 +211,55 @@ class KDTree:
         """``node_ropes[n, 2 * axis + side]``: the deepest node holding everything just beyond
         face ``side`` (0 low, 1 high) of node ``n``'s box along ``axis`` (Havran's ropes), so a
         ray leaving a node restarts its descent there instead of at the root. Faces on the
-        tree's boundary get the root. ``leaf_node[l]`` is the node of leaf ``l``."""
+        tree's boundary get the root. ``leaf_node[l]`` is the node of leaf ``l``.
+
+        Built top-down, one depth at a time: a child's face box off its parent's split axis
+        lies inside the same face box of its parent, so its descent from the root passes
+        through the parent's rope and starts there; only the face on the split plane descends
+        from the root. :meth:`_ropes_from_root` is the slow twin."""
         N = self.num_nodes
-        lo = np.repeat(self._node_lo, 6, axis=0)
-        hi = np.repeat(self._node_hi, 6, axis=0)
-        face = np.tile(np.arange(6), N)
+        code = self.node_code
+        inner = np.flatnonzero((code & 3) != LEAF)
+        parent = np.full(N, -1, dtype=np.int64)
+        parent[code[inner] >> 2] = inner
+        parent[(code[inner] >> 2) + 1] = inner
+        ropes = np.zeros((N, 6), dtype=np.int64)
+        for depth in range(1, self.depth):
+            nodes = np.flatnonzero(self.node_depth == depth)
+            p = parent[nodes]
+            start = ropes[p]
+            axis = code[p] & 3
+            right = nodes == (code[p] >> 2) + 1
+            start[np.arange(len(nodes)), 2 * axis + ~right] = 0
+            ropes[nodes] = self._descend_faces(nodes, start.ravel()).reshape(-1, 6)
+        self._set_ropes(ropes)
+
+    def _ropes_from_root(self) -> np.ndarray:
+        """Slow twin of :meth:`_ropes`: every face's descent starts at the root."""
+        nodes = np.arange(self.num_nodes)
+        return self._descend_faces(nodes, np.zeros(6 * len(nodes), dtype=np.int64)).reshape(-1, 6)
+
+    def _face_boxes(self, nodes):
+        """Closed lattice boxes half a finest cell beyond each face of ``nodes`` (6 rows per
+        node, face ``2 * axis + side``), and whether each lies outside the tree's box."""
+        lo = np.repeat(self._node_lo[nodes], 6, axis=0)
+        hi = np.repeat(self._node_hi[nodes], 6, axis=0)
+        face = np.tile(np.arange(6), len(nodes))
         axis, side = face // 2, face % 2
-        rows = np.arange(6 * N)
-        # Half a finest cell beyond the face: exact, and inside the neighbour.
+        rows = np.arange(len(face))
         plane = np.where(side == 1, hi[rows, axis] + 0.5, lo[rows, axis] - 0.5)
         lo[rows, axis] = plane
         hi[rows, axis] = plane
-        node = np.zeros(6 * N, dtype=np.int64)
-        todo = np.arange(6 * N)
-        for _ in range(self.depth + 1):
+        outside = np.any((lo < self._root[0]) | (hi > self._root[1]), axis=1)
+        return lo, hi, outside
+
+    def _descend_faces(self, nodes, start) -> np.ndarray:
+        """For each face of ``nodes`` (6 per node), the deepest node holding its face box,
+        descending from ``start`` (a node holding it); the root for faces outside the tree."""
+        lo, hi, outside = self._face_boxes(nodes)
+        node = np.asarray(start, dtype=np.int64).copy()
+        todo = np.flatnonzero(~outside)
+        while len(todo):
             code = self.node_code[node[todo]]
             ax = code & 3
             split = self._node_split[node[todo]]
@@ -235,10 +270,11 @@ class KDTree:
             go = below | above
             node[todo[go]] = (code[go] >> 2) + above[go]
             todo = todo[go]
-            if len(todo) == 0:
-                break
-        outside = np.any((lo < self._root[0]) | (hi > self._root[1]), axis=1)
-        self.node_ropes = np.where(outside, 0, node).reshape(N, 6)
+        node[outside] = 0
+        return node
+
+    def _set_ropes(self, ropes) -> None:
+        self.node_ropes = ropes
         is_leaf = (self.node_code & 3) == LEAF
         self.leaf_node = np.empty(self.num_leaves, dtype=np.int64)
         self.leaf_node[self.node_code[is_leaf] >> 2] = np.flatnonzero(is_leaf)

@@ -101,6 +101,7 @@ class AMRVolume:
         self.anchor = anchor
         self._index_lo = index_lo
         self._leaf_masks = None
+        self._partly = None
         self._ranges = {}
 
     # ------------------------------------------------------------------ construction
@@ -148,7 +149,7 @@ class AMRVolume:
                       for i, g in enumerate(self.grids))
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
-        out._leaf_masks = self._leaf_masks
+        out._leaf_masks, out._partly = self._leaf_masks, self._partly
         return out
 
     def select_fields(self, names: Sequence[str]) -> "AMRVolume":
@@ -161,7 +162,7 @@ class AMRVolume:
                       for g in self.grids)
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
-        out._leaf_masks = self._leaf_masks
+        out._leaf_masks, out._partly = self._leaf_masks, self._partly
         return out
 
     # ------------------------------------------------------------------ hierarchy queries
@@ -219,8 +220,15 @@ class AMRVolume:
     def leaf_mask(self, grid: int) -> np.ndarray:
         """Boolean array of the grid's shape: True where no finer cell covers the cell."""
         if self._leaf_masks is None:
-            self._leaf_masks = _leaf_masks(self)
+            self._leaf_masks, self._partly = _leaf_masks(self)
         return self._leaf_masks[grid]
+
+    def partly_covered(self) -> np.ndarray:
+        """Boolean per grid: True where some of the grid's cells are covered by a finer grid
+        (its leaf mask is not all True)."""
+        if self._leaf_masks is None:
+            self._leaf_masks, self._partly = _leaf_masks(self)
+        return self._partly
 
     def num_leaf_cells(self) -> int:
         return sum(int(self.leaf_mask(i).sum()) for i in range(len(self.grids)))
@@ -472,9 +480,11 @@ def _check_overlap_and_nesting(records, index_lo, ratios, prefix: str) -> None:
                            f"within the coarser level (proper nesting)")
 
 
-def _leaf_masks(volume: AMRVolume) -> list:
-    """Per grid, True where no cell of the next finer level covers the cell."""
+def _leaf_masks(volume: AMRVolume):
+    """Per grid, True where no cell of the next finer level covers the cell; and per grid,
+    whether any of its cells is covered."""
     masks = [np.ones(g.shape, dtype=bool) for g in volume.grids]
+    partly = np.zeros(len(masks), dtype=bool)
     levels = volume.levels
     lo, hi = volume.index_boxes()
     for level, ratio in enumerate(volume.ratios):
@@ -486,7 +496,8 @@ def _leaf_masks(volume: AMRVolume) -> list:
             a = np.maximum(lo[c], flo[f]) - lo[c]
             b = np.minimum(hi[c], fhi[f]) - lo[c]
             masks[c][a[0]:b[0], a[1]:b[1], a[2]:b[2]] = False
-    return masks
+            partly[c] = True
+    return masks, partly
 
 
 def _finite_range(arr: np.ndarray):
