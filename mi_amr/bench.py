@@ -427,6 +427,38 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     return rows
 
 
+def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
+    """Seconds to validate a hierarchy of very many tiny grids (:func:`datasets.many_grids`:
+    10^4 and 10^5 grids) and to build its kd-tree; writes ``kdtree.md``; returns the rows."""
+    from . import datasets
+    from .kdtree import KDTree
+    from .volume import AMRVolume
+
+    rows = []
+    for per_axis, fine in sizes:
+        grids = datasets.many_grids(per_axis, fine)
+        t0 = time.perf_counter()
+        vol = AMRVolume.from_grids(grids)
+        t1 = time.perf_counter()
+        tree = KDTree(vol)
+        t2 = time.perf_counter()
+        tree.leaf_ranges("f", "basis")
+        t3 = time.perf_counter()
+        rows.append({"grids": len(vol.grids), "validate_s": t1 - t0, "kdtree_s": t2 - t1,
+                     "ranges_s": t3 - t2, "leaves": tree.num_leaves, "depth": tree.depth})
+        print(f"{len(vol.grids):,} grids: validation {t1 - t0:.2f} s, kd-tree {t2 - t1:.2f} s, "
+              f"leaf value ranges {t3 - t2:.2f} s", flush=True)
+    lines = ["| grids | validation (s) | kd-tree build (s) | leaf value ranges (s) | leaves | depth |",
+             "|---|---|---|---|---|---|"]
+    lines += [f"| {r['grids']:,} | {r['validate_s']:.2f} | {r['kdtree_s']:.2f} | "
+              f"{r['ranges_s']:.2f} | {r['leaves']:,} | {r['depth']} |" for r in rows]
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "kdtree.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / 'kdtree.md'}")
+    return rows
+
+
 def _dr():
     import drjit as dr
 

@@ -83,6 +83,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="only the peers (marching cubes + Mitsuba, yt) beside mi_amr exact")
     s.add_argument("--stability", action="store_true",
                    help="only the failure cases, every method on each (mi_amr.stability)")
+    s.add_argument("--kdtree", action="store_true",
+                   help="only validation and kd-tree build times for 10^4 and 10^5 grids")
     s.add_argument("--out", default="out/bench", help="folder for the results")
     s.set_defaults(run=_bench)
 
@@ -158,6 +160,10 @@ def _bench(args) -> None:
         run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
     elif args.scaling:
         scaling(args.out, variant=args.variant)
+    elif args.kdtree:
+        from .bench import kdtree_build
+
+        kdtree_build(args.out)
     elif args.peers:
         from .bench import run_peers_only
 
