@@ -54,10 +54,14 @@ class KDTree:
         self._glo, self._ghi = lattice(self.grid_lo), lattice(self.grid_hi)
         step = np.round(self.spacing / self.h_fine)
         self._slo, self._shi = self._glo - step, self._ghi + step
-        root_lo = self._slo.min(axis=0)
-        size = 2.0 ** np.ceil(np.log2(np.maximum(self._shi.max(axis=0) - root_lo, 1.0)))
-        self._root = (root_lo, root_lo + size)
-        self.lo, self.hi = self._world(root_lo), self._world(root_lo + size)
+        # The root's middle is the lower corner of the grids: its halves, and every node below,
+        # then split on the lattice of power-of-two blocks from that corner, where grid faces
+        # lie, and not through the middle of grids. The low half holds only support margins.
+        corner = self._glo.min(axis=0)
+        half = 2.0 ** np.ceil(np.log2(np.maximum.reduce([
+            self._shi.max(axis=0) - corner, corner - self._slo.min(axis=0), np.ones(3)])))
+        self._root = (corner - half, corner + half)
+        self.lo, self.hi = self._world(self._root[0]), self._world(self._root[1])
         self._build(max_depth)
         self._order_active()
         self._ropes()

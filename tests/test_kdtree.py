@@ -151,10 +151,13 @@ def test06_leaves_tile_the_tree_box(tree):
     total = np.prod(tree.hi - tree.lo)
     volumes = np.prod(tree.leaf_hi - tree.leaf_lo, axis=1)
     assert volumes.sum() == pytest.approx(total, rel=1e-12)
-    # The tree box starts at the low corner of the grids' supports and spans a power of two
-    # of the finest cells along each axis (so every midpoint cut lands on that lattice).
-    np.testing.assert_allclose(tree.lo, tree.support_lo.min(axis=0), rtol=0, atol=1e-12)
+    # The tree box holds every support, its middle is the low corner of the grids, and it spans
+    # a power of two of the finest cells along each axis (so every midpoint cut lands on the
+    # lattice of power-of-two blocks from that corner).
+    assert np.all(tree.lo <= tree.support_lo.min(axis=0) + 1e-12)
     assert np.all(tree.hi >= tree.support_hi.max(axis=0) - 1e-12)
+    np.testing.assert_allclose(0.5 * (tree.lo + tree.hi), tree.grid_lo.min(axis=0), rtol=0,
+                               atol=1e-12)
     cells = (tree.hi - tree.lo) / tree.h_fine
     np.testing.assert_allclose(2.0 ** np.round(np.log2(cells)), cells, rtol=1e-12)
     rng = np.random.default_rng(6)
