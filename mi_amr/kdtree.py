@@ -77,7 +77,12 @@ class KDTree:
         G = len(self.grid_lo)
         level_h = np.array([np.round(self.volume.level_spacing(l) / self.h_fine)
                             for l in range(self.volume.num_levels)])
-        f_lo, f_hi = self._root[0][None, :].copy(), self._root[1][None, :].copy()
+        # Lattice coordinates are whole numbers: int32 (when they fit) halves the memory traffic
+        # of the pair tests, which dominate the build.
+        ity = np.int32 if np.abs(np.concatenate(self._root)).max() < 2 ** 30 else np.int64
+        glo, ghi = self._glo.astype(ity), self._ghi.astype(ity)
+        slo, shi = self._slo.astype(ity), self._shi.astype(ity)
+        f_lo, f_hi = self._root[0][None, :].astype(ity), self._root[1][None, :].astype(ity)
         # (node, grid) pairs whose open support overlaps the node; pairs that can no longer
         # matter (support-only, no finer than the node's owner) are dropped as we go.
         p_node = np.zeros(G, dtype=np.int64)
@@ -87,17 +92,18 @@ class KDTree:
         base, n_leaves = 0, 0
         for depth in range(max_depth + 1):
             n = len(f_lo)
-            pl, ph = f_lo[p_node], f_hi[p_node]
-            gl, gh = self._glo[p_grid], self._ghi[p_grid]
+            # (np.take gathers rows several times faster than fancy indexing.)
+            pl, ph = np.take(f_lo, p_node, axis=0), np.take(f_hi, p_node, axis=0)
+            gl, gh = np.take(glo, p_grid, axis=0), np.take(ghi, p_grid, axis=0)
             p_level = self.level[p_grid]
             overlap = np.all(np.minimum(gh, ph) > np.maximum(gl, pl), axis=1)
             contains = np.all(gl <= pl, axis=1) & np.all(gh >= ph, axis=1)
             partial = overlap & ~contains
 
             # Owner: the finest containing grid (lowest index among equals).
-            score = np.where(contains, p_level * G + (G - 1 - p_grid), -1)
             best = np.full(n, -1, dtype=np.int64)
-            np.maximum.at(best, p_node, score)
+            np.maximum.at(best, p_node[contains],
+                          p_level[contains] * G + (G - 1 - p_grid[contains]))
             owner = np.where(best >= 0, G - 1 - best % G, -1)
 
             # Finest level whose support reaches into the node, and its cell size. A support-only
@@ -106,17 +112,14 @@ class KDTree:
             # give no such bound: a child may miss them, and a dropped finer support would then
             # be forgotten there.)
             owner_level = np.where(best >= 0, best // G, -1)
-            box_finest = np.full(n, -1, dtype=np.int64)
-            np.maximum.at(box_finest, p_node[overlap], p_level[overlap])
             useful = overlap | (p_level > owner_level[p_node])
             p_node, p_grid, p_level = p_node[useful], p_grid[useful], p_level[useful]
             partial = partial[useful]
-            finest = box_finest.copy()
-            np.maximum.at(finest, p_node, p_level)
+            finest = _scatter_max_level(n, p_node, p_level, self.volume.num_levels)
             node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
 
             axis = np.full(n, LEAF, dtype=np.int64)
-            plane = np.zeros(n)
+            plane = np.zeros(n, dtype=ity)
 
             # Split nodes cut by a grid face, and clean nodes with data that are too large, in
             # the middle of their longest axis (in cells of the volume's finest level). Nodes are
@@ -131,7 +134,7 @@ class KDTree:
             cut = np.flatnonzero(has_partial | big)
             ax = np.argmax(ext[cut], axis=1)
             axis[cut] = ax
-            plane[cut] = 0.5 * (f_lo[cut, ax] + f_hi[cut, ax])
+            plane[cut] = (f_lo[cut, ax] + f_hi[cut, ax]) // 2   # boxes are 2^k cells wide
             if depth == max_depth:
                 axis[:] = LEAF
 
@@ -167,24 +170,24 @@ class KDTree:
             keep = child_of[p_node] >= 0
             kn, kg = p_node[keep], p_grid[keep]
             ka, kpos = axis[kn], plane[kn]
-            go_left = self._slo[kg, ka] < kpos
-            go_right = self._shi[kg, ka] > kpos
+            go_left = slo[kg, ka] < kpos
+            go_right = shi[kg, ka] > kpos
             p_node = np.concatenate([child_of[kn][go_left], child_of[kn][go_right] + 1])
             p_grid = np.concatenate([kg[go_left], kg[go_right]])
             f_lo, f_hi = c_lo, c_hi
 
         self.node_code = np.concatenate(code_out)
-        self._node_split = np.concatenate(split_out)
-        self._node_lo = np.concatenate(box_lo)
-        self._node_hi = np.concatenate(box_hi)
+        self._node_split = np.concatenate(split_out).astype(np.float64)
+        self._node_lo = np.concatenate(box_lo).astype(np.float64)
+        self._node_hi = np.concatenate(box_hi).astype(np.float64)
         axis = np.minimum(self.node_code & 3, 2)
         self.node_split = self._world(self._node_split, axis)
         self.node_lo = self._world(self._node_lo)
         self.node_hi = self._world(self._node_hi)
         self.node_depth = np.concatenate(depth_out)
         self.depth = len(code_out)
-        self.leaf_lo = self._world(np.concatenate(leaf_lo))
-        self.leaf_hi = self._world(np.concatenate(leaf_hi))
+        self.leaf_lo = self._world(np.concatenate(leaf_lo).astype(np.float64))
+        self.leaf_hi = self._world(np.concatenate(leaf_hi).astype(np.float64))
         self.leaf_owner = np.concatenate(leaf_owner)
 
     def _order_active(self) -> None:
@@ -200,16 +203,24 @@ class KDTree:
         if len(sel):
             sat, offsets = _leaf_count_tables(self.volume, np.flatnonzero(partly))
             active[sel] = _box_sum(sat, offsets[pg[sel]], self.shape[pg[sel]], lo[sel], hi[sel]) > 0
-        order = np.lexsort((pg, ~active, pl))
+        # Sort by leaf, active first, then grid: one stable sort of a combined key.
+        G = len(self.grid_lo)
+        order = np.argsort((pl * 2 + ~active) * G + pg, kind="stable")
         pl, pg, active = pl[order], pg[order], active[order]
         self.leaf_grids = pg.astype(np.int32)
         self.leaf_nsupport = np.bincount(pl, minlength=L).astype(np.int64)
         self.leaf_nactive = np.bincount(pl[active], minlength=L).astype(np.int64)
         self.leaf_start = np.concatenate([[0], np.cumsum(self.leaf_nsupport)[:-1]])
+        # The active pairs are contiguous per leaf: reduce over those runs.
+        ga = pg[active]
+        has = self.leaf_nactive > 0
+        runs = (np.cumsum(self.leaf_nactive) - self.leaf_nactive)[has]
         self.leaf_levels = np.zeros(L, dtype=np.int64)
-        np.bitwise_or.at(self.leaf_levels, pl[active], 1 << self.level[pg[active]].astype(np.int64))
         self.leaf_min_h = np.full((L, 3), np.inf)
-        np.minimum.at(self.leaf_min_h, pl[active], self.spacing[pg[active]])
+        if len(runs):
+            self.leaf_levels[has] = np.bitwise_or.reduceat(
+                np.left_shift(1, self.level[ga].astype(np.int64)), runs)
+            self.leaf_min_h[has] = np.minimum.reduceat(self.spacing[ga], runs, axis=0)
 
     def _ropes(self) -> None:
         """``node_ropes[n, 2 * axis + side]``: the deepest node holding everything just beyond
@@ -302,12 +313,11 @@ class KDTree:
         """Inclusive cell index ranges ``(lo, hi)`` (each ``(P, 3)``) of the cells of ``grid``
         whose hat support (centre +- one cell, open) overlaps the box of ``leaf``; rows
         where ``lo > hi`` on some axis are empty."""
-        o = self.grid_lo[grid]
-        h = self.spacing[grid]
-        shape = self.shape[grid]
-        lo = np.floor((self.leaf_lo[leaf] - o) / h - 1.5).astype(np.int64) + 1
-        hi = np.ceil((self.leaf_hi[leaf] - o) / h + 0.5).astype(np.int64) - 1
-        return np.maximum(lo, 0), np.minimum(hi, shape - 1)
+        o = np.take(self.grid_lo, grid, axis=0)
+        h = np.take(self.spacing, grid, axis=0)
+        lo = np.floor((np.take(self.leaf_lo, leaf, axis=0) - o) / h - 1.5).astype(np.int64) + 1
+        hi = np.ceil((np.take(self.leaf_hi, leaf, axis=0) - o) / h + 0.5).astype(np.int64) - 1
+        return np.maximum(lo, 0), np.minimum(hi, np.take(self.shape, grid, axis=0) - 1)
 
     # ------------------------------------------------------------------ queries
     @property
@@ -465,6 +475,15 @@ def _finest_of(points, pi, gi, level) -> np.ndarray:
     best = np.full(len(points), -1, dtype=np.int64)
     np.maximum.at(best, pi, level[gi].astype(np.int64) * G + (G - 1 - gi))
     return np.where(best >= 0, G - 1 - best % G, -1)
+
+
+def _scatter_max_level(n, node, level, num_levels) -> np.ndarray:
+    """``out[k]`` = the largest ``level[i]`` with ``node[i] == k`` (-1 where none): one
+    bincount per level, much faster than ``np.maximum.at`` over millions of pairs."""
+    out = np.full(n, -1, dtype=np.int64)
+    for lev in range(num_levels):
+        out[np.bincount(node[level == lev], minlength=n) > 0] = lev
+    return out
 
 
 def _group(pi, gi, n) -> list:
