@@ -454,21 +454,42 @@ def test07_sampling_methods_converge_to_exact_as_the_step_shrinks(sphere, method
 @pytest.mark.parametrize("method", ["exact", "bisect", "adaptive", "uniform"])
 def test08_samples_count_the_work_done(sphere, method):
     """A ray that finds the surface has evaluated the field at least once; a ray that only
-    crosses kd nodes whose value range cannot hold the isovalue (along the cube's edges, far
-    from the sphere) is answered by the traversal alone and evaluates nothing."""
+    crosses kd leaves whose value range cannot hold the isovalue (near the cube's edges, far
+    from the sphere; which ones is read off the tree that ``trace`` builds) is answered by the
+    traversal alone and evaluates nothing."""
     rng = np.random.default_rng(7)
     o, d = random_rays(rng, 40, 0.45)
-    edges_o = f32([[-1, 0.05, 0.05], [0.95, -1, 0.95], [0.05, 0.95, 2], [2, 0.9, 0.08]])
-    edges_d = f32([[1, 0, 0], [0, 1, 0], [0, 0, -1], [-1, 0, 0]])
-    o = np.concatenate([o, edges_o])
-    d = np.concatenate([d, edges_d])
+    # Rays along the twelve edges of the unit cube, 0.02 inside its faces.
+    edges_o, edges_d = [], []
+    for axis in range(3):
+        for a in (0.02, 0.98):
+            for b in (0.02, 0.98):
+                start = np.empty(3)
+                start[axis] = -1.0
+                start[(axis + 1) % 3], start[(axis + 2) % 3] = a, b
+                edges_o.append(start)
+                edges_d.append(np.eye(3)[axis])
+    o = np.concatenate([o, f32(edges_o)])
+    d = np.concatenate([d, f32(edges_d)])
     t_in, t_out = box_interval(*sphere.bounds, o, d)
     assert np.all(t_in < t_out)
     res = mi_amr.trace(sphere, o, d, field="f", isovalue=0.3, method=method, step_scale=0.5)
     assert res.hit[:40].sum() > 5
     assert np.all(res.samples[res.hit] > 0)
     assert not res.hit[40:].any()
-    np.testing.assert_array_equal(res.samples[40:], 0)
+
+    tree = mi_amr.KDTree(sphere, leaf_cells=4)          # what trace uses
+    lo, hi = tree.leaf_ranges("f", "basis")
+    t = np.linspace(0.0, 3.0, 30001)
+    skippable = []
+    for k in range(40, len(o)):
+        p = o[k] + t[:, None] * d[k]
+        p = p[np.all((p > tree.lo) & (p < tree.hi), axis=1)]
+        leaves = np.unique(tree.locate(p))
+        skippable.append(not np.any((lo[leaves] <= 0.3) & (0.3 <= hi[leaves])))
+    skippable = np.array(skippable)
+    assert skippable.sum() >= 4
+    np.testing.assert_array_equal(res.samples[40:][skippable], 0)
 
 
 # ---------------------------------------------------------------------- normals, isovalues, misses
