@@ -167,9 +167,10 @@ SPIKE_CELL = (17, 13, 15)     # that level-1 cell (i, j, k), counted from the cu
                               # for the default base of 16 cells
 
 
-def _two_levels(fn, base: int = 16):
-    """Unit cube, level 0 of ``base`` cells per side, level 1 (ratio 2) over x >= 0.5; ``fn``
-    maps cell centres ``(..., 3)`` (world) to values."""
+def two_levels(fn, base: int = 16):
+    """Unit cube, level 0 of ``base`` cells per side, level 1 (ratio 2) over x >= 0.5, as the
+    analytic datasets; ``fn(centres, level)`` maps cell centres ``(..., 3)`` (world) to
+    values."""
     grids = []
     for level, origin, shape in ((0, (0.0, 0.0, 0.0), (base,) * 3),
                                  (1, (0.5, 0.0, 0.0), (base, 2 * base, 2 * base))):
@@ -183,7 +184,7 @@ def _two_levels(fn, base: int = 16):
 
 def sphere(base: int = 16) -> AMRVolume:
     """``f = |p - (0.5, 0.5, 0.5)|``; isosurface 0.3 is a sphere cut by the level boundary."""
-    return _two_levels(lambda p, level: np.linalg.norm(p - 0.5, axis=-1), base)
+    return two_levels(lambda p, level: np.linalg.norm(p - 0.5, axis=-1), base)
 
 
 def torus(base: int = 16) -> AMRVolume:
@@ -198,7 +199,7 @@ def torus(base: int = 16) -> AMRVolume:
         rho = np.linalg.norm(d - z[..., None] * axis, axis=-1)
         return np.sqrt((rho - 0.27) ** 2 + z ** 2)
 
-    return _two_levels(f, base)
+    return two_levels(f, base)
 
 
 RAMP_NORMAL = np.array([0.8, 0.36, 0.48])
@@ -206,7 +207,7 @@ RAMP_NORMAL = np.array([0.8, 0.36, 0.48])
 
 def ramp(base: int = 16) -> AMRVolume:
     """A linear ramp ``f = n . (p - (0.5, 0.5, 0.5))``; isosurface 0 is a tilted plane."""
-    return _two_levels(lambda p, level: (p - 0.5) @ RAMP_NORMAL, base)
+    return two_levels(lambda p, level: (p - 0.5) @ RAMP_NORMAL, base)
 
 
 def spike(base: int = 16) -> AMRVolume:
@@ -222,7 +223,7 @@ def spike(base: int = 16) -> AMRVolume:
             out[cell[0] - base, cell[1], cell[2]] = 1.0
         return out
 
-    return _two_levels(f, base)
+    return two_levels(f, base)
 
 
 ANALYTIC = {"sphere": sphere, "torus": torus, "ramp": ramp, "spike": spike}

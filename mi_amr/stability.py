@@ -72,7 +72,7 @@ from .kdtree import KDTree
 from .march import METHODS
 from .rays import trace
 from .reconstruct import basis_point_reference, finest_point_reference
-from .volume import AMRVolume, Grid
+from .volume import AMRVolume
 
 MARGIN = 1e-5          # field units: closer to the isovalue than this is undecided in float32
 TANGENT = 2e-7         # field units: a ray whose extreme value is this close touches the surface
@@ -539,20 +539,6 @@ def measure(case, volume, o, d, iso, *, reconstructions=("basis", "finest"), met
 
 # ---------------------------------------------------------------------- volumes and rays
 
-def two_levels(fn, base: int = 16, allow_nonfinite: bool = False) -> AMRVolume:
-    """Unit cube, level 0 of ``base`` cells per side, level 1 (ratio 2) over x >= 0.5, as the
-    analytic datasets; ``fn`` maps cell centres ``(..., 3)`` (world) to values."""
-    grids = []
-    for level, origin, shape in ((0, (0.0, 0.0, 0.0), (base,) * 3),
-                                 (1, (0.5, 0.0, 0.0), (base, 2 * base, 2 * base))):
-        h = 1.0 / (base * 2 ** level)
-        centres = np.stack(np.meshgrid(*Grid(level, origin, (h,) * 3, shape, {}).cell_centers(),
-                                       indexing="ij"), axis=-1)
-        grids.append({"level": level, "origin": origin, "spacing": h,
-                      "fields": {"f": np.asarray(fn(centres), dtype=np.float64)}})
-    return AMRVolume.from_grids(grids, allow_nonfinite=allow_nonfinite)
-
-
 def random_rays(rng, n, spread, centre=CENTRE, distance=2.0):
     """Rays from ``distance`` away through random points within ``spread`` of ``centre``."""
     targets = centre + (rng.random((n, 3)) - 0.5) * 2 * spread
@@ -593,7 +579,8 @@ def sheet_volume(base=16, width_cells=1.0):
     a cell centre lies close enough to the plane; elsewhere it has holes, as a Q-criterion
     sheet would)."""
     w = width_cells / (2 * base)
-    return two_levels(lambda p: np.exp(-(((p - CENTRE) @ SHEET_NORMAL) / w) ** 2), base)
+    return datasets.two_levels(
+        lambda p, level: np.exp(-(((p - CENTRE) @ SHEET_NORMAL) / w) ** 2), base)
 
 
 def case_thin_sheet(quick):
