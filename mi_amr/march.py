@@ -96,6 +96,13 @@ class Stretch:
     side: Any
     t_side: Any
 
+    def adopt(self, new, node, leaf, face, t_exit, t):
+        """The walk's ``(node, leaf, face, t_exit, t)``, taken from this stretch where ``new``
+        (the lanes that sought a new leaf) and kept elsewhere."""
+        return (dr.select(new, self.node, node), dr.select(new, self.leaf, leaf),
+                dr.select(new, self.face, face), dr.select(new, self.t_exit, t_exit),
+                dr.select(new, self.t, t))
+
 
 # ---------------------------------------------------------------------- traversal
 
@@ -328,11 +335,7 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         # --- Find the next leaf that may hold a crossing (skipping all that cannot).
         new = t >= t_exit
         st = seek(dev, cfg, o, d, t, t1, node, face, v_prev, active & new)
-        node = dr.select(new, st.node, node)
-        leaf = dr.select(new, st.leaf, leaf)
-        face = dr.select(new, st.face, face)
-        t_exit = dr.select(new, st.t_exit, t_exit)
-        t = dr.select(new, st.t, t)
+        node, leaf, face, t_exit, t = st.adopt(new, node, leaf, face, t_exit, t)
         v_prev = dr.select(new & dr.isfinite(st.side), st.side, v_prev)
         # A skipped node across an isovalue from what came before: the jump is the crossing.
         turned = new & st.turned
@@ -631,11 +634,7 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     while active:
         new = t >= t_exit
         st = seek(dev, cfg, o, d, t, t1, node, face, m.Float(dr.nan), active & new)
-        node = dr.select(new, st.node, node)
-        leaf = dr.select(new, st.leaf, leaf)
-        face = dr.select(new, st.face, face)
-        t_exit = dr.select(new, st.t_exit, t_exit)
-        t = dr.select(new, st.t, t)
+        node, leaf, face, t_exit, t = st.adopt(new, node, leaf, face, t_exit, t)
         active &= lnot(new) | st.found
 
         eps = _epsilon(dev, t, dnorm)
@@ -723,11 +722,7 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
         skipped = new & (st.t > t)
         v_prev = dr.select(skipped, dr.nan, v_prev)
         t_prev = dr.select(skipped, st.t, t_prev)
-        node = dr.select(new, st.node, node)
-        leaf = dr.select(new, st.leaf, leaf)
-        face = dr.select(new, st.face, face)
-        t_exit = dr.select(new, st.t_exit, t_exit)
-        t = dr.select(new, st.t, t)
+        node, leaf, face, t_exit, t = st.adopt(new, node, leaf, face, t_exit, t)
         active &= lnot(new) | st.found
         eps = _epsilon(dev, t, dnorm)
         if dr.hint(not uniform, mode="scalar"):
