@@ -10,9 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from .errors import AMRError
-
-SCENES = Path(__file__).resolve().parent.parent / "scenes_xml"
+from mi_amr.errors import AMRError
 
 
 def main(argv=None) -> int:
@@ -41,7 +39,7 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--fields", nargs="+", help="read only these fields")
     s.set_defaults(run=_info)
 
-    from .datasets import DATASETS, SIZES
+    from mi_amr.synthetic.datasets import DATASETS, SIZES
     s = sub.add_parser("dataset", help="generate a synthetic dataset")
     s.add_argument("name", choices=sorted(DATASETS))
     s.add_argument("-o", "--output", required=True, help="output .npz file")
@@ -102,45 +100,28 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _info(args) -> None:
-    from .readers import load
+    from mi_amr.readers import load
 
     vol = load(args.path, fields=args.fields)
     print(vol.summary())
 
 
 def _dataset(args) -> None:
-    from .datasets import make
+    from mi_amr.synthetic.datasets import make
 
     t0 = time.perf_counter()
     written = make(args.name, args.output, size=args.size, seed=args.seed, overwrite=args.force)
     print(f"wrote {', '.join(str(p) for p in written)} in {time.perf_counter() - t0:.1f} s")
 
 
-def scene_data(data_dir: Path = SCENES / "data", verbose: bool = True) -> list:
-    """Create the data files the scenes refer to, skipping those already present."""
-    from .datasets import ANALYTIC, make
-
-    data_dir.mkdir(parents=True, exist_ok=True)
-    wanted = [("sphere_wake", data_dir / "sphere_wake.npz", "default")]
-    wanted += [(name, data_dir / f"{name}.npz", "default") for name in ANALYTIC]
-    made = []
-    for name, path, size in wanted:
-        extra = [data_dir / "ball.ply"] if name == "sphere_wake" else []
-        if path.exists() and all(p.exists() for p in extra):
-            continue
-        t0 = time.perf_counter()
-        made += make(name, path, size=size, overwrite=True, progress=verbose)
-        if verbose:
-            print(f"made {path} in {time.perf_counter() - t0:.1f} s")
-    return made
-
-
 def _data(args) -> None:
-    scene_data()
+    from mi_amr.workflows import project
+
+    project.ensure_scene_data()
 
 
 def _render(args) -> None:
-    from .render import render_file
+    from mi_amr.workflows.render import render_file
 
     defines = {}
     for item in args.defines:
@@ -153,23 +134,24 @@ def _render(args) -> None:
 
 
 def _bench(args) -> None:
-    from .bench import run_frames, scaling, sweep
+    from mi_amr.evaluation.bench import run_frames, scaling, sweep
+    from mi_amr.workflows import project
 
-    scene_data()
+    project.ensure_scene_data()
     if args.frames:
         run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
     elif args.scaling:
         scaling(args.out, variant=args.variant)
     elif args.kdtree:
-        from .bench import kdtree_build
+        from mi_amr.evaluation.bench import kdtree_build
 
         kdtree_build(args.out)
     elif args.peers:
-        from .bench import run_peers_only
+        from mi_amr.evaluation.bench import run_peers_only
 
         run_peers_only(args.out, variant=args.variant)
     elif args.stability:
-        from .stability import run, stability_table
+        from mi_amr.evaluation.stability import run, stability_table
 
         table = stability_table(run(quick=args.quick, progress=True))
         out = Path(args.out)
@@ -182,7 +164,7 @@ def _bench(args) -> None:
 
 
 def _reference(args) -> None:
-    from .reference import SCENES, regenerate
+    from mi_amr.evaluation.references import SCENES, regenerate
 
     unknown = [n for n in (args.scene or []) if n not in SCENES]
     if unknown:
@@ -191,7 +173,8 @@ def _reference(args) -> None:
 
 
 def _demo(args) -> None:
-    from .render import render_file
+    from mi_amr.workflows import project
+    from mi_amr.workflows.render import render_file
 
-    scene_data()
-    render_file(SCENES / "sphere_wake.xml", args.output, overwrite=True)
+    project.ensure_scene_data()
+    render_file(project.scenes_dir() / "sphere_wake.xml", args.output, overwrite=True)

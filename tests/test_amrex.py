@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr import AMRError, cli
+from mi_amr import AMRError
+from mi_amr import cli
 from mi_amr.readers import amrex
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "amrex"

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr.derive import q_criterion, velocity_gradient
+from mi_amr.core.derive import q_criterion, velocity_gradient
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "amrex"
 SAMPLE = DATA / "example_plt_3d"

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 import mi_amr
-from mi_amr import AMRError, datasets, flow
+from mi_amr import AMRError
+from mi_amr.synthetic import datasets
+from mi_amr.synthetic import flow
 from mi_amr.cli import main
 
 

@@ -13,7 +13,7 @@ from hypothesis import given, settings, strategies as st
 
 import mi_amr
 from mi_amr import AMRError, AMRVolume
-from mi_amr.derive import DERIVED_FIELDS, velocity_gradient
+from mi_amr.core.derive import DERIVED_FIELDS, velocity_gradient
 from conftest import random_grids
 
 # Level-0 cells of 0.5 over [0, 8] x [0, 4] x [0, 4] in two grids sharing x = 4. Level-1 grids:

@@ -22,9 +22,12 @@ mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
 import mi_amr  # noqa: E402
-from mi_amr import AMRError, datasets  # noqa: E402
-from mi_amr.cli import SCENES, scene_data  # noqa: E402
-from mi_amr.integrator import load_scene  # noqa: E402
+from mi_amr import AMRError  # noqa: E402
+from mi_amr.synthetic import datasets
+from mi_amr.workflows import project  # noqa: E402
+
+SCENES = project.scenes_dir()
+from mi_amr.plugin.scene import load_scene  # noqa: E402
 
 VARIANT = "llvm_ad_rgb"
 if VARIANT not in mi.variants():
@@ -66,7 +69,7 @@ import numpy as np
 import mitsuba as mi
 mi.set_variant(sys.argv[1])
 import mi_amr
-from mi_amr.integrator import load_scene
+from mi_amr.plugin.scene import load_scene
 out = sys.argv[2]
 for i, path in enumerate(sys.argv[3:]):
     try:
@@ -150,7 +153,7 @@ def render_in_children(paths, workdir):
 
 @pytest.fixture(scope="module")
 def scene_files_ready():
-    scene_data(verbose=False)
+    project.ensure_scene_data(verbose=False)
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings, strategies as st
 
-from mi_amr import AMRError, AMRVolume, KDTree, datasets
-from mi_amr.kdtree import (_window_min_max, _window_min_max_reference, finest_grid_bruteforce,
+from mi_amr import AMRError, AMRVolume, KDTree
+from mi_amr.synthetic import datasets
+from mi_amr.core.kdtree import (_window_min_max, _window_min_max_reference, finest_grid_bruteforce,
                            support_grids_bruteforce)
 from conftest import random_grids, reference_grids
 

@@ -17,9 +17,9 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 
 import mi_amr  # noqa: E402
-from mi_amr import peers  # noqa: E402
-from mi_amr.cli import scene_data  # noqa: E402
-from mi_amr.datasets import sphere  # noqa: E402
+from mi_amr.evaluation import peers  # noqa: E402
+from mi_amr.workflows import project  # noqa: E402
+from mi_amr.synthetic.datasets import sphere  # noqa: E402
 
 VARIANT = "llvm_ad_rgb"
 if VARIANT not in mi.variants():
@@ -36,7 +36,7 @@ needs_yt = pytest.mark.skipif(importlib.util.find_spec("yt") is None,
 def variant():
     mi.set_variant(VARIANT)
     mi_amr.register()
-    scene_data(verbose=False)
+    project.ensure_scene_data(verbose=False)
     yield
 
 

@@ -16,9 +16,9 @@ mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
 import mi_amr  # noqa: E402
-from mi_amr import bench  # noqa: E402
-from mi_amr import reference as ref  # noqa: E402
-from mi_amr.cli import scene_data  # noqa: E402
+from mi_amr.evaluation import bench  # noqa: E402
+from mi_amr.evaluation import references as ref  # noqa: E402
+from mi_amr.workflows import project  # noqa: E402
 
 VARIANT = "llvm_ad_rgb"
 FAILURES = Path(__file__).resolve().parents[1] / "out" / "test_failures"
@@ -37,7 +37,7 @@ if VARIANT not in mi.variants():
 def variant():
     mi.set_variant(VARIANT)
     mi_amr.register()
-    scene_data(verbose=False)
+    project.ensure_scene_data(verbose=False)
 
 
 def _keep_failure(name, image, want) -> str:
@@ -52,9 +52,9 @@ def _keep_failure(name, image, want) -> str:
 def test_exact_render_matches_its_reference(name):
     if not ref.available(name):
         pytest.skip(f"the data of {name} is not here (../shared/data/amrex)")
-    want = ref.read_exr(ref.REFERENCE_DIR / f"{name}.exr")
-    want_hits = ref.HitBuffers.load(ref.REFERENCE_DIR / f"{name}_hits.npz")
-    from mi_amr.integrator import load_scene
+    want = ref.read_exr(ref.reference_path(name))
+    want_hits = ref.HitBuffers.load(ref.reference_path(name, "hits"))
+    from mi_amr.plugin.scene import load_scene
 
     w, h = ref.RESOLUTION
     scene = load_scene(ref.scene_path(name), resx=w, resy=h, spp=ref.SPP, method="exact",
@@ -72,14 +72,14 @@ def test_exact_render_matches_its_reference(name):
 
 def test_score_sees_a_wrong_render():
     """The comparison is not blind: the sphere at another isovalue fails every tolerance."""
-    from mi_amr.integrator import load_scene
+    from mi_amr.plugin.scene import load_scene
 
     w, h = ref.RESOLUTION
     scene = load_scene(ref.scene_path("analytic_sphere"), resx=w, resy=h, spp=4,
                        method="exact", reconstruction="basis", isovalue=0.32)
-    want = ref.read_exr(ref.REFERENCE_DIR / "analytic_sphere.exr")
+    want = ref.read_exr(ref.reference_path("analytic_sphere"))
     s = ref.score(ref.hit_buffers(scene),
-                  ref.HitBuffers.load(ref.REFERENCE_DIR / "analytic_sphere_hits.npz"),
+                  ref.HitBuffers.load(ref.reference_path("analytic_sphere", "hits")),
                   ref.render(scene, 4), want)
     assert s.rmse > RMSE and s.missed + s.false > FLIPPED and s.depth_p99 > DEPTH_P99
 

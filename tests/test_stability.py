@@ -17,9 +17,11 @@ mi = pytest.importorskip("mitsuba")
 pytest.importorskip("drjit")
 
 import mi_amr  # noqa: E402
-from mi_amr import AMRVolume, datasets, stability  # noqa: E402
-from mi_amr.march import METHODS  # noqa: E402
-from mi_amr.reconstruct import basis_point_reference, finest_point_reference  # noqa: E402
+from mi_amr import AMRVolume  # noqa: E402
+from mi_amr.synthetic import datasets
+from mi_amr.evaluation import stability
+from mi_amr.kernels.march import METHODS  # noqa: E402
+from mi_amr.kernels.reconstruct import basis_point_reference, finest_point_reference  # noqa: E402
 
 VARIANT = "llvm_ad_rgb"
 if VARIANT not in mi.variants():

@@ -16,7 +16,8 @@ import pytest
 yt = pytest.importorskip("yt", reason="yt is not installed (pip install 'mi_amr[yt]')")
 
 import mi_amr  # noqa: E402
-from mi_amr import AMRError, cli  # noqa: E402
+from mi_amr import AMRError  # noqa: E402
+from mi_amr import cli
 from mi_amr.readers import available_fields  # noqa: E402
 
 yt.set_log_level(40)  # yt's INFO lines for every dataset built here are noise in a test log

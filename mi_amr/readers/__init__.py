@@ -7,8 +7,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import AMRError
-from . import amrex, native, vdb, ytsource
+from mi_amr.errors import AMRError
+from mi_amr.readers import amrex, native, vdb, ytsource
 
 
 def load(path, fields=None, **options):

@@ -34,8 +34,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..errors import AMRError
-from ..volume import AMRVolume
+from mi_amr.errors import AMRError
+from mi_amr.core.volume import AMRVolume
 
 # "HyperCLaw-V1.1" is AMReX's default; codes may pass their own name to WriteMultiLevelPlotfile,
 # so any "<name>-V<number>" counts. Checkpoint headers ("Checkpoint version: 1") do not match.

@@ -72,8 +72,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import AMRError
-from ..volume import AMRVolume
+from mi_amr.errors import AMRError
+from mi_amr.core.volume import AMRVolume
 
 MAGIC = 0x56444220
 # 222 (OpenVDB 3.0) moved the compression flags into each grid and mask-compressed internal

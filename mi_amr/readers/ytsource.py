@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import AMRError
-from ..volume import AMRVolume
+from mi_amr.errors import AMRError
+from mi_amr.core.volume import AMRVolume
 
 INSTALL_HINT = "pip install 'mi_amr[yt]'"
 

@@ -67,12 +67,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import datasets
-from .kdtree import KDTree
-from .march import METHODS
-from .rays import trace
-from .reconstruct import basis_point_reference, finest_point_reference
-from .volume import AMRVolume
+from mi_amr.synthetic import datasets
+from mi_amr.core.kdtree import KDTree
+from mi_amr.kernels.march import METHODS
+from mi_amr.kernels.trace import trace
+from mi_amr.kernels.reconstruct import basis_point_reference, finest_point_reference
+from mi_amr.core.volume import AMRVolume
 
 MARGIN = 1e-5          # field units: closer to the isovalue than this is undecided in float32
 TANGENT = 2e-7         # field units: a ray whose extreme value is this close touches the surface
@@ -1002,7 +1002,7 @@ def _mitsuba(variant="llvm_ad_rgb"):
 
     if mi.variant() != variant:
         mi.set_variant(variant)
-    from .integrator import register
+    from mi_amr.plugin.integrator import register
 
     register()
     return mi
@@ -1028,10 +1028,10 @@ def _scene_file(name, quick, folder=None):
     whose preparation alone (some 13 s) takes a good part of the quick version's minute."""
     from pathlib import Path
 
-    from .cli import scene_data
-    from .reference import scene_path
+    from mi_amr.workflows import project
+    from mi_amr.evaluation.references import scene_path
 
-    scene_data(verbose=False)
+    project.ensure_scene_data(verbose=False)
     path = scene_path(name)
     if name != "sphere_wake" or not quick:
         return path
@@ -1060,7 +1060,7 @@ def case_inside_ball(quick):
 
 def _inside_ball(path, res):
     mi = _mitsuba()
-    from .integrator import load_scene
+    from mi_amr.plugin.scene import load_scene
 
     rows = []
     for method in METHODS:
@@ -1101,7 +1101,7 @@ def case_out_of_range(quick):
     o, d = random_rays(rng, 256, 0.45)
     rows = []
     mi = _mitsuba()
-    from .integrator import load_scene
+    from mi_amr.plugin.scene import load_scene
 
     path = _scene_file("analytic_sphere", quick)
     res = 384 if quick else 512
@@ -1155,8 +1155,8 @@ def case_temporal(quick):
     import drjit as dr
 
     mi = _mitsuba()
-    from .integrator import load_scene
-    from .march import first_crossing
+    from mi_amr.plugin.scene import load_scene
+    from mi_amr.kernels.march import first_crossing
 
     path = _scene_file("analytic_torus", quick)
     res = 48 if quick else 96

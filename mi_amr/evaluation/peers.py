@@ -50,10 +50,10 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from . import reference as ref
-from .boxes import intersection_volume, overlap_pairs
-from .errors import AMRError
-from .reference import pixel_rays
+from mi_amr.evaluation import references as ref
+from mi_amr.core.boxes import intersection_volume, overlap_pairs
+from mi_amr.errors import AMRError
+from mi_amr.evaluation.references import pixel_rays
 
 INSTALL_HINT = "pip install 'mi_amr[peers]'"
 # The peers run_peers() runs unless told otherwise; "yt_volume+ghost" (yt with ghost zones) is
@@ -91,7 +91,7 @@ def run_peers(scenes=("sphere_wake", "plt_eb_3d"), *, peers=PEERS, ours: bool = 
     """
     import mitsuba as mi
 
-    from .cli import scene_data
+    from mi_amr.workflows import project
 
     unknown = [n for n in scenes if n not in ref.SCENES]
     if unknown:
@@ -100,10 +100,10 @@ def run_peers(scenes=("sphere_wake", "plt_eb_3d"), *, peers=PEERS, ours: bool = 
     if bad:
         raise AMRError(f"run_peers(): unknown peer(s) {bad}; choose from {list(ROUTES)}")
     mi.set_variant(variant)
-    from .integrator import register
+    from mi_amr.plugin.integrator import register
 
     register()
-    scene_data(verbose=progress)
+    project.ensure_scene_data(verbose=progress)
     rows = []
     for name in scenes:
         if not ref.available(name):
@@ -174,8 +174,8 @@ def mi_amr_route(scene_name: str) -> dict:
     arrays) plus the first frame is the time to image; the warm frame is reported beside it."""
     import mitsuba as mi
 
-    from . import prepared
-    from .integrator import load_scene
+    from mi_amr.kernels import prepared
+    from mi_amr.plugin.scene import load_scene
 
     w, h = ref.RESOLUTION
     # A fresh load: forget volumes an earlier scene in this process has prepared.
@@ -209,9 +209,9 @@ def _timed_render(mi, scene, spp: int = 1) -> float:
 def _data_seconds(scene) -> float:
     """Seconds to read the scene's field (and colour field) from disk and derive them: the work
     every route shares, timed here on its own."""
-    from .derive import DERIVED_FIELDS, derive
-    from .prepared import fields_to_read
-    from .readers import available_fields, load
+    from mi_amr.core.derive import DERIVED_FIELDS, derive
+    from mi_amr.kernels.prepared import fields_to_read
+    from mi_amr.readers import available_fields, load
 
     integ = scene.integrator()
     prep = integ.prep
@@ -230,12 +230,12 @@ def _data_seconds(scene) -> float:
 
 def _load_reference_scene(scene_name: str):
     """The scene at the references' resolution, 1 spp, and its reference hit buffers."""
-    from .integrator import load_scene
+    from mi_amr.plugin.scene import load_scene
 
     w, h = ref.RESOLUTION
     scene = load_scene(ref.scene_path(scene_name), resx=w, resy=h, spp=1, method="exact",
                        reconstruction="basis")
-    ref_hits = ref.HitBuffers.load(ref.REFERENCE_DIR / f"{scene_name}_hits.npz")
+    ref_hits = ref.HitBuffers.load(ref.reference_path(scene_name, "hits"))
     return scene, ref_hits
 
 
@@ -345,7 +345,7 @@ def _finest_spacing(volume) -> float:
 def _scored_row(scene_name, peer, time_s, detail, hits, scene, *, notes=""):
     """Score ``hits`` (a :class:`~mi_amr.reference.HitBuffers`) against the reference and count
     the gaps near level boundaries."""
-    ref_hits = ref.HitBuffers.load(ref.REFERENCE_DIR / f"{scene_name}_hits.npz")
+    ref_hits = ref.HitBuffers.load(ref.reference_path(scene_name, "hits"))
     integ = scene.integrator()
     sensor = scene.sensors()[0]
     w, h = sensor.film().crop_size()
@@ -465,7 +465,7 @@ def _padded_arrays(vol, field) -> list:
     """Each grid's array with one layer of ghost cells: the same level's cell where a grid of
     the level has it, else trilinear from the next coarser level (cell centres as nodes), else
     (outside the domain) the nearest value of the grid itself."""
-    from .levels import cell_values, interpolate
+    from mi_amr.core.levels import cell_values, interpolate
 
     lo_idx, _ = vol.index_boxes()
     out = [np.pad(np.asarray(g.fields[field], dtype=np.float64), 1, mode="edge")
@@ -502,7 +502,7 @@ def _join_pieces(vol, pieces, integ):
     cell is a leaf (not covered by a finer grid)."""
     from scipy.ndimage import map_coordinates
 
-    from .shading import ColorMap
+    from mi_amr.kernels.shading import ColorMap
 
     opt = integ.opt
     cmap = None

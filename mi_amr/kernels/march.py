@@ -37,9 +37,9 @@ from typing import Any
 
 import drjit as dr
 
-from . import reconstruct as rec
-from . import roots
-from .device import NO_GRID, float_from_bits, gather, lnot
+from mi_amr.kernels import reconstruct as rec
+from mi_amr.kernels import roots
+from mi_amr.kernels.device import NO_GRID, float_from_bits, gather, lnot
 
 METHODS = ("exact", "bisect", "adaptive", "uniform")
 RECONSTRUCTIONS = ("basis", "finest")

@@ -18,11 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import AMRError
+from mi_amr.errors import AMRError
+from mi_amr.workflows import project
 
-ROOT = Path(__file__).resolve().parent.parent
-SCENE_DIR = ROOT / "scenes_xml"
-REFERENCE_DIR = ROOT / "reference"
 SCENES = ("analytic_sphere", "analytic_torus", "analytic_spike", "sphere_wake", "plt_eb_3d")
 RESOLUTION = (256, 256)
 SPP = 16
@@ -47,14 +45,19 @@ class HitBuffers:
             return cls(t=f["t"], hit=f["hit"], normal=f["normal"], cell=float(f["cell"]))
 
 
+def reference_path(name: str, kind: str = "image") -> Path:
+    """``reference/NAME.exr`` (``kind="image"``) or ``reference/NAME_hits.npz`` (``"hits"``)."""
+    return project.reference_dir() / (f"{name}.exr" if kind == "image" else f"{name}_hits.npz")
+
+
 def scene_path(name: str) -> Path:
-    return SCENE_DIR / f"{name}.xml"
+    return project.scenes_dir() / f"{name}.xml"
 
 
 def available(name: str) -> bool:
     """Whether the data of scene ``name`` can be found (``plt_eb_3d`` needs ../shared)."""
     if name == "plt_eb_3d":
-        return (ROOT.parent / "shared" / "data" / "amrex" / "plt_eb_3d").exists()
+        return (project.shared_dir() / "data" / "amrex" / "plt_eb_3d").exists()
     return True
 
 
@@ -75,8 +78,8 @@ def hit_buffers(scene) -> HitBuffers:
     import drjit as dr
     import mitsuba as mi
 
-    from .march import first_crossing
-    from .reconstruct import reconstruct
+    from mi_amr.kernels.march import first_crossing
+    from mi_amr.kernels.reconstruct import reconstruct
 
     integ = scene.integrator()
     if not hasattr(integ, "prep"):
@@ -165,18 +168,17 @@ def render(scene, spp: int, seed: int = 0) -> np.ndarray:
     return np.array(img, dtype=np.float32)
 
 
-def regenerate(names=SCENES, out_dir=REFERENCE_DIR, variant: str = "llvm_ad_rgb") -> list:
+def regenerate(names=SCENES, out_dir=None, variant: str = "llvm_ad_rgb") -> list:
     """Write the reference images and hit buffers (the only code that writes ``reference/``)."""
     import mitsuba as mi
 
-    from .cli import scene_data
-
     mi.set_variant(variant)
-    from .integrator import load_scene, register
+    from mi_amr.plugin.integrator import register
+    from mi_amr.plugin.scene import load_scene
 
     register()
-    scene_data()
-    out_dir = Path(out_dir)
+    project.ensure_scene_data()
+    out_dir = Path(out_dir or project.reference_dir())
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     for name in names:

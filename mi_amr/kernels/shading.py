@@ -23,8 +23,8 @@ import math
 import drjit as dr
 import numpy as np
 
-from .device import gather
-from .errors import AMRError
+from mi_amr.kernels.device import gather
+from mi_amr.errors import AMRError
 
 COLOR_BAND = 0.0025       # course report: each value's colour holds within +-0.0025
 OPACITY_CAP = 1.0 - 1e-4  # alpha = 1 would mean infinite extinction in the pre-integrated table

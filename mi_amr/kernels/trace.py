@@ -11,11 +11,11 @@ from dataclasses import dataclass
 import drjit as dr
 import numpy as np
 
-from .errors import AMRError
-from .device import lnot
-from .march import METHODS, RECONSTRUCTIONS, MarchConfig, first_crossing
-from .prepared import PreparedVolume
-from .reconstruct import reconstruct
+from mi_amr.errors import AMRError
+from mi_amr.kernels.device import lnot
+from mi_amr.kernels.march import METHODS, RECONSTRUCTIONS, MarchConfig, first_crossing
+from mi_amr.kernels.prepared import PreparedVolume
+from mi_amr.kernels.reconstruct import reconstruct
 
 
 @dataclass

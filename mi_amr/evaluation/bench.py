@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import AMRError
+from mi_amr.errors import AMRError
+from mi_amr.workflows import project
 
-DEFAULT_SCENE = Path(__file__).resolve().parent.parent / "scenes_xml" / "sphere_wake.xml"
+DEFAULT_SCENE = "sphere_wake.xml"    # in the checkout's scenes_xml/
 
 
 def _frame(mi, dr, scene, seed):
@@ -50,7 +51,7 @@ def _camera_key(params):
     return f"{prefix}.to_world"
 
 
-def frame_timings(scene_path=DEFAULT_SCENE, *, resolution=(1024, 1024), defines=None,
+def frame_timings(scene_path=None, *, resolution=(1024, 1024), defines=None,
                   frames: int = 5, variant: str = "llvm_ad_rgb") -> dict:
     """Time a scene: load, first frame (kernel compilation), warm frames (median), a frame after
     changing the isovalue and one after moving the camera (both should compile nothing)."""
@@ -58,9 +59,11 @@ def frame_timings(scene_path=DEFAULT_SCENE, *, resolution=(1024, 1024), defines=
     import mitsuba as mi
 
     mi.set_variant(variant)
-    from .integrator import load_scene, register
+    from mi_amr.plugin.integrator import register
+    from mi_amr.plugin.scene import load_scene
 
     register()
+    scene_path = scene_path or project.scenes_dir() / DEFAULT_SCENE
     params = {"resx": str(resolution[0]), "resy": str(resolution[1]), "spp": "1"}
     params.update(defines or {})
     dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -113,8 +116,8 @@ def run_frames(out_dir=None, resolution=(1024, 1024), variant="llvm_ad_rgb") -> 
                {"method": "adaptive", "reconstruction": "basis", "step_scale": "0.5"}]
     results = []
     for defines in configs:
-        print(f"timing {DEFAULT_SCENE.name} with {defines} ...", flush=True)
-        results.append(frame_timings(DEFAULT_SCENE, resolution=resolution, defines=defines,
+        print(f"timing {DEFAULT_SCENE} with {defines} ...", flush=True)
+        results.append(frame_timings(None, resolution=resolution, defines=defines,
                                      variant=variant))
     table = print_frames(results)
     print(table)
@@ -156,14 +159,14 @@ def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int 
     import mitsuba as mi
     from tqdm import tqdm
 
-    from . import reference as ref
-    from .cli import scene_data
+    from mi_amr.evaluation import references as ref
 
     mi.set_variant(variant)
-    from .integrator import load_scene, register
+    from mi_amr.plugin.integrator import register
+    from mi_amr.plugin.scene import load_scene
 
     register()
-    scene_data(verbose=progress)
+    project.ensure_scene_data(verbose=progress)
     methods = ("exact", "bisect", "adaptive", "uniform")
     recons = QUICK["reconstructions"] if quick else ("basis", "finest")
     steps = QUICK["step_scales"] if quick else STEP_SCALES
@@ -177,7 +180,7 @@ def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int 
     rows = []
     w, h = ref.RESOLUTION
     for name in names:
-        ref_hits = ref.HitBuffers.load(ref.REFERENCE_DIR / f"{name}_hits.npz")
+        ref_hits = ref.HitBuffers.load(ref.reference_path(name, "hits"))
         base_image = None
         for recon in recons:
             for method in methods:
@@ -229,8 +232,8 @@ def run_peers_only(out_dir="out/bench", variant: str = "llvm_ad_rgb", progress: 
     """The tools a user would pick instead, on the same data and machine, in this run
     (see :mod:`mi_amr.peers`); writes ``peers.md`` (with notes), ``peers_short.md`` and
     ``peers.json``."""
-    from . import reference as ref
-    from .peers import peers_table, run_peers
+    from mi_amr.evaluation import references as ref
+    from mi_amr.evaluation.peers import peers_table, run_peers
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -249,9 +252,9 @@ def _samples_per_ray(scene) -> float:
     import drjit as dr
     import mitsuba as mi
 
-    from .march import first_crossing
+    from mi_amr.kernels.march import first_crossing
 
-    from .reference import pixel_rays
+    from mi_amr.evaluation.references import pixel_rays
 
     integ = scene.integrator()
     ray = pixel_rays(scene.sensors()[0])
@@ -369,15 +372,17 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     import mitsuba as mi
     from tqdm import tqdm
 
-    from . import datasets, prepared
-    from .cli import SCENES, scene_data
-    from .readers import load
+    from mi_amr.synthetic import datasets
+    from mi_amr.kernels import prepared
+    from mi_amr.readers import load
 
     mi.set_variant(variant)
-    from .integrator import load_scene, register
+    from mi_amr.plugin.integrator import register
+    from mi_amr.plugin.scene import load_scene
 
     register()
-    scene_data()
+    project.ensure_scene_data()
+    SCENES = project.scenes_dir()
     out = Path(out_dir)
     # The derived datasets are kept beside the scenes' data (not committed) and reused; delete
     # scenes_xml/data/scaling/ after changing the dataset code.
@@ -430,9 +435,9 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
 def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
     """Seconds to validate a hierarchy of very many tiny grids (:func:`datasets.many_grids`:
     10^4 and 10^5 grids) and to build its kd-tree; writes ``kdtree.md``; returns the rows."""
-    from . import datasets
-    from .kdtree import KDTree
-    from .volume import AMRVolume
+    from mi_amr.synthetic import datasets
+    from mi_amr.core.kdtree import KDTree
+    from mi_amr.core.volume import AMRVolume
 
     rows = []
     for per_axis, fine in sizes:

@@ -12,10 +12,10 @@ from collections import OrderedDict
 
 import drjit as dr
 
-from .derive import DERIVED_FIELDS
-from .device import DeviceVolume
-from .errors import AMRError
-from .kdtree import KDTree
+from mi_amr.core.derive import DERIVED_FIELDS
+from mi_amr.kernels.device import DeviceVolume
+from mi_amr.errors import AMRError
+from mi_amr.core.kdtree import KDTree
 
 _CACHE: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
 _CACHE_SIZE = 3
@@ -38,7 +38,7 @@ class PreparedVolume:
                            f"{list(volume.field_names)}; derived fields are "
                            f"{list(DERIVED_FIELDS)}")
         if derivable:
-            from .derive import derive
+            from mi_amr.core.derive import derive
             volume = derive(volume, *derivable)
         self.volume = volume.select_fields(wanted)
         self.field = field
@@ -63,7 +63,7 @@ def fields_to_read(field: str, color_field: str | None, available) -> list:
 
 
 def _velocity_names(available) -> list:
-    from .derive import VELOCITY_NAMES
+    from mi_amr.core.derive import VELOCITY_NAMES
 
     for names in VELOCITY_NAMES:
         if all(n in available for n in names):
@@ -75,7 +75,7 @@ def _velocity_names(available) -> list:
 def prepare_file(path, field: str, color_field: str | None = None, *, leaf_cells: int = 4,
                  m=None) -> PreparedVolume:
     """Load ``path`` (only what is needed) and prepare it; cached by file, fields and backend."""
-    from .readers import available_fields, load
+    from mi_amr.readers import available_fields, load
 
     path = os.path.abspath(path)
     try:

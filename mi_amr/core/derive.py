@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import levels
-from .errors import AMRError
+from mi_amr.core import levels
+from mi_amr.errors import AMRError
 
 DERIVED_FIELDS = ("speed", "q_criterion", "vorticity_magnitude")
 VELOCITY_NAMES = (("vx", "vy", "vz"), ("x_velocity", "y_velocity", "z_velocity"),

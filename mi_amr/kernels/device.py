@@ -123,7 +123,7 @@ class DeviceVolume:
         counts = np.prod(shapes, axis=1)
         offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
         if counts.sum() >= 2 ** 32:
-            from .errors import AMRError
+            from mi_amr.errors import AMRError
             raise AMRError(f"{volume.num_cells} cells: more than 2^32 cannot be indexed")
         self.grid_origin = f32(glo)
         self.grid_inv_h = f32(1.0 / h)

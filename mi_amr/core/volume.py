@@ -25,8 +25,8 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from .boxes import intersection_volume, overlap_pairs
-from .errors import AMRError
+from mi_amr.core.boxes import intersection_volume, overlap_pairs
+from mi_amr.errors import AMRError
 
 ALLOWED_RATIOS = (2, 4)
 # How far (in cells) a grid corner may sit from the lattice and still count as aligned: float
@@ -287,7 +287,7 @@ class AMRVolume:
 
     def save(self, path, *, overwrite: bool = False) -> None:
         """Write the volume to one ``.npz`` file (see :mod:`mi_amr.readers.native`)."""
-        from .readers.native import save
+        from mi_amr.readers.native import save
         save(self, path, overwrite=overwrite)
 
     def __repr__(self) -> str:

@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import flow
-from .cluster import berger_rigoutsos
-from .errors import AMRError
-from .volume import AMRVolume, Grid
+from mi_amr.synthetic import flow
+from mi_amr.synthetic.cluster import berger_rigoutsos
+from mi_amr.errors import AMRError
+from mi_amr.core.volume import AMRVolume, Grid
 
 SIZES = {
     # base cells (x, y, z), levels, per-level tag thresholds on |vorticity| * h / U

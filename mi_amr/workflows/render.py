@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .errors import AMRError
+from mi_amr.errors import AMRError
 
 IMAGE_TYPES = (".png", ".exr")
 
@@ -33,7 +33,8 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
         raise AMRError(f"variant '{variant}' is not available; choose from {mi.variants()}")
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     mi.set_variant(variant)
-    from .integrator import load_scene, register
+    from mi_amr.plugin.integrator import register
+    from mi_amr.plugin.scene import load_scene
 
     register()
     params = dict(defines or {})

@@ -28,7 +28,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
-from .device import BRICK, BRICK_N, NO_BRICK, NO_GRID, gather
+from mi_amr.kernels.device import BRICK, BRICK_N, NO_BRICK, NO_GRID, gather
 
 
 # ---------------------------------------------------------------------- kd-tree point location
@@ -325,7 +325,7 @@ def _basis_segment_cubic(dev, leaf, p0, d, s_mid, arrays, active):
 def finest_point_reference(volume, points, field):
     """Slow twin of :func:`finest_point`: finest grid by brute force, then trilinear with
     clamped indices. Returns ``(values, gradients)`` (float64); NaN outside all grids."""
-    from .kdtree import finest_grid_bruteforce
+    from mi_amr.core.kdtree import finest_grid_bruteforce
 
     points = np.asarray(points, dtype=np.float64)
     owner = finest_grid_bruteforce(volume, points)

@@ -8,8 +8,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Optional
 
-from .errors import AMRError
-from .march import METHODS, RECONSTRUCTIONS
+from mi_amr.errors import AMRError
+from mi_amr.kernels.march import METHODS, RECONSTRUCTIONS
 
 MODES = ("surface", "volume")
 

@@ -23,8 +23,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .boxes import contains_points
-from .errors import AMRError
+from mi_amr.core.boxes import contains_points
+from mi_amr.errors import AMRError
 
 LEAF = 3
 

@@ -62,13 +62,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from . import options as opts
-from .device import backend_of, lnot
-from .errors import AMRError
-from .march import Crossing, MarchConfig, composite, first_crossing
-from .prepared import prepare_file
-from .reconstruct import reconstruct
-from .shading import ColorMap, OpacityBand
+from mi_amr.plugin import options as opts
+from mi_amr.kernels.device import backend_of, lnot
+from mi_amr.errors import AMRError
+from mi_amr.kernels.march import Crossing, MarchConfig, composite, first_crossing
+from mi_amr.kernels.prepared import prepare_file
+from mi_amr.plugin.scene import resolve_data_file
+from mi_amr.kernels.reconstruct import reconstruct
+from mi_amr.kernels.shading import ColorMap, OpacityBand
 
 _CLASSES = {}
 _DOC = __doc__
@@ -83,57 +84,6 @@ def register() -> None:
         _CLASSES[variant] = _make_class()
     cls = _CLASSES[variant]
     mi.register_integrator("amr_iso", lambda props: cls(props))
-
-
-def load_scene(path, **params):
-    """``mi.load_file`` that reports an amr_iso parameter or data mistake as :class:`AMRError`
-    (Mitsuba wraps errors raised while building plugins in a RuntimeError with a traceback)."""
-    path = Path(path)
-    if not path.is_file():
-        raise AMRError(f"{path}: no such scene file")
-    try:
-        scene = mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
-    except RuntimeError as e:
-        raise _unwrap(e, path) from None
-    _opaque_cameras(scene)
-    return scene
-
-
-def _opaque_cameras(scene) -> None:
-    """Write each camera's ``to_world`` back through ``mi.traverse``: Mitsuba then keeps it as an
-    opaque value, so moving the camera later does not recompile the rendering kernel."""
-    params = mi.traverse(scene)
-    keys = [k[: -len(".film.size")] + ".to_world" for k in params.keys()
-            if k.endswith(".film.size")]
-    keys = [k for k in keys if k in params]
-    for k in keys:
-        # The same update a moved camera goes through (a computed transform), so the kernel
-        # compiled for the first frame is the one every later camera position reuses.
-        params[k] = mi.Transform4f() @ params[k]
-    if keys:
-        params.update()
-
-
-def _unwrap(error: RuntimeError, path) -> AMRError:
-    text = str(error)
-    marker = "AMRError: "
-    if marker in text:
-        return AMRError(text[text.rindex(marker) + len(marker):].strip())
-    lines = [l for l in text.strip().splitlines() if l.strip()]
-    first = lines[0] if lines else "unknown error"
-    # A Python exception inside a plugin ends with "Type: message"; keep that too.
-    cause = lines[-1].strip() if len(lines) > 1 else ""
-    return AMRError(f"{path}: Mitsuba could not load the scene: {first}" +
-                    (f" ... {cause}" if cause and cause != first else ""))
-
-
-def _resolve(filename: str) -> str:
-    resolved = Path(str(mi.file_resolver().resolve(filename)))
-    if not resolved.exists():
-        raise AMRError(f"amr_iso: parameter 'filename': {filename} not found (looked for "
-                       f"{resolved}); the scenes' data files are made by 'make demo' or "
-                       f"'python -m mi_amr data'")
-    return str(resolved)
 
 
 def _make_class():
@@ -152,7 +102,7 @@ def _make_class():
             if not dr.is_jit_v(mi.Float) and opt.mode == "volume":
                 raise AMRError("amr_iso: mode 'volume' needs a vectorised variant (llvm_ad_rgb "
                                "or cuda_ad_rgb); scalar variants render surfaces only")
-            self.prep = prepare_file(_resolve(opt.filename), opt.field, opt.color_field,
+            self.prep = prepare_file(resolve_data_file(opt.filename), opt.field, opt.color_field,
                                      leaf_cells=opt.leaf_cells, m=m)
             self.dev = self.prep.device
             vol = self.prep.volume
