@@ -286,8 +286,8 @@ class AMRVolume:
         return "\n".join(lines)
 
     def save(self, path, *, overwrite: bool = False) -> None:
-        """Write the volume to one ``.npz`` file (see :mod:`mi_amr.readers.native`)."""
-        from mi_amr.readers.native import save
+        """Write the volume to one ``.npz`` file (see :mod:`mi_amr.core.npz`)."""
+        from mi_amr.core.npz import save
         save(self, path, overwrite=overwrite)
 
     def __repr__(self) -> str:
