@@ -19,7 +19,7 @@ import pytest
 
 import mi_amr
 from mi_amr.synthetic import datasets
-from mi_amr.kernels.reconstruct import basis_point_reference, finest_point_reference
+from mi_amr.core.field64 import basis_point_reference, finest_point_reference
 
 DEPTH_TOL = 1e-4     # finest cells: exact vs the reference
 STEP = 0.2           # finest cells between reference samples (0.1 inside the spike's support)

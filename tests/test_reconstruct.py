@@ -16,7 +16,7 @@ from scipy.interpolate import RegularGridInterpolator
 from mi_amr import AMRVolume
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels.prepared import PreparedVolume
-from mi_amr.kernels.reconstruct import basis_point_reference, finest_point_reference
+from mi_amr.core.field64 import basis_point_reference, finest_point_reference
 from conftest import grid, random_grids, reference_grids
 
 M = dr.llvm.ad

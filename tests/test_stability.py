@@ -20,8 +20,8 @@ import mi_amr  # noqa: E402
 from mi_amr import AMRVolume  # noqa: E402
 from mi_amr.synthetic import datasets
 from mi_amr.evaluation import stability
-from mi_amr.kernels.march import METHODS  # noqa: E402
-from mi_amr.kernels.reconstruct import basis_point_reference, finest_point_reference  # noqa: E402
+from mi_amr.params import METHODS  # noqa: E402
+from mi_amr.core.field64 import basis_point_reference, finest_point_reference  # noqa: E402
 
 VARIANT = "llvm_ad_rgb"
 if VARIANT not in mi.variants():

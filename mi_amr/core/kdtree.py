@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mi_amr import params
 from mi_amr.core.boxes import contains_points
 from mi_amr.errors import AMRError
 
@@ -36,7 +37,8 @@ class KDTree:
     All positions are world space.
     """
 
-    def __init__(self, volume, *, leaf_cells: int = 8, max_depth: int = 80):
+    def __init__(self, volume, *, leaf_cells: int = params.default("leaf_cells"),
+                 max_depth: int = 80):
         if leaf_cells < 2:
             raise AMRError(f"KDTree: leaf_cells must be >= 2, got {leaf_cells}")
         self.volume = volume

@@ -351,7 +351,7 @@ def _scored_row(scene_name, peer, time_s, detail, hits, scene, *, notes=""):
     w, h = sensor.film().crop_size()
     o, d = _ray_arrays(pixel_rays(sensor), h, w)
     vol = integ.prep.volume
-    gaps = _gaps(vol, _matrix(integ.to_world), ref_hits, hits, o, d, _finest_spacing(vol))
+    gaps = _gaps(vol, _matrix(integ.frame.to_scene), ref_hits, hits, o, d, _finest_spacing(vol))
     scored = ref.score(hits, ref_hits).as_dict()
     return _row(scene_name, peer, time_s, detail, scored, cracks=gaps["near"] / hits.hit.size,
                 notes=f"{notes}; {_gap_note(gaps)}" if notes else _gap_note(gaps))
@@ -403,7 +403,7 @@ def marching_cubes_route(scene_name: str, *, ghost_cells: bool = False) -> dict:
     vol = integ.prep.volume
     field = integ.prep.field
     iso = float(integ.opt.isovalues[0])
-    to_world = _matrix(integ.to_world)
+    to_world = _matrix(integ.frame.to_scene)
 
     # ---- Marching cubes per grid.
     t0 = time.perf_counter()
@@ -502,13 +502,12 @@ def _join_pieces(vol, pieces, integ):
     cell is a leaf (not covered by a finer grid)."""
     from scipy.ndimage import map_coordinates
 
-    from mi_amr.kernels.shading import ColorMap
+    from mi_amr.kernels.colormap import ColorMap
 
     opt = integ.opt
     cmap = None
     if opt.colormap is not None:
-        rng = opt.color_range or vol.value_range(integ.prep.color_field)
-        cmap = ColorMap.parse(opt.colormap, rng)
+        cmap = ColorMap.parse(opt.colormap, vol.value_range(integ.prep.color_field))
     Vs, Fs, Ns, Cs = [], [], [], []
     offset = 0
     for gi, verts, faces, normals in pieces:
@@ -531,7 +530,7 @@ def _join_pieces(vol, pieces, integ):
             colour = np.asarray(g.fields[integ.prep.color_field], dtype=np.float64)
             coords = ((verts - g.lo) / h - 0.5).T
             values = map_coordinates(colour, coords, order=1, mode="nearest")
-            Cs.append(cmap.numpy(values))
+            Cs.append(cmap.numpy(values, opt.color_range))
         else:
             Cs.append(np.tile(np.asarray(opt.iso_colors[0], dtype=np.float64), (len(verts), 1)))
         Vs.append(verts)
@@ -617,7 +616,7 @@ def yt_volume_route(scene_name: str, *, ghost_zones: bool = False) -> dict:
     vol = integ.prep.volume
     field = integ.prep.field
     iso = float(integ.opt.isovalues[0])
-    to_world = _matrix(integ.to_world)
+    to_world = _matrix(integ.frame.to_scene)
     scale = _similarity_scale(to_world)
     sensor = scene.sensors()[0]
     w, h = sensor.film().crop_size()

@@ -78,7 +78,7 @@ def hit_buffers(scene) -> HitBuffers:
     import drjit as dr
     import mitsuba as mi
 
-    from mi_amr.kernels.march import first_crossing
+    from mi_amr.kernels.surface import first_crossing
     from mi_amr.kernels.reconstruct import reconstruct
 
     integ = scene.integrator()
@@ -91,21 +91,21 @@ def hit_buffers(scene) -> HitBuffers:
     si = scene.ray_intersect(ray)
     t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
     m = integ.m
-    o, d = integ._local_ray(ray.o, ray.d)
+    o, d = integ.frame.ray_to_volume(integ.m, ray.o, ray.d)
     golden = m.Float(idx) * 0.6180339887
     jitter = golden - dr.floor(golden)
     cfg = integ.config()
     c = first_crossing(integ.dev, cfg, o, d, m.Float(0.0), m.Float(t_mesh), jitter, m.Bool(True))
     _, grad = reconstruct(integ.dev, cfg.basis, dr.fma(d, c.t, o), integ.dev.arrays(cfg.basis),
                           c.hit)
-    n = dr.normalize(integ.to_world @ mi.Normal3f(grad.x, grad.y, grad.z))
+    n = dr.normalize(integ.frame.to_scene @ mi.Normal3f(grad.x, grad.y, grad.z))
     dr.eval(c.t, c.hit, n)
     hit = c.hit.numpy().reshape(h, w).astype(bool)
     t = np.where(hit, c.t.numpy().reshape(h, w), np.inf)
     normal = np.stack([n.x.numpy(), n.y.numpy(), n.z.numpy()], axis=-1).reshape(h, w, 3)
     normal[~hit] = np.nan
-    scale = float(np.linalg.norm(np.array(integ.to_world.matrix)[:3, :3], axis=0).min())
-    return HitBuffers(t=t, hit=hit, normal=normal, cell=integ.dev.min_h * scale)
+    scale = integ.frame.scale()
+    return HitBuffers(t=t, hit=hit, normal=normal, cell=integ.dev.min_h_host * scale)
 
 
 @dataclass
@@ -140,10 +140,6 @@ def score(buffers: HitBuffers, ref: HitBuffers, image=None, ref_image=None) -> S
                  depth_p99=float(np.percentile(depth, 99)) if depth.size else 0.0,
                  normal_mean=float(np.nanmean(angle)) if angle.size else 0.0,
                  rmse=rmse)
-
-
-def image_rmse(image, ref) -> float:
-    return float(np.sqrt(np.mean((np.asarray(image) - np.asarray(ref)) ** 2)))
 
 
 def write_exr(path, image):

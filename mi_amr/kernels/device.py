@@ -1,25 +1,35 @@
 """The volume and its kd-tree flattened into Dr.Jit arrays that kernels gather from.
 
 Host-side preparation (NumPy) happens once per volume and field; the per-ray code in
-:mod:`mi_amr.reconstruct` and :mod:`mi_amr.march` only reads these arrays. Everything is in the
-volume's **world space** (float32 on the device). Kernels are generic over a Dr.Jit backend
-module (``drjit.llvm.ad``, ``drjit.cuda.ad``, or ``drjit.scalar`` for Mitsuba's scalar variants).
+:mod:`mi_amr.kernels.reconstruct` and the marching modules only reads these arrays. Everything
+is in the volume's **world space** (float32 on the device). Kernels are generic over a Dr.Jit
+JIT backend module (``drjit.llvm.ad`` or ``drjit.cuda.ad``; Mitsuba's scalar variants run them
+on one-element LLVM arrays).
 
-Per grid ``g``: ``origin[g]`` and ``inv_h[g]`` (3 floats each), ``shape[g]`` (3 uints),
-``offset[g]`` (first value in the flat value arrays; cell ``(i, j, k)`` is at
-``offset + (i * ny + j) * nz + k``) and ``level[g]``. Value arrays: ``values`` (the field as
-stored, used by the finest-level reconstruction), ``leaf_values`` (the same with NaN in covered
-and non-finite cells, so the basis reconstruction gives them no weight), and the same pair for
-the colour field. Per kd node: its box, its six ropes and the value range of the field inside it
-(one per reconstruction, see :meth:`DeviceVolume.node_ranges`); per kd leaf: its box, owner
-grid, range of grid ids (active ones first), the bitmask of active levels and its finest active
-cell width.
+Every value that differs from one dataset to the next is a kernel *input*, never a literal in
+the traced code: the arrays below, and the few per-volume numbers (bounds, root box, lattice
+anchor, level spacings, finest cell width), which are opaque one-element arrays. So a new
+dataset of the same scene structure (field, mode, method, number of isovalues) reuses every
+compiled kernel.
+
+Per grid ``g``: ``grid_origin[g]`` and ``grid_inv_h[g]`` (3 floats each), ``grid_shape[g]``
+(3 uints), ``grid_offset[g]`` (first value in the flat value arrays; cell ``(i, j, k)`` is at
+``offset + (i * ny + j) * nz + k``) and ``grid_level[g]``. Value arrays: ``values`` (the field
+as stored, used by the finest-level reconstruction) and ``color_values``; the basis
+reconstruction reads brick pools of *leaf* values (NaN in covered and non-finite cells, so the
+blend gives them no weight). Per kd node: its box, code and split, six ropes and the value
+range of the field inside it (one per reconstruction, see :meth:`DeviceVolume.node_ranges`);
+per kd leaf: its box, owner grid, range of grid ids (active ones first), the bitmask of active
+levels and its finest active cell width.
 """
 
 from __future__ import annotations
 
 import drjit as dr
 import numpy as np
+
+from mi_amr import tolerances as tol
+from mi_amr.errors import AMRError
 
 NO_GRID = 0xFFFFFFFF
 NO_BRICK = 0xFFFFFFFF
@@ -28,11 +38,9 @@ BRICK_N = BRICK + 1
 
 
 def backend_of(float_type):
-    """The Dr.Jit backend module (``drjit.llvm.ad``, ``drjit.scalar`` ...) of a Float type."""
+    """The Dr.Jit backend module (``drjit.llvm.ad``, ``drjit.cuda.ad``) of a Float type."""
     import importlib
 
-    if float_type is float:
-        return dr.scalar
     return importlib.import_module(float_type.__module__)
 
 
@@ -42,23 +50,10 @@ def lnot(mask):
     return ~mask if dr.is_array_v(mask) else not mask
 
 
-def float_from_bits(m, bits):
-    """The float32 whose bit pattern is the uint32 ``bits`` (any backend)."""
-    if dr.is_array_v(bits):
-        return dr.reinterpret_array(m.Float, bits)
-    return float(np.uint32(bits).view(np.float32))
-
-
-def gather(T, source, index, active=True):
-    """``dr.gather`` that also works for the scalar backend (Python numbers, static arrays)."""
-    if dr.is_jit_v(source):
-        return dr.gather(T, source, index, active)
-    if not active:
-        return T(0)
-    if dr.is_array_v(T):
-        n = dr.size_v(T)
-        return T(*[source[int(index) * n + i] for i in range(n)])
-    return T(source[int(index)])
+def opaque(value):
+    """``value`` (a Dr.Jit array) made an opaque kernel input, and returned."""
+    dr.make_opaque(value)
+    return value
 
 
 class DeviceVolume:
@@ -75,20 +70,12 @@ class DeviceVolume:
         self.field = field
         self.color_field = color_field or field
         self.num_levels = volume.num_levels
-        self.anchor = tuple(float(x) for x in volume.anchor)
-        self.level_h = [tuple(float(x) for x in volume.level_spacing(l))
-                        for l in range(volume.num_levels)]
-        self.min_h = float(min(min(h) for h in self.level_h))
-        lo, hi = volume.bounds
-        self.bounds_lo = tuple(float(x) for x in lo)
-        self.bounds_hi = tuple(float(x) for x in hi)
+        self._constants(volume)
 
         f32 = lambda a: self._floats(np.asarray(a, dtype=np.float32).ravel())  # noqa: E731
         u32 = lambda a: self._uints(np.asarray(a, dtype=np.uint32).ravel())    # noqa: E731
 
         # kd-tree nodes (code and split side by side, boxes as 2 x 4 floats) and leaves
-        self.node_code = u32(tree.node_code)
-        self.node_split = f32(tree.node_split)
         code_split = np.empty((tree.num_nodes, 2), dtype=np.uint32)
         code_split[:, 0] = tree.node_code
         code_split[:, 1] = tree.node_split.astype(np.float32).view(np.uint32)
@@ -97,8 +84,8 @@ class DeviceVolume:
         box[:, 0, :3] = tree.node_lo
         box[:, 1, :3] = tree.node_hi
         self.node_box = f32(box)
-        self.root_lo = tuple(float(x) for x in np.float32(tree.node_lo[0]))
-        self.root_hi = tuple(float(x) for x in np.float32(tree.node_hi[0]))
+        self.root_lo = self._point(tree.node_lo[0])
+        self.root_hi = self._point(tree.node_hi[0])
         self.leaf_lo = f32(tree.leaf_lo)
         self.leaf_hi = f32(tree.leaf_hi)
         self.leaf_owner = u32(np.where(tree.leaf_owner >= 0, tree.leaf_owner, NO_GRID))
@@ -110,10 +97,9 @@ class DeviceVolume:
         owner_level = np.where(tree.leaf_owner >= 0, volume.levels[np.maximum(tree.leaf_owner, 0)], 0)
         self.leaf_owner_levels = u32(np.where(tree.leaf_owner >= 0, 1 << owner_level, 0))
         min_h = tree.leaf_min_h.min(axis=1)
-        self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h))
+        self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h_host))
         self.leaf_grids = u32(tree.leaf_grids)
         self.node_ropes = u32(tree.node_ropes)
-        self.tree_depth = int(tree.depth)
         self._ranges = {}
 
         # grids
@@ -123,7 +109,6 @@ class DeviceVolume:
         counts = np.prod(shapes, axis=1)
         offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
         if counts.sum() >= 2 ** 32:
-            from mi_amr.errors import AMRError
             raise AMRError(f"{volume.num_cells} cells: more than 2^32 cannot be indexed")
         self.grid_origin = f32(glo)
         self.grid_inv_h = f32(1.0 / h)
@@ -135,6 +120,30 @@ class DeviceVolume:
         self.color_values = self.values if self.color_field == field else \
             self._field_values(self.color_field)
         self._build_bricks()
+
+    def _constants(self, volume):
+        """The per-volume numbers the kernels read, as opaque one-element arrays (world units):
+        ``bounds_lo``/``bounds_hi``, ``anchor`` (the lattice origin), ``level_h`` and
+        ``level_inv_h`` (per level, 3 floats each), ``min_h`` (the finest cell width), and from
+        it ``step_eps`` (the smallest step along a unit-speed ray) and ``layer_offset`` (how far
+        past a crossing the next layer starts). ``min_h_host`` is ``min_h`` as a Python float."""
+        h = np.array([volume.level_spacing(l) for l in range(volume.num_levels)], dtype=np.float64)
+        self.min_h_host = float(h.min())
+        lo, hi = volume.bounds
+        self.bounds_lo, self.bounds_hi = self._point(lo), self._point(hi)
+        self.anchor = self._point(volume.anchor)
+        self.level_h = self._floats(h.astype(np.float32).ravel())
+        self.level_inv_h = self._floats((1.0 / h).astype(np.float32).ravel())
+        self.min_h = self._scalar(self.min_h_host)
+        self.step_eps = self._scalar(tol.STEP_EPS_CELLS * self.min_h_host)
+        self.layer_offset = self._scalar(tol.LAYER_OFFSET_CELLS * self.min_h_host)
+
+    def _point(self, xyz):
+        x = np.asarray(xyz, dtype=np.float32)
+        return opaque(self.m.Array3f(float(x[0]), float(x[1]), float(x[2])))
+
+    def _scalar(self, value: float):
+        return opaque(self.m.Float(float(np.float32(value))))
 
     def arrays(self, basis: bool, color: bool = False) -> list:
         """The value arrays a reconstruction reads: brick pools of leaf values for the basis
@@ -201,25 +210,20 @@ class DeviceVolume:
             level_off.append(table_at)
             table_at += table.size
             count += n
-        i32 = lambda a: dr.scalar.ArrayXi(a) if self.m is dr.scalar else self.m.Int32(a)  # noqa
         self.brick_table = self._uints(np.concatenate(tables))
-        self.level_lo = i32(np.asarray(level_lo, dtype=np.int32).ravel())
+        self.level_lo = self.m.Int32(np.asarray(level_lo, dtype=np.int32).ravel())
         self.level_dims = self._uints(np.asarray(level_dims, dtype=np.uint32).ravel())
         self.level_table_offset = self._uints(np.asarray(level_off, dtype=np.uint32))
-        self.level_inv_h = self._floats(np.asarray([1.0 / np.asarray(h) for h in self.level_h],
-                                                   dtype=np.float32).ravel())
         self.brick_values = self._floats(np.concatenate(pools[0]))
         self.brick_colors = self.brick_values if len(names) == 1 else \
             self._floats(np.concatenate(pools[1]))
         self.num_bricks = count
 
     def _floats(self, a):
-        m = self.m
-        return dr.scalar.ArrayXf(a) if m is dr.scalar else m.Float(a)
+        return self.m.Float(np.ascontiguousarray(a, dtype=np.float32))
 
     def _uints(self, a):
-        m = self.m
-        return dr.scalar.ArrayXu(a) if m is dr.scalar else m.UInt32(a)
+        return self.m.UInt32(np.ascontiguousarray(a, dtype=np.uint32))
 
     def node_ranges(self, basis: bool):
         """Per-node value range of the field for one reconstruction, ``lo, hi`` side by side

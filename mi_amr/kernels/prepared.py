@@ -12,6 +12,7 @@ from collections import OrderedDict
 
 import drjit as dr
 
+from mi_amr import params
 from mi_amr.core.derive import DERIVED_FIELDS
 from mi_amr.kernels.device import DeviceVolume
 from mi_amr.errors import AMRError
@@ -28,7 +29,7 @@ class PreparedVolume:
     """
 
     def __init__(self, volume, field: str, color_field: str | None = None, *,
-                 leaf_cells: int = 4, m=None):
+                 leaf_cells: int = params.default("leaf_cells"), m=None):
         wanted = [f for f in dict.fromkeys([field, color_field]) if f is not None]
         missing = [f for f in wanted if f not in volume.field_names]
         derivable = [f for f in missing if f in DERIVED_FIELDS]
@@ -72,7 +73,7 @@ def _velocity_names(available) -> list:
                    f"{', '.join('/'.join(n) for n in VELOCITY_NAMES)}); fields: {list(available)}")
 
 
-def prepare_file(path, field: str, color_field: str | None = None, *, leaf_cells: int = 4,
+def prepare_file(path, field: str, color_field: str | None = None, *, leaf_cells: int = params.default("leaf_cells"),
                  m=None) -> PreparedVolume:
     """Load ``path`` (only what is needed) and prepare it; cached by file, fields and backend."""
     from mi_amr.readers import available_fields, load

@@ -19,16 +19,15 @@ each cell centre are fixed, every ``H_C`` is a product of three linear functions
 both sums are cubics in ``s``: :func:`segment_cubic` returns their coefficients (Marchesin et
 al. 2009 for one trilinear cell; the same holds for the blend).
 
-The Dr.Jit functions are generic over the backend module ``dev.m``. The NumPy functions at the
-end are the slow, obvious twins used by tests.
+The Dr.Jit functions are generic over the backend module ``dev.m``. Their float64 twins (the
+vectorised model and the brute-force sums) are in :mod:`mi_amr.core.field64`.
 """
 
 from __future__ import annotations
 
 import drjit as dr
-import numpy as np
 
-from mi_amr.kernels.device import BRICK, BRICK_N, NO_BRICK, NO_GRID, gather
+from mi_amr.kernels.device import BRICK, BRICK_N, NO_BRICK, NO_GRID
 
 
 # ---------------------------------------------------------------------- kd-tree point location
@@ -39,23 +38,23 @@ def locate(dev, p, active, start=None):
     descending from node ``start`` (the root by default), which must contain ``p``."""
     m = dev.m
     node = m.UInt32(0) if start is None else m.UInt32(start)
-    code = gather(m.UInt32, dev.node_code, node, active)
-    while active & ((code & 3) != 3):
-        axis = code & 3
-        split = gather(m.Float, dev.node_split, node, active)
+    cs = dr.gather(m.Array2u, dev.node_code_split, node, active)
+    while active & ((cs.x & 3) != 3):
+        axis = cs.x & 3
+        split = dr.reinterpret_array(m.Float, cs.y)
         coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
-        node = (code >> 2) + dr.select(coord >= split, m.UInt32(1), m.UInt32(0))
-        code = gather(m.UInt32, dev.node_code, node, active)
-    return code >> 2
+        node = (cs.x >> 2) + dr.select(coord >= split, m.UInt32(1), m.UInt32(0))
+        cs = dr.gather(m.Array2u, dev.node_code_split, node, active)
+    return cs.x >> 2
 
 
 def grid_frame(dev, g, active):
     """Origin, inverse cell size, shape and first value index of grid ``g``."""
     m = dev.m
-    o = gather(m.Array3f, dev.grid_origin, g, active)
-    ih = gather(m.Array3f, dev.grid_inv_h, g, active)
-    n = gather(m.Array3u, dev.grid_shape, g, active)
-    off = gather(m.UInt32, dev.grid_offset, g, active)
+    o = dr.gather(m.Array3f, dev.grid_origin, g, active)
+    ih = dr.gather(m.Array3f, dev.grid_inv_h, g, active)
+    n = dr.gather(m.Array3u, dev.grid_shape, g, active)
+    off = dr.gather(m.UInt32, dev.grid_offset, g, active)
     return o, ih, n, off
 
 
@@ -74,7 +73,7 @@ def finest_point(dev, leaf, p, arrays, active):
     :func:`finest_cubic`, so a crossing found next to missing data has a value and a normal.
     """
     m = dev.m
-    g = gather(m.UInt32, dev.leaf_owner, leaf, active)
+    g = dr.gather(m.UInt32, dev.leaf_owner, leaf, active)
     ok = active & (g != NO_GRID)
     o, ih, n, off = grid_frame(dev, g, ok)
     nf = m.Array3f(n)
@@ -98,7 +97,7 @@ def finest_point(dev, leaf, p, arrays, active):
         wz = f.z if bz else 1.0 - f.z
         dw = m.Array3f((1.0 if bx else -1.0) * wy * wz, (1.0 if by else -1.0) * wx * wz,
                        (1.0 if bz else -1.0) * wx * wy)
-        vals = [gather(m.Float, arr, idx, ok) for arr in arrays]
+        vals = [dr.gather(m.Float, arr, idx, ok) for arr in arrays]
         has = ok & dr.isfinite(vals[0])
         w = dr.select(has, wx * wy * wz, 0.0)
         dw = dr.select(has, dw, 0.0)
@@ -118,15 +117,15 @@ def brick_cell(dev, level, i0, active):
     space) and whether it exists; the other 7 corners of the dual cell starting at ``i0`` are at
     the offsets of :func:`corner_offset`."""
     m = dev.m
-    lo = gather(m.Array3i, dev.level_lo, level, active)
-    dims = gather(m.Array3u, dev.level_dims, level, active)
-    toff = gather(m.UInt32, dev.level_table_offset, level, active)
+    lo = dr.gather(m.Array3i, dev.level_lo, level, active)
+    dims = dr.gather(m.Array3u, dev.level_dims, level, active)
+    toff = dr.gather(m.UInt32, dev.level_table_offset, level, active)
     rel = i0 - lo
     inside = dr.all(rel >= 0)
     r = m.Array3u(dr.maximum(rel, 0))
     b = r // BRICK
     inside &= dr.all(b < dims)
-    brick = gather(m.UInt32, dev.brick_table, toff + (b.x * dims.y + b.y) * dims.z + b.z,
+    brick = dr.gather(m.UInt32, dev.brick_table, toff + (b.x * dims.y + b.y) * dims.z + b.z,
                    active & inside)
     ok = active & inside & (brick != NO_BRICK)
     local = r - b * BRICK
@@ -143,8 +142,8 @@ def _level_frame(dev, level, p, active):
     """Local coordinate of ``p`` in level ``level``'s cell-centre lattice and its inverse cell
     size: ``u = (p - anchor) / h - 0.5`` (cell ``i`` has its centre at ``u = i``)."""
     m = dev.m
-    ih = gather(m.Array3f, dev.level_inv_h, level, active)
-    return (p - m.Array3f(*dev.anchor)) * ih - 0.5, ih
+    ih = dr.gather(m.Array3f, dev.level_inv_h, level, active)
+    return (p - dev.anchor) * ih - 0.5, ih
 
 
 @dr.syntax
@@ -155,7 +154,7 @@ def basis_point(dev, leaf, p, arrays, active):
     ``(values, gradient_of_first)``; NaN where no cell has weight.
     """
     m = dev.m
-    levels = gather(m.UInt32, dev.leaf_levels, leaf, active)
+    levels = dr.gather(m.UInt32, dev.leaf_levels, leaf, active)
     second = arrays[1] if len(arrays) > 1 else arrays[0]
     num0, num1, den = m.Float(0.0), m.Float(0.0), m.Float(0.0)
     dnum, dden = m.Array3f(0.0), m.Array3f(0.0)
@@ -174,7 +173,7 @@ def basis_point(dev, leaf, p, arrays, active):
             wz = f.z if b[2] else 1.0 - f.z
             dw = m.Array3f((1.0 if b[0] else -1.0) * wy * wz, (1.0 if b[1] else -1.0) * wx * wz,
                            (1.0 if b[2] else -1.0) * wx * wy) * ih
-            v0 = gather(m.Float, arrays[0], idx, ok)
+            v0 = dr.gather(m.Float, arrays[0], idx, ok)
             has = ok & dr.isfinite(v0)
             v0 = dr.select(has, v0, 0.0)
             w = dr.select(has, wx * wy * wz, 0.0)
@@ -184,7 +183,7 @@ def basis_point(dev, leaf, p, arrays, active):
             num0 += w * v0
             dnum += dw * v0
             if dr.hint(len(arrays) > 1, mode="scalar"):
-                num1 += w * dr.select(has, gather(m.Float, second, idx, has), 0.0)
+                num1 += w * dr.select(has, dr.gather(m.Float, second, idx, has), 0.0)
     ok = den > 0.0
     inv = dr.select(ok, dr.rcp(den), dr.nan)
     values = [num0 * inv] + ([num1 * inv] if len(arrays) > 1 else [])
@@ -264,7 +263,7 @@ def finest_cubic(dev, g, p0, d, s_mid, arrays, active):
 
     def fetch(i, j, k):
         idx = _cell_index(n, off, i, j, k)
-        vals = [gather(m.Float, arr, idx, active) for arr in arrays]
+        vals = [dr.gather(m.Float, arr, idx, active) for arr in arrays]
         return vals, active & dr.isfinite(vals[0])
 
     return _cubics(m, fx, fy, fz, fetch, len(arrays))
@@ -285,7 +284,7 @@ def level_cubic(dev, level, p0, d, s_mid, arrays, active):
 
     def fetch(bx, by, bz):
         idx = base + corner_offset(bx, by, bz)
-        vals = [gather(m.Float, arr, idx, ok) for arr in arrays]
+        vals = [dr.gather(m.Float, arr, idx, ok) for arr in arrays]
         return vals, ok & dr.isfinite(vals[0])
 
     return _cubics(m, fx, fy, fz, fetch, len(arrays))
@@ -296,14 +295,14 @@ def segment_cubic(dev, basis: bool, leaf, p0, d, s_mid, arrays, active):
     segment inside ``leaf`` whose middle is at ``s_mid`` (the field is ``num / den``)."""
     if basis:
         return _basis_segment_cubic(dev, leaf, p0, d, s_mid, arrays, active)
-    g = gather(dev.m.UInt32, dev.leaf_owner, leaf, active)
+    g = dr.gather(dev.m.UInt32, dev.leaf_owner, leaf, active)
     return finest_cubic(dev, g, p0, d, s_mid, arrays, active & (g != NO_GRID))
 
 
 @dr.syntax
 def _basis_segment_cubic(dev, leaf, p0, d, s_mid, arrays, active):
     m = dev.m
-    levels = gather(m.UInt32, dev.leaf_levels, leaf, active)
+    levels = dr.gather(m.UInt32, dev.leaf_levels, leaf, active)
     n0, n1, n2, n3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     c0, c1, c2, c3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     d0, d1, d2, d3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
@@ -318,76 +317,3 @@ def _basis_segment_cubic(dev, leaf, p0, d, s_mid, arrays, active):
         d0, d1, d2, d3 = d0 + den[0], d1 + den[1], d2 + den[2], d3 + den[3]
     nums = [[n0, n1, n2, n3]] + ([[c0, c1, c2, c3]] if two else [])
     return nums, [d0, d1, d2, d3]
-
-
-# ---------------------------------------------------------------------- slow twins (NumPy)
-
-def finest_point_reference(volume, points, field):
-    """Slow twin of :func:`finest_point`: finest grid by brute force, then trilinear with
-    clamped indices. Returns ``(values, gradients)`` (float64); NaN outside all grids."""
-    from mi_amr.core.kdtree import finest_grid_bruteforce
-
-    points = np.asarray(points, dtype=np.float64)
-    owner = finest_grid_bruteforce(volume, points)
-    values = np.full(len(points), np.nan)
-    grads = np.full((len(points), 3), np.nan)
-    for i, (p, g) in enumerate(zip(points, owner)):
-        if g < 0:
-            continue
-        grid = volume.grids[g]
-        arr = grid.fields[field].astype(np.float64)
-        n = np.array(grid.shape)
-        u = (p - np.array(grid.origin)) / np.array(grid.spacing) - 0.5
-        uc = np.clip(u, 0, n - 1)
-        i0 = np.minimum(np.floor(uc).astype(int), np.maximum(n, 2) - 2)
-        i1 = np.minimum(i0 + 1, n - 1)
-        f = uc - i0
-        live = (u >= 0) & (u <= n - 1)
-        val, grad = 0.0, np.zeros(3)
-        for corner in range(8):
-            b = np.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
-            idx = np.where(b == 1, i1, i0)
-            w = np.where(b == 1, f, 1 - f)
-            v = arr[idx[0], idx[1], idx[2]]
-            val += np.prod(w) * v
-            for a in range(3):
-                others = np.prod(np.delete(w, a))
-                grad[a] += (1 if b[a] else -1) * others * v
-        values[i] = val
-        grads[i] = grad / np.array(grid.spacing) * live
-    return values, grads
-
-
-def basis_point_reference(volume, points, field):
-    """Slow twin of :func:`basis_point`: the sum over *every* leaf cell of the volume.
-    Returns ``(values, gradients)`` (float64); NaN where no cell has weight."""
-    points = np.asarray(points, dtype=np.float64)
-    num = np.zeros(len(points))
-    den = np.zeros(len(points))
-    dnum = np.zeros((len(points), 3))
-    dden = np.zeros((len(points), 3))
-    for gi, g in enumerate(volume.grids):
-        leaf = volume.leaf_mask(gi)
-        arr = g.fields[field].astype(np.float64)
-        keep = leaf & np.isfinite(arr)
-        centres = np.stack(np.meshgrid(*g.cell_centers(), indexing="ij"), axis=-1)[keep]
-        vals = arr[keep]
-        w = np.array(g.spacing)
-        for i, p in enumerate(points):
-            r = (p - centres) / w
-            h = np.maximum(0.0, 1.0 - np.abs(r))
-            H = np.prod(h, axis=1)
-            sel = H > 0
-            if not sel.any():
-                continue
-            num[i] += np.sum(H[sel] * vals[sel])
-            den[i] += np.sum(H[sel])
-            for a in range(3):
-                others = np.prod(np.delete(h[sel], a, axis=1), axis=1)
-                dh = -np.sign(r[sel, a]) / w[a]
-                dnum[i, a] += np.sum(dh * others * vals[sel])
-                dden[i, a] += np.sum(dh * others)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        values = np.where(den > 0, num / den, np.nan)
-        grads = (dnum * den[:, None] - dden * num[:, None]) / (den[:, None] ** 2)
-    return values, grads

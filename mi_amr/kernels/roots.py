@@ -20,11 +20,6 @@ def cubic(c, s):
     return dr.fma(dr.fma(dr.fma(c[3], s, c[2]), s, c[1]), s, c[0])
 
 
-def cubic_slope(c, s):
-    """``f'(s)``."""
-    return dr.fma(dr.fma(3.0 * c[3], s, 2.0 * c[2]), s, c[1])
-
-
 def extrema(c, L):
     """The derivative's real roots in ``[0, L]``, sorted: ``(r1, r2)``; a missing root is put at
     ``L`` so the pieces ``[0, r1], [r1, r2], [r2, L]`` always cover the interval."""

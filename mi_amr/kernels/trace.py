@@ -11,11 +11,15 @@ from dataclasses import dataclass
 import drjit as dr
 import numpy as np
 
+from mi_amr import params
 from mi_amr.errors import AMRError
+from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
-from mi_amr.kernels.march import METHODS, RECONSTRUCTIONS, MarchConfig, first_crossing
+from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import PreparedVolume
 from mi_amr.kernels.reconstruct import reconstruct
+from mi_amr.kernels.surface import first_crossing
+from mi_amr.params import METHODS, RECONSTRUCTIONS
 
 
 @dataclass
@@ -32,13 +36,17 @@ class TraceResult:
     iso_index: np.ndarray
 
 
-def trace(volume, origins, directions, *, field: str, isovalue, method: str = "exact",
-          reconstruction: str = "basis", step_scale: float = 0.5, jitter=None,
-          leaf_cells: int = 4, t_max=np.inf, backend=None) -> TraceResult:
+def trace(volume, origins, directions, *, field: str, isovalue,
+          method: str = params.default("method"),
+          reconstruction: str = params.default("reconstruction"),
+          step_scale: float = params.default("step_scale"), jitter=None,
+          leaf_cells: int = params.default("leaf_cells"), t_max=np.inf,
+          backend=None) -> TraceResult:
     """First crossing of ``isovalue`` (a number or a list) by each ray, in the volume's world
     space. ``origins`` and ``directions`` are ``(N, 3)``; directions need not be unit length.
-    ``jitter`` (``(N,)`` in [0, 1)) offsets the adaptive methods' steps; by default a fixed
-    hash of the ray index. ``backend`` is a Dr.Jit module (default ``drjit.llvm.ad``)."""
+    ``jitter`` (``(N,)`` in [0, 1)) offsets the adaptive methods' steps; by default
+    :func:`~mi_amr.kernels.jitter.stable_jitter` of the ray index. ``backend`` is a Dr.Jit
+    module (default ``drjit.llvm.ad``). Defaults come from :mod:`mi_amr.params`."""
     if method not in METHODS:
         raise AMRError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if reconstruction not in RECONSTRUCTIONS:
@@ -56,9 +64,6 @@ def trace(volume, origins, directions, *, field: str, isovalue, method: str = "e
     prep = _prepared(volume, field, leaf_cells, m)
     dev = prep.device
     n = len(origins)
-    if jitter is None:
-        jitter = (np.arange(n, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15) >> np.uint64(40)
-                  ).astype(np.float64) / float(1 << 24)
     iso = m.Float(np.array(isovalues, dtype=np.float32))
     scale = m.Float(float(step_scale))
     dr.make_opaque(iso, scale)
@@ -66,9 +71,10 @@ def trace(volume, origins, directions, *, field: str, isovalue, method: str = "e
                       step_scale=scale, num_iso=len(isovalues))
     o = _array3(m, origins)
     d = _array3(m, directions)
-    c = first_crossing(dev, cfg, o, d, m.Float(0.0), m.Float(np.broadcast_to(
-        np.asarray(t_max, dtype=np.float32), (n,)).copy()), m.Float(np.asarray(
-            jitter, dtype=np.float32)), m.Bool(True))
+    rho = stable_jitter(m, dr.arange(m.UInt32, n)) if jitter is None else \
+        m.Float(np.asarray(jitter, dtype=np.float32))
+    t_end = m.Float(np.broadcast_to(np.asarray(t_max, dtype=np.float32), (n,)).copy())
+    c = first_crossing(dev, cfg, o, d, m.Float(0.0), t_end, rho, m.Bool(True))
     arrays = dev.arrays(cfg.basis)
     _, grad = reconstruct(dev, cfg.basis, dr.fma(d, c.t, o), arrays, c.hit)
     # Where the gradient vanishes (the walls that close finest's cracks are flat in the field)

@@ -1,164 +1,114 @@
-"""The amr_iso integrator's parameters: read from a plain mapping, checked once, with messages
-that name the parameter and what is allowed. The algorithm never sees Mitsuba's ``Properties``.
+"""The amr_iso integrator's parameters: read from a plain mapping, checked once against the
+parameter table (:mod:`mi_amr.params`), with messages that name the parameter and what is
+allowed. The algorithm never sees Mitsuba's ``Properties``.
 """
 
 from __future__ import annotations
 
+import difflib
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Optional
 
+from mi_amr import params
 from mi_amr.errors import AMRError
-from mi_amr.kernels.march import METHODS, RECONSTRUCTIONS
-
-MODES = ("surface", "volume")
-
-# name: (type description, default) -- the parameter table of the plugin's docstring.
-PARAMETERS = {
-    "filename": ("string", None),
-    "field": ("string", None),
-    "isovalue": ("float or list", None),
-    "iso_color": ("rgb or list", "0.8 0.8 0.8"),
-    "iso_opacity": ("float or list", 1.0),
-    "color_field": ("string", None),
-    "colormap": ("string", None),
-    "color_range": ("2 floats", None),
-    "mode": ("string", "surface"),
-    "method": ("string", "exact"),
-    "reconstruction": ("string", "basis"),
-    "step_scale": ("float", 0.5),
-    "shadows": ("boolean", True),
-    "to_world": ("transform", None),
-    "ka": ("float", 0.15),
-    "kd": ("float", 0.75),
-    "ks": ("float", 0.25),
-    "shininess": ("float", 32.0),
-    "ambient": ("float", 1.0),
-    "band_width": ("float", 0.004),
-    "band_support": ("2 floats", None),
-    "band_peak": ("float", 1.6),
-    "preintegrated": ("boolean", False),
-    "leaf_cells": ("integer", 4),
-    "max_layers": ("integer", 8),
-}
 
 
 @dataclass
 class Options:
+    """Checked parameter values (names as in :data:`mi_amr.params.TABLE`; ``isovalues``,
+    ``iso_colors`` and ``iso_opacity`` hold one entry per isovalue)."""
+
     filename: str
     field: str
     isovalues: list
     iso_colors: list
     iso_opacity: list
-    color_field: Optional[str] = None
-    colormap: Optional[str] = None
-    color_range: Optional[tuple] = None
-    mode: str = "surface"
-    method: str = "exact"
-    reconstruction: str = "basis"
-    step_scale: float = 0.5
-    shadows: bool = True
-    ka: float = 0.15
-    kd: float = 0.75
-    ks: float = 0.25
-    shininess: float = 32.0
-    ambient: float = 1.0
-    band_width: float = 0.004
-    band_support: Optional[tuple] = None
-    band_peak: float = 1.6
-    preintegrated: bool = False
-    leaf_cells: int = 4
-    max_layers: int = 8
-    extra: dict = field(default_factory=dict)
-
-    @property
-    def translucent(self) -> bool:
-        return any(a < 1.0 for a in self.iso_opacity)
+    color_field: Optional[str]
+    colormap: Optional[str]
+    color_range: Optional[tuple]
+    mode: str
+    method: str
+    reconstruction: str
+    step_scale: float
+    shadows: bool
+    ka: float
+    kd: float
+    ks: float
+    shininess: float
+    ambient: float
+    band_width: float
+    band_support: Optional[tuple]
+    band_peak: float
+    preintegrated: bool
+    leaf_cells: int
+    max_layers: int
 
 
 def parse(values: dict) -> Options:
-    """Check a mapping of parameter values (strings, numbers, booleans as Mitsuba gives them)."""
-    unknown = sorted(set(values) - set(PARAMETERS))
+    """Check a mapping of parameter values (strings, numbers, booleans as Mitsuba gives them;
+    ``to_world`` is read by the integrator itself)."""
+    unknown = sorted(set(values) - set(params.BY_NAME))
     if unknown:
-        raise AMRError(f"amr_iso: unknown parameter(s) {unknown}; allowed: "
-                       f"{', '.join(PARAMETERS)}")
-    for required in ("filename", "field", "isovalue"):
-        if required not in values:
-            raise AMRError(f"amr_iso: parameter '{required}' is required")
-    opt = Options(filename=_string(values, "filename"), field=_string(values, "field"),
-                  isovalues=_floats(values, "isovalue"), iso_colors=[], iso_opacity=[])
-    k = len(opt.isovalues)
-    if not 1 <= k <= 8:
-        raise AMRError(f"amr_iso: parameter 'isovalue' needs 1 to 8 values, got {k}")
-    opt.iso_colors = _colors(values.get("iso_color", PARAMETERS["iso_color"][1]), k)
-    opt.iso_opacity = _floats({"iso_opacity": values.get("iso_opacity", 1.0)}, "iso_opacity")
-    if len(opt.iso_opacity) == 1:
-        opt.iso_opacity *= k
-    if len(opt.iso_opacity) != k or not all(0.0 < a <= 1.0 for a in opt.iso_opacity):
-        raise AMRError(f"amr_iso: parameter 'iso_opacity' needs 1 or {k} values in (0, 1], got "
-                       f"{values.get('iso_opacity')!r}")
-    opt.color_field = values.get("color_field")
-    opt.colormap = values.get("colormap")
+        hints = [f"'{u}' (did you mean '{m[0]}'?)" if m else f"'{u}'" for u in unknown
+                 for m in [difflib.get_close_matches(u, params.BY_NAME, n=1)]]
+        raise AMRError(f"amr_iso: unknown parameter(s) {', '.join(hints)}; allowed: "
+                       f"{', '.join(params.BY_NAME)}")
+    for p in params.TABLE:
+        if p.required and p.name not in values:
+            raise AMRError(f"amr_iso: parameter '{p.name}' is required")
+    isovalues = _floats(values, "isovalue")
+    k = len(isovalues)
+    if not 1 <= k <= params.MAX_ISOVALUES:
+        raise AMRError(f"amr_iso: parameter 'isovalue' needs 1 to {params.MAX_ISOVALUES} values, "
+                       f"got {k}")
+    read = {p.name: _READERS[p.kind](values, p.name) for p in params.TABLE
+            if p.kind in _READERS and p.name not in ("isovalue", "iso_color", "iso_opacity")}
+    opt = Options(isovalues=isovalues, iso_colors=_colors(values, k),
+                  iso_opacity=_opacities(values, k), **read)
     if (opt.color_field is None) != (opt.colormap is None):
         raise AMRError("amr_iso: 'color_field' and 'colormap' go together; give both or neither")
-    if "color_range" in values:
-        opt.color_range = _pair(values, "color_range")
-    opt.mode = _choice(values, "mode", MODES)
-    opt.method = _choice(values, "method", METHODS)
-    opt.reconstruction = _choice(values, "reconstruction", RECONSTRUCTIONS)
-    opt.step_scale = _number(values, "step_scale", lo=1e-4, hi=64.0)
-    opt.shadows = _bool(values, "shadows")
-    opt.ka = _number(values, "ka", lo=0.0, hi=100.0)
-    opt.kd = _number(values, "kd", lo=0.0, hi=100.0)
-    opt.ks = _number(values, "ks", lo=0.0, hi=100.0)
-    opt.shininess = _number(values, "shininess", lo=0.0, hi=1e4)
-    opt.ambient = _number(values, "ambient", lo=0.0, hi=1e6)
-    opt.band_width = _number(values, "band_width", lo=1e-30, hi=math.inf)
-    if "band_support" in values:
-        opt.band_support = _pair(values, "band_support")
-    opt.band_peak = _number(values, "band_peak", lo=1e-6, hi=1e6)
-    opt.preintegrated = _bool(values, "preintegrated")
-    opt.leaf_cells = int(_number(values, "leaf_cells", lo=2, hi=256, integer=True))
-    opt.max_layers = int(_number(values, "max_layers", lo=1, hi=64, integer=True))
+    opt.leaf_cells, opt.max_layers = int(opt.leaf_cells), int(opt.max_layers)
     if opt.mode == "volume" and k != 1:
         raise AMRError(f"amr_iso: mode 'volume' renders one opacity band; give one isovalue, "
                        f"got {k}")
     return opt
 
 
-def _default(name):
-    return PARAMETERS[name][1]
+def _value(values, name):
+    return values.get(name, params.default(name))
 
 
 def _string(values, name):
-    v = values.get(name, _default(name))
+    v = _value(values, name)
+    if v is None and not params.BY_NAME[name].required:
+        return None
     if not isinstance(v, str) or not v.strip():
         raise AMRError(f"amr_iso: parameter '{name}' must be a non-empty string, got {v!r}")
-    return v.strip()
-
-
-def _choice(values, name, allowed):
-    v = values.get(name, _default(name))
-    if v not in allowed:
-        raise AMRError(f"amr_iso: parameter '{name}' must be one of {', '.join(allowed)}; "
+    v = v.strip()
+    choices = params.BY_NAME[name].choices
+    if choices and v not in choices:
+        raise AMRError(f"amr_iso: parameter '{name}' must be one of {', '.join(choices)}; "
                        f"got {v!r}")
     return v
 
 
-def _number(values, name, lo, hi, integer=False):
-    v = values.get(name, _default(name))
+def _number(values, name, integer=False):
+    p = params.BY_NAME[name]
+    v = _value(values, name)
     try:
         x = float(v)
     except (TypeError, ValueError):
         raise AMRError(f"amr_iso: parameter '{name}' must be a number, got {v!r}") from None
-    if not (lo <= x <= hi) or math.isnan(x) or (integer and x != int(x)):
+    if not (p.lo <= x <= p.hi) or math.isnan(x) or (integer and x != int(x)):
         kind = "an integer" if integer else "a number"
-        raise AMRError(f"amr_iso: parameter '{name}' must be {kind} in [{lo:g}, {hi:g}], got {v!r}")
+        raise AMRError(f"amr_iso: parameter '{name}' must be {kind} in [{p.lo:g}, {p.hi:g}], "
+                       f"got {v!r}")
     return x
 
 
 def _bool(values, name):
-    v = values.get(name, _default(name))
+    v = _value(values, name)
     if isinstance(v, bool):
         return v
     if isinstance(v, str) and v.lower() in ("true", "false"):
@@ -167,7 +117,7 @@ def _bool(values, name):
 
 
 def _floats(values, name):
-    v = values.get(name)
+    v = values.get(name, params.default(name))
     items = v if isinstance(v, (list, tuple)) else str(v).replace(";", ",").split(",") \
         if isinstance(v, str) else [v]
     try:
@@ -182,18 +132,33 @@ def _floats(values, name):
 
 def _pair(values, name):
     v = values.get(name)
+    if v is None:
+        return None
     items = v.replace(",", " ").split() if isinstance(v, str) else list(v)
     try:
         lo, hi = (float(x) for x in items)
     except (TypeError, ValueError):
         raise AMRError(f"amr_iso: parameter '{name}' must be two numbers 'low high', "
                        f"got {v!r}") from None
-    if not lo < hi:
-        raise AMRError(f"amr_iso: parameter '{name}' needs low < high, got {v!r}")
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise AMRError(f"amr_iso: parameter '{name}' needs finite low < high, got {v!r}")
     return (lo, hi)
 
 
-def _colors(v, k):
+def _opacities(values, k):
+    out = _floats({"iso_opacity": values.get("iso_opacity", params.default("iso_opacity"))},
+                  "iso_opacity")
+    if len(out) == 1:
+        out *= k
+    if len(out) != k or not all(0.0 < a <= 1.0 for a in out):
+        counts = "1 value" if k == 1 else f"1 or {k} values"
+        raise AMRError(f"amr_iso: parameter 'iso_opacity' needs {counts} in (0, 1], got "
+                       f"{values.get('iso_opacity')!r}")
+    return out
+
+
+def _colors(values, k):
+    v = values.get("iso_color", params.default("iso_color"))
     if isinstance(v, str):
         groups = [g.split() for g in v.replace(",", " ").split(";")] if ";" in v else \
             [v.replace(",", " ").split()]
@@ -204,10 +169,21 @@ def _colors(v, k):
             groups = [[v]]
     try:
         cols = [[float(x) for x in g] for g in groups]
-    except ValueError:
+    except (TypeError, ValueError):
         raise AMRError(f"amr_iso: parameter 'iso_color' must be 'r g b' or 'r g b; r g b; ...', "
                        f"got {v!r}") from None
-    if any(len(c) != 3 for c in cols) or len(cols) not in (1, k):
-        raise AMRError(f"amr_iso: parameter 'iso_color' needs 1 or {k} colours of 3 components, "
+    if any(len(c) != 3 for c in cols) or len(cols) not in (1, k) or \
+            not all(math.isfinite(x) for c in cols for x in c):
+        counts = "1 colour" if k == 1 else f"1 or {k} colours"
+        raise AMRError(f"amr_iso: parameter 'iso_color' needs {counts} of 3 finite components, "
                        f"got {v!r}")
     return cols * k if len(cols) == 1 else cols
+
+
+_READERS = {
+    "string": _string,
+    "float": _number,
+    "integer": lambda values, name: _number(values, name, integer=True),
+    "boolean": _bool,
+    "2 floats": _pair,
+}

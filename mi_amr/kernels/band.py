@@ -1,0 +1,110 @@
+"""The volume-mode opacity band (course report, sections 3.7-3.8; the lecture's pre-integration).
+
+Around the isovalue ``c`` (field units), with ``x = v - c``:
+``alpha(v) = min(1, peak * exp(-x^2 / (2 width^2)))`` for ``lo < x < hi`` (the support, offsets
+from the centre), zero outside. ``alpha`` is the opacity of a step of length ``dx0`` (world
+units; the finest cell width). A step of length ``dx`` has the corrected opacity
+``1 - (1 - alpha)^(dx / dx0)``. Pre-integrated: along a step where the value runs linearly from
+``a`` to ``b`` the optical depth is ``dx * (T(b) - T(a)) / (b - a)``, with ``T`` the integral of
+the extinction ``tau(x) = -ln(1 - alpha) / dx0`` over value offsets, tabulated once per band
+shape (:data:`TABLE_SIZE` + 1 points over the support).
+
+:class:`OpacityBand` holds the shape on the host and makes :class:`BandInputs`, the opaque
+device values the kernels read, so a new width, support, peak or isovalue is new kernel input.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+import numpy as np
+
+from mi_amr import tolerances as tol
+from mi_amr.errors import AMRError
+
+TABLE_SIZE = 1024
+
+
+@dataclass
+class BandInputs:
+    """The band on the device: one-element opaque arrays and the integral table."""
+
+    width: Any
+    lo: Any
+    hi: Any
+    peak: Any
+    dx0: Any
+    table: Any
+
+
+class OpacityBand:
+    """The band's shape (see the module docstring); ``support`` is ``(lo, hi)`` as offsets from
+    the isovalue (default ``+- 2 width``)."""
+
+    def __init__(self, width: float = 0.004, support=None, peak: float = 1.6, dx0: float = 1.0):
+        if not width > 0:
+            raise AMRError(f"amr_iso: parameter 'band_width' must be > 0, got {width:g}")
+        if not peak > 0:
+            raise AMRError(f"amr_iso: parameter 'band_peak' must be > 0, got {peak:g}")
+        lo, hi = support if support is not None else (-2.0 * width, 2.0 * width)
+        if not lo < 0.0 < hi:
+            raise AMRError(f"amr_iso: parameter 'band_support' must contain the isovalue "
+                           f"(offsets {lo:g}, {hi:g})")
+        self.width, self.lo, self.hi, self.peak = float(width), float(lo), float(hi), float(peak)
+        self.dx0 = float(dx0)
+        self.table_x = np.linspace(self.lo, self.hi, TABLE_SIZE + 1)
+        tau = -np.log1p(-np.minimum(self.alpha_numpy(self.table_x, 0.0), tol.OPACITY_CAP)) / \
+            self.dx0
+        self.table_T = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) *
+                                                        np.diff(self.table_x))])
+
+    def alpha_numpy(self, v, centre):
+        """Slow twin of :func:`alpha`."""
+        x = np.asarray(v, dtype=np.float64) - centre
+        a = np.minimum(1.0, self.peak * np.exp(-0.5 * (x / self.width) ** 2))
+        return np.where((x > self.lo) & (x < self.hi), a, 0.0)
+
+    def inputs(self, m) -> BandInputs:
+        """The device values of this band on backend ``m`` (opaque)."""
+        def scalar(x):
+            v = m.Float(float(np.float32(x)))
+            dr.make_opaque(v)
+            return v
+
+        table = m.Float(self.table_T.astype(np.float32))
+        return BandInputs(width=scalar(self.width), lo=scalar(self.lo), hi=scalar(self.hi),
+                          peak=scalar(self.peak), dx0=scalar(self.dx0), table=table)
+
+
+def alpha(band: BandInputs, v, centre):
+    """Opacity of one step of length ``dx0`` at value ``v``."""
+    x = v - centre
+    a = dr.minimum(1.0, band.peak * dr.exp(-0.5 * dr.square(x / band.width)))
+    return dr.select((x > band.lo) & (x < band.hi), a, 0.0)
+
+
+def corrected(band: BandInputs, a, dx):
+    """Opacity correction of ``a`` for a step of length ``dx`` (world units)."""
+    return 1.0 - dr.power(dr.maximum(1.0 - dr.minimum(a, tol.OPACITY_CAP), 0.0), dx / band.dx0)
+
+
+def integral(m, band: BandInputs, x):
+    """``T(x)``: the extinction integrated from the support's low end to offset ``x``."""
+    u = dr.clip((x - band.lo) / (band.hi - band.lo), 0.0, 1.0) * TABLE_SIZE
+    i = dr.minimum(m.UInt32(dr.floor(u)), TABLE_SIZE - 1)
+    f = u - m.Float(i)
+    return dr.lerp(dr.gather(m.Float, band.table, i), dr.gather(m.Float, band.table, i + 1), f)
+
+
+def segment_alpha(m, band: BandInputs, a, b, dx, centre):
+    """Pre-integrated opacity of a step of length ``dx`` (world) along which the value goes
+    linearly from ``a`` to ``b``."""
+    xa, xb = a - centre, b - centre
+    Ta, Tb = integral(m, band, xa), integral(m, band, xb)
+    flat = dr.abs(xb - xa) < tol.RAMP_FLAT_REL * band.width
+    tau_point = -dr.log(1.0 - dr.minimum(alpha(band, 0.5 * (a + b), centre),
+                                         tol.OPACITY_CAP)) / band.dx0
+    tau_mean = dr.select(flat, tau_point, (Tb - Ta) / (xb - xa))
+    return 1.0 - dr.exp(-dr.maximum(tau_mean, 0.0) * dx)

@@ -1,0 +1,69 @@
+"""What a march looks for, and the value tests that decide which kd nodes it may skip.
+
+A :class:`MarchConfig` holds two kinds of things. The *structure* (``method``, ``basis``,
+``num_iso``, whether there is a band, ``preintegrated``) shapes the traced program: changing it
+compiles other kernels. Everything else (the isovalues, the step scale, the band's shape) is
+an opaque device value that may change between frames without compiling anything.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+
+from mi_amr.params import METHODS, RECONSTRUCTIONS  # noqa: F401  (re-exported)
+
+
+@dataclass
+class MarchConfig:
+    """``isovalues``: a device array of ``num_iso`` values; ``step_scale``: a one-element
+    device array (finest cells per step of the sampling methods); ``band``: volume mode's
+    :class:`~mi_amr.kernels.band.BandInputs` around isovalue 0, or None for surfaces."""
+
+    method: str
+    basis: bool
+    isovalues: Any
+    step_scale: Any
+    num_iso: int
+    band: Any = None
+    preintegrated: bool = False
+
+    def iso(self, dev, k):
+        """Isovalue ``k`` (a Python int, or a per-lane index array)."""
+        m = dev.m
+        return dr.gather(m.Float, self.isovalues, m.UInt32(k))
+
+
+def holds(dev, cfg: MarchConfig, r_lo, r_hi):
+    """Can a value range ``[r_lo, r_hi]`` hold a crossing (or band opacity)?"""
+    m = dev.m
+    if cfg.band is not None:
+        centre = cfg.iso(dev, 0)
+        return (r_lo < centre + cfg.band.hi) & (r_hi > centre + cfg.band.lo)
+    out = m.Bool(False)
+    for k in range(cfg.num_iso):
+        iso = cfg.iso(dev, k)
+        out |= (r_lo <= iso) & (iso <= r_hi)
+    return out
+
+
+def sides_differ(dev, cfg: MarchConfig, a, b):
+    """Does some isovalue lie strictly between values ``a`` and ``b``? (False if one is NaN.)"""
+    m = dev.m
+    out = m.Bool(False)
+    for k in range(cfg.num_iso):
+        iso = cfg.iso(dev, k)
+        out |= (a - iso) * (b - iso) < 0.0
+    return out
+
+
+def first_between(dev, cfg: MarchConfig, a, b):
+    """Index of an isovalue strictly between values ``a`` and ``b`` (the first one listed)."""
+    m = dev.m
+    out = m.UInt32(0)
+    for k in range(cfg.num_iso - 1, -1, -1):
+        iso = cfg.iso(dev, k)
+        out = dr.select((a - iso) * (b - iso) < 0.0, m.UInt32(k), out)
+    return out

@@ -1,0 +1,239 @@
+"""Walking a ray through the kd-tree: leaves that may hold a crossing, skipping every node
+that cannot (pbrt's majorant-segment shape: traversal hands ``[t, t_exit]`` stretches to the
+method that consumes them).
+
+A ray ``p(t) = o + t d`` (volume world space, ``d`` need not be unit length; ``t`` is the same
+parameter as the caller's) is walked by :func:`seek`: every node carries the range of the
+reconstructed values inside it, and a node whose range holds no isovalue (or that has no data)
+is skipped whole -- the ray jumps to the node's exit and restarts its descent at the node's
+rope. :func:`next_dual_plane` cuts a stretch where the reconstruction's cubic pieces end.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+
+from mi_amr import tolerances as tol
+from mi_amr.kernels.config import holds, sides_differ
+from mi_amr.kernels.device import lnot
+
+
+@dataclass
+class Stretch:
+    """Result of :func:`seek`: the leaf to work on from ``t`` to ``t_exit`` (``found``), or the
+    start ``t`` of a skipped node on the other side of an isovalue than ``side`` was
+    (``turned``; ``turn_value`` is a value on that node's side). ``side`` is a value on the side
+    of every isovalue that the last skipped node lies on (NaN: unknown), and ``t_side`` the end
+    of that node."""
+
+    node: Any
+    leaf: Any
+    t: Any
+    t_exit: Any
+    face: Any
+    found: Any
+    turned: Any
+    turn_value: Any
+    side: Any
+    t_side: Any
+
+
+@dataclass
+class Walk:
+    """Where a ray is in its walk: at parameter ``t`` inside ``leaf`` (reached through
+    ``node``), which it leaves at ``t_exit`` through ``face`` (6: no leaf yet). The loop state
+    every method carries."""
+
+    node: Any
+    leaf: Any
+    face: Any
+    t_exit: Any
+    t: Any
+
+    @staticmethod
+    def start(m, t0) -> "Walk":
+        return Walk(node=m.UInt32(0), leaf=m.UInt32(0), face=m.UInt32(6),
+                    t_exit=m.Float(-dr.inf), t=m.Float(t0))
+
+    def needs_leaf(self):
+        """The lanes that have used up their leaf and must :func:`seek` the next."""
+        return self.t >= self.t_exit
+
+    def adopt(self, new, st: Stretch) -> "Walk":
+        """This walk, moved on to stretch ``st`` where ``new`` (the lanes that sought one)."""
+        return Walk(node=dr.select(new, st.node, self.node),
+                    leaf=dr.select(new, st.leaf, self.leaf),
+                    face=dr.select(new, st.face, self.face),
+                    t_exit=dr.select(new, st.t_exit, self.t_exit),
+                    t=dr.select(new, st.t, self.t))
+
+
+# ---------------------------------------------------------------------- boxes
+
+def box_interval(lo, hi, o, d):
+    """Parametric interval ``(t_in, t_out)`` of the ray inside the box ``[lo, hi]``."""
+    inv = dr.rcp(d)
+    t_a = (lo - o) * inv
+    t_b = (hi - o) * inv
+    flat = d == 0.0
+    inside = (o >= lo) & (o <= hi)
+    near = dr.select(flat, dr.select(inside, -dr.inf, dr.inf), dr.minimum(t_a, t_b))
+    far = dr.select(flat, dr.select(inside, dr.inf, -dr.inf), dr.maximum(t_a, t_b))
+    return dr.max(near), dr.min(far)
+
+
+def box_exit(m, lo, hi, o, d):
+    """Parameter where the ray leaves the box ``[lo, hi]`` and the face it leaves through
+    (``2 * axis + 1`` for the high face of ``axis``, ``2 * axis`` for the low one)."""
+    face = dr.select(d > 0.0, hi, lo)
+    t = dr.select(d != 0.0, (face - o) / d, dr.inf)
+    t_exit = dr.min(t)
+    axis = dr.select(t.x == t_exit, m.UInt32(0), dr.select(t.y == t_exit, m.UInt32(1),
+                                                             m.UInt32(2)))
+    up = dr.select(axis == 0, d.x > 0.0, dr.select(axis == 1, d.y > 0.0, d.z > 0.0))
+    return t_exit, 2 * axis + dr.select(up, m.UInt32(1), m.UInt32(0))
+
+
+def epsilon(dev, t, dnorm):
+    """A step in ``t`` well below a cell yet large enough to move ``t`` in float32."""
+    return dr.maximum(dev.step_eps / dnorm, dr.abs(t) * tol.STEP_EPS_REL)
+
+
+def _node_box(dev, node, active):
+    """Box of ``node`` (two packet loads of 4 floats)."""
+    m = dev.m
+    lo = dr.gather(m.Array4f, dev.node_box, 2 * node, active)
+    hi = dr.gather(m.Array4f, dev.node_box, 2 * node + 1, active)
+    return m.Array3f(lo.x, lo.y, lo.z), m.Array3f(hi.x, hi.y, hi.z)
+
+
+def _restart(dev, o, d, t, node, face, active):
+    """Where to resume the descent at ``o + t d`` after leaving ``node`` through ``face``: its
+    rope when that node holds the point, else the root (also for ``face`` >= 6: no node yet).
+    Returns the node and its box."""
+    m = dev.m
+    p = dr.fma(d, t, o)
+    roped = active & (face < 6)
+    rope = dr.gather(m.UInt32, dev.node_ropes, node * 6 + dr.minimum(face, 5), roped)
+    lo, hi = _node_box(dev, rope, roped)
+    inside = roped & dr.all((p >= lo) & (p <= hi))
+    return (dr.select(inside, rope, m.UInt32(0)), dr.select(inside, lo, dev.root_lo),
+            dr.select(inside, hi, dev.root_hi))
+
+
+@dr.syntax
+def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
+    """From parameter ``t`` (having left ``node`` through ``face``; ``face`` = 6 at the start)
+    walk to the first leaf whose value range may hold a crossing, skipping every node that
+    cannot. Stops early at a skipped node on the other side of an isovalue than ``side``.
+
+    One step either goes down one level (the child's box is the parent's, cut at the split, so
+    it costs two packet loads: code and split, value range) or skips a node and restarts at its
+    rope."""
+    m = dev.m
+    ranges = dev.node_ranges(cfg.basis)
+    dnorm = dr.norm(d)
+    t = m.Float(t)
+    side = m.Float(side)
+    eps = epsilon(dev, t, dnorm)
+    node, b_lo, b_hi = _restart(dev, o, d, t + eps, node, face, active)
+    leaf = m.UInt32(0)
+    t_exit = m.Float(t)
+    face = m.UInt32(6)
+    t_side = m.Float(dr.nan)
+    found = m.Bool(False)
+    turned = m.Bool(False)
+    turn_value = m.Float(dr.nan)
+    searching = m.Bool(active)
+    while searching:
+        eps = epsilon(dev, t, dnorm)
+        p = dr.fma(d, t + eps, o)
+        cs = dr.gather(m.Array2u, dev.node_code_split, node, searching)
+        code = cs.x
+        rng = dr.gather(m.Array2f, ranges, node, searching)
+        lo, hi = rng.x, rng.y
+        t_out, f_out = box_exit(m, b_lo, b_hi, o, d)
+        empty = lnot(holds(dev, cfg, lo, hi))
+        rep = dr.select(lo <= hi, 0.5 * (lo + hi), dr.nan)
+        is_leaf = (code & 3) == 3
+
+        # --- A leaf worth working on.
+        take = searching & lnot(empty) & is_leaf
+        found |= take
+        leaf = dr.select(take, code >> 2, leaf)
+        t_exit = dr.select(take, t_out, t_exit)
+        face = dr.select(take, f_out, face)
+
+        # --- An empty node on the other side: let the caller look at its first sample.
+        turn = searching & empty & sides_differ(dev, cfg, side, rep)
+        turned |= turn
+        turn_value = dr.select(turn, rep, turn_value)
+
+        # --- Skip an empty node: jump to its exit and continue from its rope.
+        skip = searching & empty & lnot(turn)
+        side = dr.select(skip, rep, side)
+        t_side = dr.select(skip, t_out, t_side)
+        t_next = dr.maximum(t_out, t + eps)
+        r_node, r_lo, r_hi = _restart(dev, o, d, t_next + epsilon(dev, t_next, dnorm), node,
+                                      f_out, skip)
+
+        # --- Otherwise go down to the child holding the point.
+        down = searching & lnot(empty) & lnot(is_leaf)
+        axis = code & 3
+        split = dr.reinterpret_array(m.Float, cs.y)
+        coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
+        upper = coord >= split
+        child = (code >> 2) + dr.select(upper, m.UInt32(1), m.UInt32(0))
+        c_lo, c_hi = m.Array3f(b_lo), m.Array3f(b_hi)
+        for a in range(3):
+            cut = down & (axis == a)
+            c_lo[a] = dr.select(cut & upper, split, c_lo[a])
+            c_hi[a] = dr.select(cut & lnot(upper), split, c_hi[a])
+
+        node = dr.select(skip, r_node, dr.select(down, child, node))
+        b_lo = dr.select(skip, r_lo, c_lo)
+        b_hi = dr.select(skip, r_hi, c_hi)
+        t = dr.select(skip, t_next, t)
+        searching &= lnot(take) & lnot(turn) & (t < t1)
+    return Stretch(node=node, leaf=leaf, t=t, t_exit=t_exit, face=face, found=found,
+                   turned=turned, turn_value=turn_value, side=side, t_side=t_side)
+
+
+@dr.syntax
+def next_dual_plane(dev, levels_mask, o, d, inv_d, t_probe):
+    """Smallest parameter > ``t_probe`` (up to rounding) at which the ray crosses a plane through
+    cell centres of a level in ``levels_mask`` (bit ``l`` for level ``l``); ``inv_d = 1 / d``
+    (infinite where ``d`` is 0). The levels are visited bit by bit, so the traced program is
+    the same whatever the number of levels."""
+    m = dev.m
+    p = dr.fma(d, t_probe, o)
+    up = d > 0.0
+    best = m.Float(dr.inf)
+    mask = m.UInt32(levels_mask)
+    while mask != 0:
+        level = dr.tzcnt(mask)
+        mask &= mask - 1
+        h = dr.gather(m.Array3f, dev.level_h, level)
+        inv_h = dr.gather(m.Array3f, dev.level_inv_h, level)
+        cell = dr.floor(dr.fma(p - dev.anchor, inv_h, -0.5))
+        plane = dr.select(up, cell + 1.5, cell + 0.5)
+        t = dr.select(d != 0.0, dr.fma(plane, h, dev.anchor - o) * inv_d, dr.inf)
+        best = dr.minimum(best, dr.min(t))
+    return best
+
+
+def clip_to_volume(dev, o, d, t_start, t_end, active):
+    """The ray's stretch inside the volume's bounds: ``(o, t0, t1, active)``. A ray lying in an
+    upper face of the bounds is moved inside by a rounding step: kd points on a split plane go
+    to the upper side, which beyond the upper faces holds no data."""
+    m = dev.m
+    lo, hi = dev.bounds_lo, dev.bounds_hi
+    on_top = (d == 0.0) & (o == hi)
+    o = dr.select(on_top, hi - dr.maximum(dr.abs(hi), 1e-30) * tol.UPPER_FACE_REL, o)
+    t_in, t_out = box_interval(lo, hi, o, d)
+    t0 = dr.maximum(t_start, t_in)
+    t1 = dr.minimum(t_end, t_out)
+    return o, t0, t1, m.Bool(active) & (t0 < t1)

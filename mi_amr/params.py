@@ -1,0 +1,133 @@
+"""The one table of ``amr_iso``'s parameters: name, type, default, allowed values and meaning.
+
+:mod:`mi_amr.plugin.options` checks a scene's values against it, the integrator's docstring
+table is generated from it (:func:`docstring_table`), and the parameters marked
+``traversable`` are the ones ``mi.traverse(scene)`` shows as ``integrator.<name>``: changing
+them renders the next frame without compiling a kernel. :func:`mi_amr.trace` takes its defaults
+from here too.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+METHODS = ("exact", "bisect", "adaptive", "uniform")
+RECONSTRUCTIONS = ("basis", "finest")
+MODES = ("surface", "volume")
+MAX_ISOVALUES = 8
+REQUIRED = object()          # the default of a parameter that must be given
+
+
+@dataclass(frozen=True)
+class Param:
+    """One parameter. ``kind`` is how it is written in a scene (the docstring's type column);
+    ``lo``/``hi`` bound a number (inclusive), ``choices`` a string."""
+
+    name: str
+    kind: str
+    default: Any
+    meaning: str
+    lo: float = -math.inf
+    hi: float = math.inf
+    choices: tuple = ()
+    traversable: bool = False
+
+    @property
+    def required(self) -> bool:
+        return self.default is REQUIRED
+
+
+TABLE = (
+    Param("filename", "string", REQUIRED,
+          "anything :func:`mi_amr.load` reads; relative to the scene file"),
+    Param("field", "string", REQUIRED,
+          "field to contour; stored, or derived (``q_criterion``, ``speed``, "
+          "``vorticity_magnitude``) from the velocity"),
+    Param("isovalue", "float / list", REQUIRED,
+          f"one or up to {MAX_ISOVALUES} isovalues, ``\"0.05, 0.1\"``", traversable=True),
+    Param("iso_color", "rgb / list", "0.8 0.8 0.8",
+          "colour per isovalue, ``\"r g b; r g b\"`` (linear RGB)", traversable=True),
+    Param("iso_opacity", "float / list", 1.0,
+          "opacity per isovalue in (0, 1]; below 1 the surfaces are composited front to back",
+          lo=0.0, hi=1.0, traversable=True),
+    Param("color_field", "string", None, "colour the surface by this field ..."),
+    Param("colormap", "string", None,
+          "... with ``\"v: r g b, ...\"`` pairs (each holds its colour over 1/24 of the "
+          "pairs' span, at most a quarter of the gap to its neighbours) or a matplotlib map "
+          "name; traversable as ``colormap_values`` and ``colormap_colors``", traversable=True),
+    Param("color_range", "2 floats", None,
+          "field values mapped to the colour map's ends; default: the data's range (named "
+          "map) or the first and last pair's values (pairs, which it stretches)",
+          traversable=True),
+    Param("mode", "string", "surface", "``surface`` or ``volume``", choices=MODES),
+    Param("method", "string", "exact", "``exact``, ``bisect``, ``adaptive``, ``uniform``",
+          choices=METHODS),
+    Param("reconstruction", "string", "basis", "``basis`` (Wald et al.) or ``finest``",
+          choices=RECONSTRUCTIONS),
+    Param("step_scale", "float", 0.5, "step in finest cells (sampling methods)",
+          lo=1e-4, hi=64.0, traversable=True),
+    Param("shadows", "boolean", True, "shadow rays test meshes and isosurfaces",
+          traversable=True),
+    Param("to_world", "transform", None,
+          "places the volume's world space in the scene (default: identity)", traversable=True),
+    Param("ka", "float", 0.15, "Phong ambient coefficient", lo=0.0, hi=100.0, traversable=True),
+    Param("kd", "float", 0.75, "Phong diffuse coefficient", lo=0.0, hi=100.0, traversable=True),
+    Param("ks", "float", 0.25, "Phong specular coefficient", lo=0.0, hi=100.0,
+          traversable=True),
+    Param("shininess", "float", 32.0, "Phong exponent", lo=0.0, hi=1e4, traversable=True),
+    Param("ambient", "float", 1.0, "ambient light level", lo=0.0, hi=1e6, traversable=True),
+    Param("band_width", "float", 0.004,
+          "volume mode: Gaussian width of the opacity band centred on ``isovalue`` (field)",
+          lo=1e-30, traversable=True),
+    Param("band_support", "2 floats", None,
+          "volume mode: where the opacity is non-zero (field; default isovalue +- 2 widths)",
+          traversable=True),
+    Param("band_peak", "float", 1.6, "volume mode: opacity scale (clamped to 1)",
+          lo=1e-6, hi=1e6, traversable=True),
+    Param("preintegrated", "boolean", False,
+          "volume mode: pre-integrated opacity per step (sampling methods)"),
+    Param("leaf_cells", "integer", 4, "kd leaf size in cells (empty-space skipping)",
+          lo=2, hi=256),
+    Param("max_layers", "integer", 8, "translucent surfaces composited per ray, at most",
+          lo=1, hi=64),
+)
+BY_NAME = {p.name: p for p in TABLE}
+TRAVERSABLE = tuple(p.name for p in TABLE if p.traversable)
+
+
+def default(name: str):
+    """The default of parameter ``name`` (:data:`REQUIRED` when it must be given)."""
+    return BY_NAME[name].default
+
+
+def _shown(p: Param) -> str:
+    if p.required:
+        return "(required)"
+    if p.default is None:
+        return "none"
+    if isinstance(p.default, bool):
+        return "true" if p.default else "false"
+    return f"{p.default:g}" if isinstance(p.default, float) else str(p.default)
+
+
+def docstring_table(width: int = 52) -> str:
+    """The parameter table as reStructuredText (the integrator's docstring shows it)."""
+    import textwrap
+
+    heads = ("Parameter", "Type", "Meaning", "Default")
+    rows = [(p.name, p.kind, p.meaning + (" [traversable]" if p.traversable else ""),
+             _shown(p)) for p in TABLE]
+    widths = [max(len(heads[0]), *(len(r[0]) for r in rows)),
+              max(len(heads[1]), *(len(r[1]) for r in rows)), width,
+              max(len(heads[3]), *(len(r[3]) for r in rows))]
+    rule = "  ".join("=" * w for w in widths)
+    lines = [rule, "  ".join(h.ljust(w) for h, w in zip(heads, widths)).rstrip(), rule]
+    for r in rows:
+        wrapped = textwrap.wrap(r[2], width) or [""]
+        for i, text in enumerate(wrapped):
+            cells = (r[0], r[1], text, r[3]) if i == 0 else ("", "", text, "")
+            lines.append("  ".join(c.ljust(w) for c, w in zip(cells, widths)).rstrip())
+    lines.append(rule)
+    return "\n".join(lines)

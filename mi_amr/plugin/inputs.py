@@ -1,0 +1,133 @@
+"""The integrator's per-frame values: opaque kernel inputs that ``mi.traverse(scene)`` shows as
+``integrator.<name>``, checked again whenever they change.
+
+===================  ===========================  ==========================================
+traverse name        value                        when
+===================  ===========================  ==========================================
+isovalue             k floats (field units)       always
+iso_color            3 k floats (linear RGB)      always
+iso_opacity          k floats in (0, 1]           always
+step_scale           1 float (finest cells)       always
+shadows              1 bool                       always
+ka kd ks             1 float each                 always
+shininess ambient    1 float each                 always
+to_world             4x4 transform                always (volume world -> scene)
+colormap_values      512 edges on [0, 1]          with a colour map (:mod:`.colormap`)
+colormap_colors      3 x 512 floats (linear RGB)  with a colour map
+color_range          2 floats (field units)       with a colour map
+band_width           1 float (field units)        volume mode
+band_offsets         2 floats: support - iso      volume mode
+band_peak            1 float                      volume mode
+===================  ===========================  ==========================================
+
+``k`` (the number of isovalues) and the table sizes are part of the scene's structure: a change
+of size is refused (load the scene again). :func:`colormap_table` makes the two colour-map
+arrays from a map name or pairs, e.g. for a viewer.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_amr.errors import AMRError
+from mi_amr.kernels.band import OpacityBand
+from mi_amr.kernels.colormap import ColorMap, check_range
+
+PHONG = ("ka", "kd", "ks", "shininess", "ambient")
+FLAGS = mi.ParamFlags.NonDifferentiable
+
+
+def colormap_table(spec: str, data_range=None, color_range=None):
+    """``(colormap_values, colormap_colors, color_range)`` for a colour map given as in a scene
+    (pairs, or a matplotlib name over ``data_range``), ready to assign through ``mi.traverse``
+    (NumPy arrays). ``color_range`` overrides the map's own range."""
+    cmap = ColorMap.parse(spec, data_range)
+    edges, colors = cmap.table()
+    rng = cmap.value_range if color_range is None else check_range(color_range, "color_range")
+    return edges, colors, np.array(rng, dtype=np.float32)
+
+
+class FrameInputs:
+    """The values listed in the module docstring, on the kernels' backend ``m``."""
+
+    def __init__(self, opt, m, color_data_range, min_h: float):
+        self.m, self.k, self.min_h = m, len(opt.isovalues), float(min_h)
+        self.values = {
+            "isovalue": m.Float(opt.isovalues),
+            "iso_color": m.Float(np.ravel(opt.iso_colors)),
+            "iso_opacity": m.Float(opt.iso_opacity),
+            "step_scale": m.Float(opt.step_scale),
+            "shadows": m.Bool(opt.shadows),
+        }
+        self.values.update({name: m.Float(getattr(opt, name)) for name in PHONG})
+        if opt.colormap is not None:
+            edges, colors, rng = colormap_table(opt.colormap, color_data_range, opt.color_range)
+            self.values.update(colormap_values=m.Float(edges), colormap_colors=m.Float(colors),
+                               color_range=m.Float(rng))
+        if opt.mode == "volume":
+            iso = opt.isovalues[0]
+            lo, hi = (-2.0 * opt.band_width, 2.0 * opt.band_width) if opt.band_support is None \
+                else (opt.band_support[0] - iso, opt.band_support[1] - iso)
+            self.values.update(band_width=m.Float(opt.band_width), band_offsets=m.Float([lo, hi]),
+                               band_peak=m.Float(opt.band_peak))
+        self._sizes = {name: dr.width(v) for name, v in self.values.items()}
+        self.refresh()
+
+    def __getitem__(self, name):
+        return self.values[name]
+
+    @property
+    def has_colormap(self) -> bool:
+        return "colormap_values" in self.values
+
+    def put(self, callback) -> None:
+        """Hand every value to ``mi.traverse``'s callback."""
+        for name, value in self.values.items():
+            callback.put(name, value, FLAGS)
+
+    def refresh(self) -> None:
+        """Check the values (after a change through ``mi.traverse``), rebuild what depends on
+        them (the band's table) and make them all opaque."""
+        for name, value in self.values.items():
+            if dr.width(value) != self._sizes[name]:
+                raise AMRError(f"amr_iso: '{name}' must keep {self._sizes[name]} value(s); load "
+                               f"the scene again to change how many")
+        host = {name: np.asarray(v.numpy(), dtype=np.float64) for name, v in self.values.items()}
+        _check(host)
+        self.band = None
+        if "band_width" in host:
+            lo, hi = host["band_offsets"]
+            self.band = OpacityBand(float(host["band_width"][0]), (lo, hi),
+                                    float(host["band_peak"][0]), dx0=self.min_h).inputs(self.m)
+        dr.make_opaque(*self.values.values())
+
+
+def _check(host: dict) -> None:
+    """The checks of :mod:`mi_amr.plugin.options`, on values set through ``mi.traverse``."""
+    def bad(name, what):
+        raise AMRError(f"amr_iso: '{name}' {what}, got {host[name].tolist()}")
+
+    for name, v in host.items():
+        if name != "shadows" and not np.all(np.isfinite(v)):
+            bad(name, "must hold finite numbers")
+    if not np.all((host["iso_opacity"] > 0) & (host["iso_opacity"] <= 1)):
+        bad("iso_opacity", "must lie in (0, 1]")
+    if not 1e-4 <= host["step_scale"][0] <= 64:
+        bad("step_scale", "must lie in [0.0001, 64]")
+    for name in PHONG:
+        if host[name][0] < 0:
+            bad(name, "must be >= 0")
+    if "color_range" in host:
+        check_range(host["color_range"], "color_range")
+        if np.any(np.diff(host["colormap_values"]) < 0):
+            bad("colormap_values", "must not decrease")
+    if "band_width" in host:
+        lo, hi = host["band_offsets"]
+        if not host["band_width"][0] > 0:
+            bad("band_width", "must be > 0")
+        if not lo < 0.0 < hi:
+            bad("band_offsets", "must be (low < 0 < high) offsets from the isovalue")
+        if not host["band_peak"][0] > 0:
+            bad("band_peak", "must be > 0")

@@ -1,0 +1,68 @@
+"""Every tolerance in mi_amr, named once, each with the reason for its value.
+
+Units: "cells" are finest cell widths of the volume (world units along a ray are found by
+multiplying with :attr:`mi_amr.kernels.device.DeviceVolume.min_h`); "relative" means relative to
+the magnitude of the quantity compared; "field" is the unit of the field's values.
+"""
+
+# ---------------------------------------------------------------------- the data model (host)
+
+# cells of the grid's level: a grid corner this close to the lattice is on it. Float rounding
+# of origins such as 0.1 * k must pass; a real misalignment of a quarter cell must not.
+LATTICE = 1e-3
+# relative: the spacings of one level's grids agree to this (float64 rounding of h / r^l).
+SPACING_REL = 1e-6
+# relative: the ratio between two levels' spacings is a whole number to this.
+RATIO_REL = 1e-6
+# weight: levels.interpolate(complete=True) needs the weights to sum to 1 within rounding.
+COMPLETE_WEIGHT = 1e-9
+# |det| of the 3x3 part of ``to_world`` below this: the transform cannot be inverted in float32.
+SINGULAR_DET = 1e-12
+
+# ---------------------------------------------------------------------- stepping along a ray
+
+# cells: the smallest step along a ray -- well below a cell, so no piece of the field is
+# stepped over, ...
+STEP_EPS_CELLS = 1e-4
+# relative to |t|: ... and large enough to move ``t`` in float32 (about 3.4 ulps).
+STEP_EPS_REL = 4e-7
+# relative: a ray lying in an upper face of the bounds is moved inside by about one ulp (kd
+# points on a split plane belong to the upper side, which beyond the upper faces holds no data).
+UPPER_FACE_REL = 1.2e-7
+# steps: a position this close to a point of the step lattice counts as on it (so rounding
+# does not take a step twice or skip one).
+LATTICE_SNAP = 1e-4
+# cells: a translucent layer, or a shadow ray leaving an isosurface, starts this far past the
+# crossing it came from, so the same crossing is not found again; far below any feature that
+# the reconstruction can resolve.
+LAYER_OFFSET_CELLS = 1e-3
+# cells: bisection (the ``bisect`` method) stops at this interval (course report, 3.6.2).
+BISECT_TARGET = 0.005
+
+# ---------------------------------------------------------------------- the exact method
+
+# weight: where the blend's denominator (the sum of the cells' hat weights, 1 where every cell
+# has a value) is below this, no cell has weight and the field is undefined. Next to missing
+# values the weights can sum to much less than 1 while the field is still defined.
+NO_WEIGHT = 1e-6
+# relative to the size of the terms: a cubic's extremum this close to zero touches it (a
+# tangent or grazing hit, an isovalue at a local extremum of the field).
+TANGENT_REL = 2e-6
+# a cubic's leading coefficient below this: its derivative is linear (float32 has no
+# meaningful quadratic term left).
+QUADRATIC_EPS = 1e-30
+
+# ---------------------------------------------------------------------- compositing
+
+# transmittance: a ray whose transmittance falls below this stops (early termination, the
+# rest would change a pixel by less than 1 %), and what is left counts as opaque.
+T_MIN = 0.01
+# opacity: a piece or sample more transparent than this is not shaded (it changes an 8-bit
+# pixel by less than one level).
+ALPHA_LIT = 1e-3
+# opacity: alpha is capped here, since alpha = 1 means infinite extinction in the
+# pre-integrated table.
+OPACITY_CAP = 1.0 - 1e-4
+# relative to the band width: a value ramp whose ends are closer than this is taken as
+# constant (its pre-integrated opacity is the point opacity).
+RAMP_FLAT_REL = 1e-6
