@@ -72,3 +72,56 @@ def random_grids(seed, *, num_levels=3, ratios=(2, 2), base=(8, 6, 6), tries=12,
 @pytest.fixture
 def reference_volume():
     return AMRVolume.from_grids(reference_grids())
+
+
+# ---------------------------------------------------------------------- Mitsuba (imported lazily)
+
+VARIANT = "llvm_ad_rgb"
+
+
+def use_variant():
+    """Set the tests' Mitsuba variant and register ``amr_iso`` for it; skip when Mitsuba or
+    the variant is missing. (Imported here, not at collection, so the NumPy-only tests run
+    without Mitsuba.)"""
+    mi = pytest.importorskip("mitsuba")
+    pytest.importorskip("drjit")
+    if VARIANT not in mi.variants():
+        pytest.skip(f"Mitsuba variant {VARIANT} is not available")
+    mi.set_variant(VARIANT)
+    import mi_amr
+
+    mi_amr.register()
+    return mi
+
+
+@pytest.fixture(scope="module")
+def variant():
+    """The tests' variant, set for the module and set again afterwards (a test may switch)."""
+    mi = use_variant()
+    yield mi
+    mi.set_variant(VARIANT)
+
+
+@pytest.fixture(scope="module")
+def scene_data_ready(variant):
+    """The data files of the repository's scenes (made once, then reused)."""
+    from mi_amr.workflows import project
+
+    project.ensure_scene_data(verbose=False)
+
+
+def kernels_compiled(fn):
+    """Run ``fn()`` and return ``(its result, JIT kernels not found in memory)``: compiled now,
+    or loaded from Dr.Jit's disk cache because no kernel like it ran before in this process."""
+    import drjit as dr
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()
+    try:
+        out = fn()
+        dr.sync_thread()
+        history = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    jit = [k for k in history if k["type"] == dr.KernelType.JIT]
+    return out, sum(1 for k in jit if not k.get("cache_hit", False) or k.get("cache_disk", False))

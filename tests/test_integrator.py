@@ -35,11 +35,8 @@ if VARIANT not in mi.variants():
 
 
 @pytest.fixture(scope="module", autouse=True)
-def variant():
-    mi.set_variant(VARIANT)
-    mi_amr.register()
+def _variant(variant):
     yield
-    mi.set_variant(VARIANT)
 
 
 @pytest.fixture(scope="module")

@@ -405,3 +405,40 @@ def test18_ten_thousand_grids_agree_with_brute_force():
     # Values are 0 on level 0 and 1 on level 1: leaves reached by a level-1 cell span [0, 1]
     # (a level-1 grid sits inside a level-0 grid whose zeros reach the same leaves), others 0.
     assert set(zip(lo[owned], hi[owned])) == {(0.0, 0.0), (0.0, 1.0)}
+
+
+# ---------------------------------------------------------------------- KDTree.check()
+
+@pytest.mark.parametrize("seed", range(4))
+def test30_check_passes_on_random_hierarchies(seed):
+    """The invariant checker finds nothing wrong with trees of random valid hierarchies (all
+    leaves' owners, every rope, the ranges of both reconstructions at sampled points)."""
+    from conftest import random_grids
+
+    vol = AMRVolume.from_grids(random_grids(seed, fn=lambda p: np.sin(p.sum(axis=-1))))
+    tree = KDTree(vol)
+    for reconstruction in ("basis", "finest"):
+        done = tree.check("f", reconstruction=reconstruction, sample=512)
+        assert done["owners"] == min(tree.num_leaves, 512)
+        assert done["ropes"] == 6 * tree.num_nodes and done["ranges"] == 512
+
+
+def test31_check_finds_a_broken_tree():
+    """Each invariant, broken on purpose in a copy of a good tree, is reported."""
+    import copy
+
+    vol = datasets.sphere(8)
+    good = KDTree(vol)
+    good.check("f")
+    breakers = {
+        "tiling": lambda t: t._node_split.__setitem__(0, t._node_split[0] + 1),
+        "owned by": lambda t: t.leaf_owner.__setitem__(np.flatnonzero(t.leaf_owner >= 0)[0], -1),
+        "rope": lambda t: t.node_ropes.__setitem__((1, 1), 0),
+        "range": lambda t: t.__setattr__("leaf_ranges", lambda *a, **k: (
+            np.zeros(t.num_leaves), np.zeros(t.num_leaves))),
+    }
+    for what, breaker in breakers.items():
+        t = copy.deepcopy(good)
+        breaker(t)
+        with pytest.raises(AssertionError, match=what if what != "tiling" else "child"):
+            t.check("f", sample=4096)

@@ -33,10 +33,7 @@ needs_yt = pytest.mark.skipif(importlib.util.find_spec("yt") is None,
 
 
 @pytest.fixture(scope="module", autouse=True)
-def variant():
-    mi.set_variant(VARIANT)
-    mi_amr.register()
-    project.ensure_scene_data(verbose=False)
+def _variant(scene_data_ready):
     yield
 
 

@@ -34,10 +34,8 @@ if VARIANT not in mi.variants():
 
 
 @pytest.fixture(scope="module", autouse=True)
-def variant():
-    mi.set_variant(VARIANT)
-    mi_amr.register()
-    project.ensure_scene_data(verbose=False)
+def _variant(scene_data_ready):
+    yield
 
 
 def _keep_failure(name, image, want) -> str:

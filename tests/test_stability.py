@@ -43,11 +43,8 @@ OUTPUT_FAILS = {}
 
 
 @pytest.fixture(scope="module", autouse=True)
-def variant():
-    mi.set_variant(VARIANT)
-    mi_amr.register()
+def _variant(variant):
     yield
-    mi.set_variant(VARIANT)
 
 
 @pytest.fixture(scope="module")

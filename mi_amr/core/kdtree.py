@@ -76,121 +76,101 @@ class KDTree:
 
     # ------------------------------------------------------------------ build
     def _build(self, max_depth: int) -> None:
+        """Build the tree breadth first, one depth at a time, on the integer lattice of the
+        finest level (all boxes are whole numbers of finest cells from the anchor)."""
         G = len(self.grid_lo)
-        level_h = np.array([np.round(self.volume.level_spacing(l) / self.h_fine)
-                            for l in range(self.volume.num_levels)])
         # Lattice coordinates are whole numbers: int32 (when they fit) halves the memory traffic
         # of the pair tests, which dominate the build.
         ity = np.int32 if np.abs(np.concatenate(self._root)).max() < 2 ** 30 else np.int64
-        glo, ghi = self._glo.astype(ity), self._ghi.astype(ity)
-        slo, shi = self._slo.astype(ity), self._shi.astype(ity)
+        lattice = (self._glo.astype(ity), self._ghi.astype(ity), self._slo.astype(ity),
+                   self._shi.astype(ity))
         f_lo, f_hi = self._root[0][None, :].astype(ity), self._root[1][None, :].astype(ity)
         # (node, grid) pairs whose open support overlaps the node; pairs that can no longer
         # matter (support-only, no finer than the node's owner) are dropped as we go.
-        p_node = np.zeros(G, dtype=np.int64)
-        p_grid = np.arange(G, dtype=np.int64)
-        split_out, code_out, box_lo, box_hi, depth_out = [], [], [], [], []
-        leaf_lo, leaf_hi, leaf_owner = [], [], []
+        p_node, p_grid = np.zeros(G, dtype=np.int64), np.arange(G, dtype=np.int64)
+        out = {k: [] for k in ("split", "code", "lo", "hi", "depth", "leaf_lo", "leaf_hi",
+                               "leaf_owner")}
         base, n_leaves = 0, 0
         for depth in range(max_depth + 1):
-            n = len(f_lo)
-            # (np.take gathers rows several times faster than fancy indexing.)
-            pl, ph = np.take(f_lo, p_node, axis=0), np.take(f_hi, p_node, axis=0)
-            gl, gh = np.take(glo, p_grid, axis=0), np.take(ghi, p_grid, axis=0)
-            p_level = self.level[p_grid]
-            overlap = np.all(np.minimum(gh, ph) > np.maximum(gl, pl), axis=1)
-            contains = np.all(gl <= pl, axis=1) & np.all(gh >= ph, axis=1)
-            partial = overlap & ~contains
-
-            # Owner: the finest containing grid (lowest index among equals).
-            best = np.full(n, -1, dtype=np.int64)
-            np.maximum.at(best, p_node[contains],
-                          p_level[contains] * G + (G - 1 - p_grid[contains]))
-            owner = np.where(best >= 0, G - 1 - best % G, -1)
-
-            # Finest level whose support reaches into the node, and its cell size. A support-only
-            # pair is dropped once it is no finer than the owner, which contains every descendant
-            # and so bounds their finest level from below. (Grids that merely overlap the node
-            # give no such bound: a child may miss them, and a dropped finer support would then
-            # be forgotten there.)
-            owner_level = np.where(best >= 0, best // G, -1)
-            useful = overlap | (p_level > owner_level[p_node])
-            p_node, p_grid, p_level = p_node[useful], p_grid[useful], p_level[useful]
-            partial = partial[useful]
-            finest = _scatter_max_level(n, p_node, p_level, self.volume.num_levels)
-            node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
-
-            axis = np.full(n, LEAF, dtype=np.int64)
-            plane = np.zeros(n, dtype=ity)
-
-            # Split nodes cut by a grid face, and clean nodes with data that are too large, in
-            # the middle of their longest axis (in cells of the volume's finest level). Nodes are
-            # then power-of-two boxes of that lattice, as in an octree, so neighbouring subtrees
-            # are cut alike and a rope leads close to the neighbouring leaf.
-            has_partial = np.zeros(n, dtype=bool)
-            has_partial[p_node[partial]] = True
-            ext = f_hi - f_lo
-            with np.errstate(invalid="ignore", divide="ignore"):
-                cells = np.where(np.isfinite(node_h), ext / node_h, 0.0)
-            big = (~has_partial) & (owner >= 0) & np.any(cells > self.leaf_cells, axis=1)
-            cut = np.flatnonzero(has_partial | big)
-            ax = np.argmax(ext[cut], axis=1)
-            axis[cut] = ax
-            plane[cut] = (f_lo[cut, ax] + f_hi[cut, ax]) // 2   # boxes are 2^k cells wide
+            owner, p_node, p_grid, has_partial, node_h = self._classify(
+                f_lo, f_hi, p_node, p_grid, lattice)
+            axis, plane = self._split_planes(f_lo, f_hi, owner, has_partial, node_h, ity)
             if depth == max_depth:
                 axis[:] = LEAF
-
-            # Emit this depth: split nodes point at their children, leaves at their leaf index.
-            is_split = axis != LEAF
-            rank = np.cumsum(is_split) - 1
-            code = np.empty(n, dtype=np.int64)
-            code[is_split] = ((base + n + 2 * rank[is_split]) << 2) | axis[is_split]
-            leaf_ids = np.flatnonzero(~is_split)
-            code[leaf_ids] = ((n_leaves + np.arange(len(leaf_ids))) << 2) | LEAF
-            split_out.append(plane)
-            code_out.append(code)
-            box_lo.append(f_lo)
-            box_hi.append(f_hi)
-            depth_out.append(np.full(n, depth))
-            leaf_lo.append(f_lo[leaf_ids])
-            leaf_hi.append(f_hi[leaf_ids])
-            leaf_owner.append(owner[leaf_ids])
-            n_leaves += len(leaf_ids)
-            base += n
-            sp = np.flatnonzero(is_split)
-            if len(sp) == 0:
+            n_leaves = _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner)
+            base += len(f_lo)
+            if np.all(axis == LEAF):
                 break
+            f_lo, f_hi, p_node, p_grid = _children(f_lo, f_hi, axis, plane, p_node, p_grid,
+                                                   lattice)
+        self._store(out)
 
-            # Children: boxes, and the pairs whose open support reaches each side.
-            a, pos = axis[sp], plane[sp]
-            c_lo = np.repeat(f_lo[sp], 2, axis=0)
-            c_hi = np.repeat(f_hi[sp], 2, axis=0)
-            c_hi[0::2][np.arange(len(sp)), a] = pos
-            c_lo[1::2][np.arange(len(sp)), a] = pos
-            child_of = np.full(n, -1, dtype=np.int64)
-            child_of[sp] = 2 * np.arange(len(sp))
-            keep = child_of[p_node] >= 0
-            kn, kg = p_node[keep], p_grid[keep]
-            ka, kpos = axis[kn], plane[kn]
-            go_left = slo[kg, ka] < kpos
-            go_right = shi[kg, ka] > kpos
-            p_node = np.concatenate([child_of[kn][go_left], child_of[kn][go_right] + 1])
-            p_grid = np.concatenate([kg[go_left], kg[go_right]])
-            f_lo, f_hi = c_lo, c_hi
+    def _classify(self, f_lo, f_hi, p_node, p_grid, lattice):
+        """For the nodes ``[f_lo, f_hi]`` of one depth and their (node, grid) pairs: the owner
+        of each node (the finest grid containing it, lowest index among equals, -1: none), the
+        pairs still useful, whether a grid face cuts the node, and the finest cell width (in
+        finest cells) of the grids whose support reaches into it."""
+        G, n = len(self.grid_lo), len(f_lo)
+        glo, ghi, _, _ = lattice
+        # (np.take gathers rows several times faster than fancy indexing.)
+        pl, ph = np.take(f_lo, p_node, axis=0), np.take(f_hi, p_node, axis=0)
+        gl, gh = np.take(glo, p_grid, axis=0), np.take(ghi, p_grid, axis=0)
+        p_level = self.level[p_grid]
+        overlap = np.all(np.minimum(gh, ph) > np.maximum(gl, pl), axis=1)
+        contains = np.all(gl <= pl, axis=1) & np.all(gh >= ph, axis=1)
+        partial = overlap & ~contains
+        best = np.full(n, -1, dtype=np.int64)
+        np.maximum.at(best, p_node[contains], p_level[contains] * G + (G - 1 - p_grid[contains]))
+        owner = np.where(best >= 0, G - 1 - best % G, -1)
+        # A support-only pair is dropped once it is no finer than the owner, which contains
+        # every descendant and so bounds their finest level from below. (Grids that merely
+        # overlap the node give no such bound: a child may miss them, and a dropped finer
+        # support would then be forgotten there.)
+        owner_level = np.where(best >= 0, best // G, -1)
+        useful = overlap | (p_level > owner_level[p_node])
+        p_node, p_grid, p_level = p_node[useful], p_grid[useful], p_level[useful]
+        has_partial = np.zeros(n, dtype=bool)
+        has_partial[p_node[partial[useful]]] = True
+        level_h = np.array([np.round(self.volume.level_spacing(l) / self.h_fine)
+                            for l in range(self.volume.num_levels)])
+        finest = _scatter_max_level(n, p_node, p_level, self.volume.num_levels)
+        node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
+        return owner, p_node, p_grid, has_partial, node_h
 
-        self.node_code = np.concatenate(code_out)
-        self._node_split = np.concatenate(split_out).astype(np.float64)
-        self._node_lo = np.concatenate(box_lo).astype(np.float64)
-        self._node_hi = np.concatenate(box_hi).astype(np.float64)
+    def _split_planes(self, f_lo, f_hi, owner, has_partial, node_h, ity):
+        """Split nodes cut by a grid face, and clean nodes with data that are too large, in the
+        middle of their longest axis (in cells of the volume's finest level). Nodes are then
+        power-of-two boxes of that lattice, as in an octree, so neighbouring subtrees are cut
+        alike and a rope leads close to the neighbouring leaf. Returns ``(axis, plane)``
+        (``axis`` :data:`LEAF` for leaves)."""
+        n = len(f_lo)
+        axis = np.full(n, LEAF, dtype=np.int64)
+        plane = np.zeros(n, dtype=ity)
+        ext = f_hi - f_lo
+        with np.errstate(invalid="ignore", divide="ignore"):
+            cells = np.where(np.isfinite(node_h), ext / node_h, 0.0)
+        big = (~has_partial) & (owner >= 0) & np.any(cells > self.leaf_cells, axis=1)
+        cut = np.flatnonzero(has_partial | big)
+        ax = np.argmax(ext[cut], axis=1)
+        axis[cut] = ax
+        plane[cut] = (f_lo[cut, ax] + f_hi[cut, ax]) // 2   # boxes are 2^k cells wide
+        return axis, plane
+
+    def _store(self, out) -> None:
+        """The emitted depths as the tree's arrays (world space next to lattice ones)."""
+        self.node_code = np.concatenate(out["code"])
+        self._node_split = np.concatenate(out["split"]).astype(np.float64)
+        self._node_lo = np.concatenate(out["lo"]).astype(np.float64)
+        self._node_hi = np.concatenate(out["hi"]).astype(np.float64)
         axis = np.minimum(self.node_code & 3, 2)
         self.node_split = self._world(self._node_split, axis)
         self.node_lo = self._world(self._node_lo)
         self.node_hi = self._world(self._node_hi)
-        self.node_depth = np.concatenate(depth_out)
-        self.depth = len(code_out)
-        self.leaf_lo = self._world(np.concatenate(leaf_lo).astype(np.float64))
-        self.leaf_hi = self._world(np.concatenate(leaf_hi).astype(np.float64))
-        self.leaf_owner = np.concatenate(leaf_owner)
+        self.node_depth = np.concatenate(out["depth"])
+        self.depth = len(out["code"])
+        self.leaf_lo = self._world(np.concatenate(out["leaf_lo"]).astype(np.float64))
+        self.leaf_hi = self._world(np.concatenate(out["leaf_hi"]).astype(np.float64))
+        self.leaf_owner = np.concatenate(out["leaf_owner"])
 
     def _order_active(self) -> None:
         """Sort each leaf's grid list with the active grids first, and summarise them."""
@@ -322,6 +302,15 @@ class KDTree:
         return np.maximum(lo, 0), np.minimum(hi, np.take(self.shape, grid, axis=0) - 1)
 
     # ------------------------------------------------------------------ queries
+    def check(self, field: str | None = None, **kw) -> dict:
+        """Check the tree's invariants (:mod:`mi_amr.core.kdcheck`): the leaves tile the root,
+        owners are the finest covering grids, ropes point to the neighbouring nodes, and (with
+        ``field``) the value ranges bound the data. Returns what was checked; raises
+        ``AssertionError`` at the first broken invariant."""
+        from mi_amr.core.kdcheck import check
+
+        return check(self, field, **kw)
+
     @property
     def num_leaves(self) -> int:
         return len(self.leaf_lo)
@@ -477,6 +466,45 @@ def _finest_of(points, pi, gi, level) -> np.ndarray:
     best = np.full(len(points), -1, dtype=np.int64)
     np.maximum.at(best, pi, level[gi].astype(np.int64) * G + (G - 1 - gi))
     return np.where(best >= 0, G - 1 - best % G, -1)
+
+
+def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
+    """Append one depth's nodes to ``out``: split nodes point at their children (stored right
+    after this depth), leaves at their leaf index. Returns the new leaf count."""
+    n = len(f_lo)
+    is_split = axis != LEAF
+    rank = np.cumsum(is_split) - 1
+    code = np.empty(n, dtype=np.int64)
+    code[is_split] = ((base + n + 2 * rank[is_split]) << 2) | axis[is_split]
+    leaf_ids = np.flatnonzero(~is_split)
+    code[leaf_ids] = ((n_leaves + np.arange(len(leaf_ids))) << 2) | LEAF
+    for key, value in (("split", plane), ("code", code), ("lo", f_lo), ("hi", f_hi),
+                       ("depth", np.full(n, depth)), ("leaf_lo", f_lo[leaf_ids]),
+                       ("leaf_hi", f_hi[leaf_ids]), ("leaf_owner", owner[leaf_ids])):
+        out[key].append(value)
+    return n_leaves + len(leaf_ids)
+
+
+def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
+    """The children of the split nodes (two each, low side first) and the pairs whose open
+    support reaches each side."""
+    _, _, slo, shi = lattice
+    sp = np.flatnonzero(axis != LEAF)
+    a, pos = axis[sp], plane[sp]
+    c_lo = np.repeat(f_lo[sp], 2, axis=0)
+    c_hi = np.repeat(f_hi[sp], 2, axis=0)
+    c_hi[0::2][np.arange(len(sp)), a] = pos
+    c_lo[1::2][np.arange(len(sp)), a] = pos
+    child_of = np.full(len(f_lo), -1, dtype=np.int64)
+    child_of[sp] = 2 * np.arange(len(sp))
+    keep = child_of[p_node] >= 0
+    kn, kg = p_node[keep], p_grid[keep]
+    ka, kpos = axis[kn], plane[kn]
+    go_left = slo[kg, ka] < kpos
+    go_right = shi[kg, ka] > kpos
+    p_node = np.concatenate([child_of[kn][go_left], child_of[kn][go_right] + 1])
+    p_grid = np.concatenate([kg[go_left], kg[go_right]])
+    return c_lo, c_hi, p_node, p_grid
 
 
 def _scatter_max_level(n, node, level, num_levels) -> np.ndarray:

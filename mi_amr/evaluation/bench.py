@@ -434,10 +434,12 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
 
 def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
     """Seconds to validate a hierarchy of very many tiny grids (:func:`datasets.many_grids`:
-    10^4 and 10^5 grids) and to build its kd-tree; writes ``kdtree.md``; returns the rows."""
-    from mi_amr.synthetic import datasets
+    10^4 and 10^5 grids) and to build its kd-tree with the renderer's ``leaf_cells``, which is
+    then checked (:meth:`KDTree.check`, not timed); writes ``kdtree.md``; returns the rows."""
+    from mi_amr import params
     from mi_amr.core.kdtree import KDTree
     from mi_amr.core.volume import AMRVolume
+    from mi_amr.synthetic import datasets
 
     rows = []
     for per_axis, fine in sizes:
@@ -445,10 +447,11 @@ def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
         t0 = time.perf_counter()
         vol = AMRVolume.from_grids(grids)
         t1 = time.perf_counter()
-        tree = KDTree(vol)
+        tree = KDTree(vol, leaf_cells=params.default("leaf_cells"))
         t2 = time.perf_counter()
         tree.leaf_ranges("f", "basis")
         t3 = time.perf_counter()
+        tree.check("f")
         rows.append({"grids": len(vol.grids), "validate_s": t1 - t0, "kdtree_s": t2 - t1,
                      "ranges_s": t3 - t2, "leaves": tree.num_leaves, "depth": tree.depth})
         print(f"{len(vol.grids):,} grids: validation {t1 - t0:.2f} s, kd-tree {t2 - t1:.2f} s, "

@@ -23,6 +23,7 @@ import numpy as np
 
 from mi_amr import tolerances as tol
 from mi_amr.errors import AMRError
+from mi_amr.kernels.device import opaque_floats
 
 TABLE_SIZE = 1024
 
@@ -69,11 +70,9 @@ class OpacityBand:
     def inputs(self, m) -> BandInputs:
         """The device values of this band on backend ``m`` (opaque)."""
         def scalar(x):
-            v = m.Float(float(np.float32(x)))
-            dr.make_opaque(v)
-            return v
+            return opaque_floats(m, [x])
 
-        table = m.Float(self.table_T.astype(np.float32))
+        table = opaque_floats(m, self.table_T)
         return BandInputs(width=scalar(self.width), lo=scalar(self.lo), hi=scalar(self.hi),
                           peak=scalar(self.peak), dx0=scalar(self.dx0), table=table)
 

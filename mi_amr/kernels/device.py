@@ -50,10 +50,47 @@ def lnot(mask):
     return ~mask if dr.is_array_v(mask) else not mask
 
 
-def opaque(value):
-    """``value`` (a Dr.Jit array) made an opaque kernel input, and returned."""
-    dr.make_opaque(value)
-    return value
+ALIGN = 64                # bytes: Dr.Jit's LLVM backend wants arrays this aligned
+
+
+def host_aligned(values, dtype) -> np.ndarray:
+    """``values`` flattened into a new NumPy array of ``dtype`` starting on an :data:`ALIGN`
+    byte boundary. Dr.Jit maps NumPy memory instead of copying it, and compiles other code
+    (unaligned loads, no packet gathers) for an array that is not aligned: with arrays at
+    whatever address NumPy gave them, the same scene would compile different kernels from one
+    load to the next."""
+    a = np.ascontiguousarray(values, dtype=dtype).ravel()
+    buf = np.empty(a.nbytes + ALIGN, dtype=np.uint8)
+    start = (-buf.ctypes.data) % ALIGN
+    out = buf[start:start + a.nbytes].view(dtype)
+    out[:] = a
+    return out
+
+
+def device_array(T, values, dtype):
+    """A Dr.Jit array of type ``T`` holding ``values`` (see :func:`host_aligned`)."""
+    return T(host_aligned(values, dtype))
+
+
+def opaque_floats(m, values):
+    """``values`` (numbers) as an opaque kernel input: a ``m.Float`` from aligned host memory,
+    never a literal (literals of equal value may be merged into one variable, which would make
+    the traced program depend on the values)."""
+    v = device_array(m.Float, values, np.float32)
+    dr.make_opaque(v)
+    return v
+
+
+def opaque_bools(m, values):
+    """``values`` as an opaque ``m.Bool`` kernel input (see :func:`opaque_floats`)."""
+    v = device_array(m.Bool, values, np.bool_)
+    dr.make_opaque(v)
+    return v
+
+
+def opaque_point(m, xyz):
+    """A 3-vector as an opaque kernel input (three variables from host memory)."""
+    return m.Array3f(*(opaque_floats(m, [x]) for x in np.ravel(xyz)[:3]))
 
 
 class DeviceVolume:
@@ -139,11 +176,10 @@ class DeviceVolume:
         self.layer_offset = self._scalar(tol.LAYER_OFFSET_CELLS * self.min_h_host)
 
     def _point(self, xyz):
-        x = np.asarray(xyz, dtype=np.float32)
-        return opaque(self.m.Array3f(float(x[0]), float(x[1]), float(x[2])))
+        return opaque_point(self.m, xyz)
 
     def _scalar(self, value: float):
-        return opaque(self.m.Float(float(np.float32(value))))
+        return opaque_floats(self.m, [value])
 
     def arrays(self, basis: bool, color: bool = False) -> list:
         """The value arrays a reconstruction reads: brick pools of leaf values for the basis
@@ -211,7 +247,7 @@ class DeviceVolume:
             table_at += table.size
             count += n
         self.brick_table = self._uints(np.concatenate(tables))
-        self.level_lo = self.m.Int32(np.asarray(level_lo, dtype=np.int32).ravel())
+        self.level_lo = device_array(self.m.Int32, level_lo, np.int32)
         self.level_dims = self._uints(np.asarray(level_dims, dtype=np.uint32).ravel())
         self.level_table_offset = self._uints(np.asarray(level_off, dtype=np.uint32))
         self.brick_values = self._floats(np.concatenate(pools[0]))
@@ -220,10 +256,10 @@ class DeviceVolume:
         self.num_bricks = count
 
     def _floats(self, a):
-        return self.m.Float(np.ascontiguousarray(a, dtype=np.float32))
+        return device_array(self.m.Float, a, np.float32)
 
     def _uints(self, a):
-        return self.m.UInt32(np.ascontiguousarray(a, dtype=np.uint32))
+        return device_array(self.m.UInt32, a, np.uint32)
 
     def node_ranges(self, basis: bool):
         """Per-node value range of the field for one reconstruction, ``lo, hi`` side by side

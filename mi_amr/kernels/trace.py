@@ -14,7 +14,7 @@ import numpy as np
 from mi_amr import params
 from mi_amr.errors import AMRError
 from mi_amr.kernels.config import MarchConfig
-from mi_amr.kernels.device import lnot
+from mi_amr.kernels.device import device_array, lnot, opaque_floats
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import PreparedVolume
 from mi_amr.kernels.reconstruct import reconstruct
@@ -64,16 +64,16 @@ def trace(volume, origins, directions, *, field: str, isovalue,
     prep = _prepared(volume, field, leaf_cells, m)
     dev = prep.device
     n = len(origins)
-    iso = m.Float(np.array(isovalues, dtype=np.float32))
-    scale = m.Float(float(step_scale))
-    dr.make_opaque(iso, scale)
+    iso = opaque_floats(m, isovalues)
+    scale = opaque_floats(m, [step_scale])
     cfg = MarchConfig(method=method, basis=reconstruction == "basis", isovalues=iso,
                       step_scale=scale, num_iso=len(isovalues))
     o = _array3(m, origins)
     d = _array3(m, directions)
     rho = stable_jitter(m, dr.arange(m.UInt32, n)) if jitter is None else \
-        m.Float(np.asarray(jitter, dtype=np.float32))
-    t_end = m.Float(np.broadcast_to(np.asarray(t_max, dtype=np.float32), (n,)).copy())
+        device_array(m.Float, jitter, np.float32)
+    t_end = device_array(m.Float, np.broadcast_to(np.asarray(t_max, dtype=np.float32), (n,)),
+                         np.float32)
     c = first_crossing(dev, cfg, o, d, m.Float(0.0), t_end, rho, m.Bool(True))
     arrays = dev.arrays(cfg.basis)
     _, grad = reconstruct(dev, cfg.basis, dr.fma(d, c.t, o), arrays, c.hit)
@@ -102,4 +102,4 @@ def _prepared(volume, field, leaf_cells, m) -> PreparedVolume:
 
 def _array3(m, a):
     a = np.asarray(a, dtype=np.float32)
-    return m.Array3f(m.Float(a[:, 0].copy()), m.Float(a[:, 1].copy()), m.Float(a[:, 2].copy()))
+    return m.Array3f(*(device_array(m.Float, a[:, i], np.float32) for i in range(3)))

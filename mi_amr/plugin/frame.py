@@ -9,6 +9,7 @@ import numpy as np
 
 from mi_amr import tolerances as tol
 from mi_amr.errors import AMRError
+from mi_amr.kernels.device import backend_of, opaque_floats
 from mi_amr.plugin import bridge
 
 
@@ -27,10 +28,8 @@ class VolumeFrame:
         directions from it on the host (float64 inverse), as opaque values. Built the same way
         every time, so the kernels traced with them are the same every time."""
         matrix = _checked(_host(self.scene_from_volume))
-        self.to_scene = mi.Transform4f(matrix.astype(np.float32))
-        self.to_volume = mi.Transform4f(np.linalg.inv(matrix).astype(np.float32))
-        if bridge.vectorised():
-            dr.make_opaque(self.to_scene, self.to_volume)
+        self.to_scene = _transform(matrix)
+        self.to_volume = _transform(np.linalg.inv(matrix))
 
     def scale(self) -> float:
         """The smallest stretch of a volume-space length in the scene."""
@@ -44,6 +43,18 @@ class VolumeFrame:
 
 def _host(transform) -> np.ndarray:
     return np.array(transform.matrix, dtype=np.float64).reshape(4, 4)
+
+
+def _transform(matrix):
+    """A Mitsuba transform of ``matrix``; in vectorised variants each entry its own opaque
+    variable from aligned memory (entries of equal value stay apart, see
+    :func:`~mi_amr.kernels.device.opaque_floats`)."""
+    if not bridge.vectorised():
+        return mi.Transform4f(matrix.astype(np.float32))
+    m = backend_of(mi.Float)
+    t = mi.Transform4f(mi.Matrix4f(*(opaque_floats(m, [x]) for x in matrix.ravel())))
+    dr.make_opaque(t)
+    return t
 
 
 def _checked(matrix):

@@ -34,6 +34,7 @@ import numpy as np
 from mi_amr.errors import AMRError
 from mi_amr.kernels.band import OpacityBand
 from mi_amr.kernels.colormap import ColorMap, check_range
+from mi_amr.kernels.device import opaque_bools, opaque_floats
 
 PHONG = ("ka", "kd", "ks", "shininess", "ambient")
 FLAGS = mi.ParamFlags.NonDifferentiable
@@ -50,7 +51,12 @@ def colormap_table(spec: str, data_range=None, color_range=None):
 
 
 class FrameInputs:
-    """The values listed in the module docstring, on the kernels' backend ``m``."""
+    """The values listed in the module docstring, on the kernels' backend ``m``.
+
+    ``values`` are the arrays ``mi.traverse`` hands out and writes into (whatever a user
+    assigns: a literal, a computed array). The kernels read ``self[name]``: copies that
+    :meth:`refresh` makes from host memory after every change, opaque and never literals, so
+    the traced program is the same whatever the values and however they were assigned."""
 
     def __init__(self, opt, m, color_data_range, min_h: float):
         self.m, self.k, self.min_h = m, len(opt.isovalues), float(min_h)
@@ -76,7 +82,7 @@ class FrameInputs:
         self.refresh()
 
     def __getitem__(self, name):
-        return self.values[name]
+        return self._kernel[name]
 
     @property
     def has_colormap(self) -> bool:
@@ -96,12 +102,14 @@ class FrameInputs:
                                f"the scene again to change how many")
         host = {name: np.asarray(v.numpy(), dtype=np.float64) for name, v in self.values.items()}
         _check(host)
+        m = self.m
+        self._kernel = {name: opaque_floats(m, v) for name, v in host.items() if name != "shadows"}
+        self._kernel["shadows"] = opaque_bools(m, host["shadows"] != 0)
         self.band = None
         if "band_width" in host:
             lo, hi = host["band_offsets"]
             self.band = OpacityBand(float(host["band_width"][0]), (lo, hi),
-                                    float(host["band_peak"][0]), dx0=self.min_h).inputs(self.m)
-        dr.make_opaque(*self.values.values())
+                                    float(host["band_peak"][0]), dx0=self.min_h).inputs(m)
 
 
 def _check(host: dict) -> None:

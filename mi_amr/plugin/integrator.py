@@ -74,13 +74,24 @@ class _AMRIso:
         if not bridge.vectorised() and opt.mode == "volume":
             raise AMRError("amr_iso: mode 'volume' needs a vectorised variant (llvm_ad_rgb "
                            "or cuda_ad_rgb); scalar variants render surfaces only")
-        self.prep = prepare_file(resolve_data_file(opt.filename), opt.field, opt.color_field,
-                                 leaf_cells=opt.leaf_cells, m=m)
-        self.dev = self.prep.device
+        self._prepare(resolve_data_file(opt.filename))
         self.frame = VolumeFrame(to_world)
         data_range = self.prep.volume.value_range(self.prep.color_field)
         self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host)
         self.shader = IsoShader(self)
+
+    def _prepare(self, path):
+        self.prep = prepare_file(path, self.opt.field, self.opt.color_field,
+                                 leaf_cells=self.opt.leaf_cells, m=self.m)
+        self.dev = self.prep.device
+
+    def load_volume(self, path) -> None:
+        """Show the data file ``path`` instead (the next step of a time series): it must hold
+        the scene's field and colour field, or what they are derived from. Everything else
+        stays; the next frame compiles no kernel."""
+        self._prepare(path)
+        self.inputs.min_h = self.dev.min_h_host
+        self.inputs.refresh()
 
     # ------------------------------------------------------------------ parameters
     def traverse(self, callback):
