@@ -2,4 +2,5 @@ import sys
 
 from mi_amr.cli import main
 
-sys.exit(main())
+if __name__ == "__main__":      # (Dask's worker processes import this module too)
+    sys.exit(main())

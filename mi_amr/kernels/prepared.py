@@ -8,6 +8,7 @@ Preparing the same file twice in one process (a benchmark sweep, a movie) reuses
 from __future__ import annotations
 
 import os
+import time
 from collections import OrderedDict
 
 import drjit as dr
@@ -25,11 +26,15 @@ _CACHE_SIZE = 3
 class PreparedVolume:
     """``volume`` with ``field`` (and ``color_field``) present, its kd-tree and device arrays.
 
-    ``m`` is the Dr.Jit backend module of the kernels that will read it.
+    ``m`` is the Dr.Jit backend module of the kernels that will read it. ``timings`` holds the
+    seconds each step took (``derive``, ``tree``, ``device``; ``read`` when loaded from a file
+    by :func:`prepare_file`).
     """
 
     def __init__(self, volume, field: str, color_field: str | None = None, *,
                  leaf_cells: int = params.default("leaf_cells"), m=None):
+        clock = time.perf_counter()
+        self.timings = {}
         wanted = [f for f in dict.fromkeys([field, color_field]) if f is not None]
         missing = [f for f in wanted if f not in volume.field_names]
         derivable = [f for f in missing if f in DERIVED_FIELDS]
@@ -44,9 +49,17 @@ class PreparedVolume:
         self.volume = volume.select_fields(wanted)
         self.field = field
         self.color_field = color_field or field
+        clock = self._lap("derive", clock)
         self.tree = KDTree(self.volume, leaf_cells=leaf_cells)
+        clock = self._lap("tree", clock)
         self.device = DeviceVolume(self.volume, self.tree, field, self.color_field,
                                    m=m or dr.llvm.ad)
+        self._lap("device", clock)
+
+    def _lap(self, name, since):
+        now = time.perf_counter()
+        self.timings[name] = now - since
+        return now
 
 
 def fields_to_read(field: str, color_field: str | None, available) -> list:
@@ -88,8 +101,11 @@ def prepare_file(path, field: str, color_field: str | None = None, *, leaf_cells
         _CACHE.move_to_end(key)
         return _CACHE[key]
     names = fields_to_read(field, color_field, available_fields(path))
-    prepared = PreparedVolume(load(path, fields=names), field, color_field,
-                              leaf_cells=leaf_cells, m=m)
+    t0 = time.perf_counter()
+    volume = load(path, fields=names)
+    read = time.perf_counter() - t0
+    prepared = PreparedVolume(volume, field, color_field, leaf_cells=leaf_cells, m=m)
+    prepared.timings = {"read": read, **prepared.timings}
     _CACHE[key] = prepared
     while len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import drjit as dr
 import mitsuba as mi
 
 from mi_amr.errors import AMRError
@@ -25,18 +26,39 @@ def load_scene(path, **params):
 
 
 def _opaque_cameras(scene) -> None:
-    """Write each camera's ``to_world`` back through ``mi.traverse``: Mitsuba then keeps it as an
-    opaque value, so moving the camera later does not recompile the rendering kernel."""
+    """Write the values a frame is likely to change -- each camera's and emitter's
+    ``to_world``, a camera's field of view, an emitter's strength -- back through
+    ``mi.traverse`` as new opaque values: Mitsuba traced them as literals at load time, so the
+    first change would otherwise compile the rendering kernel again."""
     params = mi.traverse(scene)
-    keys = [k[: -len(".film.size")] + ".to_world" for k in params.keys()
-            if k.endswith(".film.size")]
-    keys = [k for k in keys if k in params]
+    prefixes = [s.id() for s in scene.sensors()] + [e.id() for e in scene.emitters()]
+    suffixes = (".to_world", ".x_fov", ".irradiance.value", ".radiance.value",
+                ".intensity.value")
+    keys = [p + s for p in prefixes for s in suffixes if p + s in params]
     for k in keys:
-        # The same update a moved camera goes through (a computed transform), so the kernel
-        # compiled for the first frame is the one every later camera position reuses.
-        params[k] = mi.Transform4f() @ params[k]
+        value = params[k]
+        if isinstance(value, mi.Transform4f):
+            # The same update a moved camera goes through (a computed transform).
+            params[k] = mi.Transform4f() @ value
+        elif k.endswith(".x_fov"):
+            # Assigned as a number, as a user would: Mitsuba makes the camera's derived values
+            # opaque from then on.
+            params[k] = float(value.numpy()[0])
+        else:
+            params[k] = _fresh(value)
     if keys:
         params.update()
+
+
+def _fresh(value):
+    """A new evaluated copy of a Mitsuba float or colour (from aligned host memory)."""
+    import numpy as np
+
+    from mi_amr.kernels.device import device_array
+
+    if dr.depth_v(value) > 1:
+        return type(value)(*(device_array(mi.Float, c.numpy(), np.float32) for c in value))
+    return device_array(type(value), value.numpy(), np.float32)
 
 
 def _unwrap(error: RuntimeError, path) -> AMRError:

@@ -1,0 +1,166 @@
+"""Movies: a camera orbit, an isovalue sweep, keyframes or a time series of data files, one
+frame per task, rendered in this process or on Dask, every per-frame value a kernel input.
+
+>>> from mi_amr.workflows.movie import render_movie
+>>> summary = render_movie("scenes_xml/sphere_wake.xml", "out/orbit", orbit=360, frames=48,
+...                        resolution=(512, 512), workers=2, mp4="out/orbit.mp4")
+
+The frame specs (:mod:`.spec`) are plain values: build them with :func:`plan` (or by hand) and
+pass them as ``specs``; the viewer's "add keyframe" button appends to a keyframe file with
+:func:`append_keyframe`.
+"""
+
+from __future__ import annotations
+
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+from mi_amr.errors import AMRError
+from mi_amr.workflows.movie.farm import Summary, jobs_for, run_jobs
+from mi_amr.workflows.movie.output import FORMATS, check_out_dir, frame_path
+from mi_amr.workflows.movie.spec import (FrameSpec, append_keyframe, expand_files, plan,
+                                         read_keyframes)
+
+__all__ = ["render_movie", "plan", "FrameSpec", "append_keyframe", "read_keyframes",
+           "expand_files", "series_color_range", "Summary"]
+
+
+def series_color_range(files, scene_path, defines=None) -> tuple:
+    """One colour range for a whole time series: the smallest and largest value of the scene's
+    colour field over every file (each file read once, that field only, or what it is derived
+    from). A file that cannot be read is left out here; its frames fail, naming it."""
+    from mi_amr.core.derive import DERIVED_FIELDS, derive
+    from mi_amr.kernels.prepared import fields_to_read
+    from mi_amr.readers import available_fields, load
+
+    field, color_field = _scene_fields(scene_path, defines)
+    if color_field is None:
+        return None
+    lo, hi = float("inf"), float("-inf")
+    for f in files:
+        try:
+            vol = load(f, fields=fields_to_read(color_field, None, available_fields(f)))
+        except AMRError:
+            continue
+        if color_field not in vol.field_names and color_field in DERIVED_FIELDS:
+            vol = derive(vol, color_field)
+        a, b = vol.value_range(color_field)
+        lo, hi = min(lo, a), max(hi, b)
+    return (lo, hi) if lo < hi else None
+
+
+def _scene_fields(scene_path, defines):
+    """``(field, color_field)`` of the scene's amr_iso integrator, read from its XML."""
+    import re
+
+    try:
+        root = ET.parse(str(scene_path)).getroot()
+    except (OSError, ET.ParseError) as e:
+        raise AMRError(f"{scene_path}: cannot read the scene file ({e})") from None
+    values = {d.get("name"): d.get("value") for d in root.iter("default")}
+    values.update(defines or {})
+    integ = root.find("integrator[@type='amr_iso']")
+    if integ is None:
+        raise AMRError(f"{scene_path}: the scene has no amr_iso integrator")
+
+    def value(name):
+        node = integ.find(f"*[@name='{name}']")
+        if node is None:
+            return None
+        return re.sub(r"\$(\w+)", lambda m: str(values.get(m.group(1), m.group(0))),
+                      node.get("value"))
+
+    return value("field"), value("color_field") if value("colormap") else None
+
+
+def _has_filename_default(scene_path) -> bool:
+    root = ET.parse(str(scene_path)).getroot()
+    return any(d.get("name") == "filename" for d in root.iter("default"))
+
+
+def _check_fields(files, scene_path, defines):
+    """Every file holds what the scene shows (stored, or what it is derived from)."""
+    from mi_amr.kernels.prepared import fields_to_read
+    from mi_amr.readers import available_fields
+
+    field, color_field = _scene_fields(scene_path, defines)
+    for f in files:
+        try:
+            have = available_fields(f)
+            need = fields_to_read(field, color_field, have)
+        except AMRError:
+            continue                # unreadable: that frame fails, naming the file
+        missing = [n for n in need if n not in have]
+        if missing:
+            raise AMRError(f"{f}: has no field(s) {missing} that the scene shows; it holds "
+                           f"{list(have)}")
+
+
+def render_movie(scene, out, *, frames=None, files=None, orbit=None, isovalues=None,
+                 keyframes=None, color_range=None, resolution=None, spp=None, fmt="png",
+                 workers: int = 1, scheduler=None, mp4=None, fps: int = 24, force=False,
+                 defines=None, variant="llvm_ad_rgb", specs=None, progress=True) -> Summary:
+    """Render a movie of ``scene`` into the folder ``out`` (``frame_00000.png`` ...) and return
+    what happened. ``color_range``: ``(lo, hi)``, ``"series"`` (one range over all ``files``;
+    the default for a time series) or None (the scene's). See the module docstring and
+    ``python -m mi_amr movie --help`` for the rest."""
+    t0 = time.perf_counter()
+    scene = Path(scene)
+    if not scene.is_file():
+        raise AMRError(f"{scene}: no such scene file")
+    if fmt not in FORMATS:
+        raise AMRError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    out = check_out_dir(out)
+    defines = dict(defines or {})
+    if specs is None:
+        specs = _plan(scene, frames, files, orbit, isovalues, keyframes, color_range, defines,
+                      resolution, spp, variant)
+    first_file = next((s.file for s in specs if s.file), None)
+    if first_file and _has_filename_default(scene):
+        defines.setdefault("filename", str(Path(first_file).resolve()))
+    jobs, skipped = jobs_for(scene, specs, out, fmt, resolution=resolution, spp=spp,
+                             defines=defines, variant=variant, force=force)
+    summary = Summary(skipped=skipped)
+    try:
+        for r in run_jobs(jobs, workers=workers, scheduler=scheduler, progress=progress,
+                          variant=variant):
+            (summary.failed if "error" in r else summary.rendered).append(r)
+    finally:
+        # A worker killed while writing leaves its temporary file (never a frame's name).
+        for tmp in out.glob(f".frame_*.{fmt}"):
+            tmp.unlink(missing_ok=True)
+    if mp4 is not None and not summary.failed:
+        from mi_amr.workflows.movie.encode import encode_mp4
+
+        encode_mp4([frame_path(out, s.index, fmt) for s in specs], mp4, fps, force=force)
+    summary.seconds = time.perf_counter() - t0
+    return summary
+
+
+def _plan(scene, frames, files, orbit, isovalues, keyframes, color_range, defines, resolution,
+          spp, variant):
+    """The frame specs of the options (reading the camera from the scene file)."""
+    files = expand_files(files) if files else []
+    if files:
+        _check_fields(files, scene, defines)
+    keys = read_keyframes(keyframes) if keyframes else None
+    if color_range == "series":
+        color_range = series_color_range(files, scene, defines) if files else None
+    elif color_range is None and files:
+        color_range = series_color_range(files, scene, defines)
+    camera = _scene_camera(scene, defines)
+    return plan(frames, camera=camera, files=files, orbit_degrees=orbit, isovalues=isovalues,
+                keyframes=keys, color_range=color_range)
+
+
+def _scene_camera(scene, defines) -> dict:
+    import mitsuba  # noqa: F401  (plugin.camera needs a variant for matrix cameras only)
+
+    from mi_amr.plugin.camera import scene_camera
+
+    try:
+        return scene_camera(scene, defines).as_dict()
+    except AMRError:
+        raise AMRError(f"{scene}: a movie needs the camera given as <lookat origin target up> "
+                       f"in the scene file") from None

@@ -1,0 +1,187 @@
+"""Farming a movie's frames out: in this process (one worker), on a Dask ``LocalCluster`` of
+worker processes, or on an existing Dask cluster by its scheduler's address (dask-jobqueue on
+SLURM or PBS, Kubernetes, ``dask scheduler`` by hand).
+
+Each frame is one task. A task runs :func:`render_task` on a worker: the worker keeps one
+:class:`~mi_amr.workflows.movie.frames.FrameRenderer` per scene (Mitsuba plugins are registered
+per process, by :class:`MiAmrSetup` when a worker starts), and the loaded volumes of recent
+time steps, and sends back the frame's path and timings, never the pixels. A frame whose worker
+dies is retried elsewhere; since frames are written atomically, no half-written frame is left.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import traceback
+from dataclasses import dataclass, field
+
+from mi_amr.errors import AMRError
+from mi_amr.workflows.movie.output import frame_path
+from mi_amr.workflows.movie.spec import FrameSpec
+
+CONNECT_TIMEOUT = "10s"
+RETRIES = 2
+_RENDERERS = {}
+
+
+@dataclass
+class Job:
+    """What a worker needs to render one frame (plain values: it is pickled to the worker)."""
+
+    scene: str
+    spec: dict
+    path: str
+    resolution: tuple | None
+    spp: int | None
+    defines: dict
+    variant: str
+
+
+@dataclass
+class Summary:
+    """How a run went: frames rendered (with their timings), skipped and failed."""
+
+    rendered: list = field(default_factory=list)
+    skipped: list = field(default_factory=list)
+    failed: list = field(default_factory=list)
+    seconds: float = 0.0
+
+    def text(self) -> str:
+        lines = [f"{len(self.rendered)} frame(s) rendered, {len(self.skipped)} skipped (already "
+                 f"there), {len(self.failed)} failed, in {self.seconds:.1f} s"]
+        lines += [f"  frame {f['index']}" + (f" ({f['file']})" if f.get("file") else "") +
+                  f": {f['error']}" for f in sorted(self.failed, key=lambda f: f["index"])]
+        return "\n".join(lines)
+
+
+def _renderer(job: Job):
+    from mi_amr.workflows.movie.frames import FrameRenderer
+
+    key = (job.scene, job.resolution, job.spp, tuple(sorted(job.defines.items())), job.variant)
+    if key not in _RENDERERS:
+        _RENDERERS.clear()          # one scene per process at a time (its volumes are large)
+        _RENDERERS[key] = FrameRenderer(job.scene, resolution=job.resolution, spp=job.spp,
+                                        defines=job.defines, variant=job.variant)
+    return _RENDERERS[key]
+
+
+def render_task(job: Job) -> dict:
+    """Render one frame where this runs; a user mistake (a bad file in the series) comes back
+    as ``{"error": ...}`` instead of an exception, so the other frames go on."""
+    spec = FrameSpec.from_dict(job.spec)
+    out = {"index": spec.index, "file": spec.file, "path": job.path, "pid": os.getpid()}
+    try:
+        out.update(_renderer(job).render_to(spec, job.path))
+    except AMRError as e:
+        out["error"] = str(e)
+    except Exception as e:              # noqa: BLE001 -- reported per frame, not a crash
+        out["error"] = f"{type(e).__name__}: {e} ({traceback.format_exc(limit=2).strip()})"
+    return out
+
+
+class MiAmrSetup:
+    """Dask worker plugin: on each worker at start, pick the Mitsuba variant, register
+    ``amr_iso`` and give Dr.Jit a fair share of the machine's cores."""
+
+    name = "mi_amr-setup"
+
+    def __init__(self, variant: str, threads: int | None):
+        self.variant, self.threads = variant, threads
+
+    def setup(self, worker=None):
+        import drjit as dr
+        import mitsuba as mi
+
+        if self.threads:
+            dr.set_thread_count(self.threads)
+        mi.set_variant(self.variant)
+        from mi_amr.plugin.integrator import register
+
+        register()
+
+
+def jobs_for(scene, specs, out_dir, fmt, *, resolution, spp, defines, variant, force):
+    """The jobs still to do, and the frames skipped because their file exists."""
+    jobs, skipped = [], []
+    for spec in specs:
+        path = frame_path(out_dir, spec.index, fmt)
+        if path.exists() and not force:
+            skipped.append(spec.index)
+            continue
+        jobs.append(Job(scene=str(scene), spec=spec.as_dict(), path=str(path),
+                        resolution=None if resolution is None else tuple(resolution), spp=spp,
+                        defines=dict(defines), variant=variant))
+    return jobs, skipped
+
+
+def run_jobs(jobs, *, workers: int = 1, scheduler: str | None = None, progress: bool = True,
+             variant: str = "llvm_ad_rgb") -> list:
+    """Run ``jobs``: in this process with one worker and no scheduler, else on Dask. Returns
+    the tasks' results as they finish."""
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(jobs), unit="frame", disable=not progress, smoothing=0.1)
+    try:
+        if scheduler is None and workers <= 1:
+            results = []
+            for job in jobs:
+                results.append(render_task(job))
+                bar.update(1)
+            return results
+        return _run_dask(jobs, workers, scheduler, bar, variant)
+    finally:
+        bar.close()
+
+
+def _connect(workers, scheduler, variant):
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise AMRError("farming frames out needs Dask: pip install 'mi_amr[movie]' (or run "
+                       "with --workers 1)") from None
+    if scheduler is not None:
+        try:
+            client = Client(scheduler, timeout=CONNECT_TIMEOUT)
+        except (OSError, TimeoutError) as e:
+            raise AMRError(f"--scheduler {scheduler}: cannot reach the Dask scheduler within "
+                           f"{CONNECT_TIMEOUT} ({e})") from None
+        return client, None, None
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=40)
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    return Client(cluster), cluster, threads
+
+
+def _run_dask(jobs, workers, scheduler, bar, variant) -> list:
+    from dask.distributed import as_completed
+
+    client, cluster, threads = _connect(workers, scheduler, variant)
+    try:
+        client.register_plugin(_worker_plugin(variant, threads))
+        futures = [client.submit(render_task, job, key=f"mi_amr-frame-{i}-{time.time_ns()}",
+                                 retries=RETRIES, pure=False) for i, job in enumerate(jobs)]
+        results = []
+        for future in as_completed(futures):
+            try:
+                results.append(future.result())
+            except Exception as e:      # noqa: BLE001 -- a task lost after its retries
+                job = jobs[futures.index(future)]
+                spec = job.spec
+                results.append({"index": spec["index"], "file": spec.get("file"),
+                                "path": job.path, "error": f"{type(e).__name__}: {e}"})
+            bar.update(1)
+        return results
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _worker_plugin(variant, threads):
+    from dask.distributed import WorkerPlugin
+
+    class _Setup(MiAmrSetup, WorkerPlugin):
+        pass
+
+    return _Setup(variant, threads)

@@ -1,0 +1,82 @@
+"""Writing a movie's files: every file appears whole or not at all (written under a temporary
+name in its folder, then renamed), and nothing is replaced without ``force``."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from mi_amr.errors import AMRError
+
+FORMATS = ("png", "exr")
+
+
+def frame_path(out_dir, index: int, fmt: str = "png") -> Path:
+    """``DIR/frame_00042.png``."""
+    return Path(out_dir) / f"frame_{index:05d}.{fmt}"
+
+
+def check_out_dir(out_dir) -> Path:
+    """The output folder, made if missing; an :class:`AMRError` when it is a file or cannot be
+    written (checked before any work starts)."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise AMRError(f"-o {out}: is a file, not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = tempfile.NamedTemporaryFile(dir=out, prefix=".mi_amr-write-test-", delete=True)
+        probe.close()
+    except OSError as e:
+        raise AMRError(f"-o {out}: cannot write there ({e.strerror or e})") from None
+    return out
+
+
+def _temporary(path: Path):
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    os.close(fd)
+    return tmp
+
+
+def _replace(tmp, path: Path) -> None:
+    mask = os.umask(0)
+    os.umask(mask)
+    os.chmod(tmp, 0o666 & ~mask)      # mkstemp makes 0600; a written file is a normal file
+    os.replace(tmp, path)
+
+
+def write_bytes_atomic(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` whole or not at all."""
+    path = Path(path)
+    tmp = _temporary(path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+        _replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def write_image_atomic(path, image: np.ndarray) -> None:
+    """Write a linear RGB float image ``(H, W, 3)`` as 8-bit sRGB PNG or float EXR (by the
+    suffix), whole or not at all."""
+    import mitsuba as mi
+
+    path = Path(path)
+    tmp = _temporary(path)
+    try:
+        bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32),
+                           pixel_format=mi.Bitmap.PixelFormat.RGB)
+        if path.suffix.lower() == ".png":
+            bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8,
+                                    srgb_gamma=True)
+        bitmap.write(tmp)
+        _replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise

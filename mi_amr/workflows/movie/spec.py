@@ -1,0 +1,289 @@
+"""What each frame of a movie shows: a :class:`FrameSpec` per frame (its data file, camera,
+first isovalue and colour range), planned from a time series, an orbit, an isovalue sweep or a
+keyframe file. NumPy and the standard library only: specs travel to Dask workers as plain dicts.
+
+Keyframe files (TOML or JSON) list keyframes with a ``frame`` number (increasing) and any of
+``origin``, ``target``, ``up`` (3 numbers, scene world space), ``fov`` (degrees), ``isovalue``
+and ``color_range`` (2 numbers)::
+
+    [[keyframe]]
+    frame = 0
+    origin = [-2.6, -6.2, 3.4]
+    target = [2.2, 0.0, -0.2]
+    isovalue = 0.05
+
+    [[keyframe]]
+    frame = 48
+    origin = [4.0, -6.0, 2.0]
+    isovalue = 0.08
+
+(JSON: ``{"keyframe": [{...}, ...]}`` or a plain list.) Between keyframes the camera's origin
+and target follow Catmull-Rom curves through the keyframes' values (a smooth path), ``up``,
+``fov`` and the scalars go linearly; before the first and after the last keyframe values hold.
+A value no keyframe gives is the scene's own.
+"""
+
+from __future__ import annotations
+
+import glob
+import json
+import math
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from mi_amr.errors import AMRError
+
+KEYFRAME_KEYS = ("frame", "origin", "target", "up", "fov", "isovalue", "color_range")
+VECTORS = ("origin", "target", "up")
+
+
+@dataclass(frozen=True)
+class FrameSpec:
+    """One frame: ``index`` (0-based), ``file`` (data file; None: the scene's own), ``camera``
+    (``{"origin", "target", "up", "fov"}``; None: the scene's), ``isovalue`` (the first
+    isovalue; None: the scene's) and ``color_range`` (``(lo, hi)``; None: the scene's)."""
+
+    index: int
+    file: Optional[str] = None
+    camera: Optional[dict] = None
+    isovalue: Optional[float] = None
+    color_range: Optional[tuple] = None
+
+    def as_dict(self) -> dict:
+        return {"index": self.index, "file": self.file, "camera": self.camera,
+                "isovalue": self.isovalue,
+                "color_range": None if self.color_range is None else list(self.color_range)}
+
+    @staticmethod
+    def from_dict(d: dict) -> "FrameSpec":
+        rng = d.get("color_range")
+        return FrameSpec(index=int(d["index"]), file=d.get("file"), camera=d.get("camera"),
+                         isovalue=d.get("isovalue"),
+                         color_range=None if rng is None else tuple(float(x) for x in rng))
+
+
+# ---------------------------------------------------------------------- files
+
+def natural_key(path) -> list:
+    """Sort key putting ``plt9`` before ``plt10`` (digit runs compare as numbers)."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", str(path))]
+
+
+def expand_files(spec) -> list:
+    """The time series named by ``spec``: a glob pattern, a comma-separated list, or a list of
+    paths (each may be a glob), in natural order. Raises :class:`AMRError` when nothing
+    matches or a listed file is missing."""
+    items = spec if isinstance(spec, (list, tuple)) else [s for s in str(spec).split(",") if s]
+    out = []
+    for item in items:
+        item = os.path.expanduser(str(item).strip())
+        if glob.has_magic(item):
+            found = glob.glob(item)
+            if not found:
+                raise AMRError(f"--files: '{item}' matches no file")
+            out += found
+        elif os.path.exists(item):
+            out.append(item)
+        else:
+            raise AMRError(f"--files: {item}: no such file or folder")
+    if not out:
+        raise AMRError("--files: no files given")
+    return sorted(dict.fromkeys(out), key=natural_key)
+
+
+# ---------------------------------------------------------------------- paths and sweeps
+
+def orbit(camera: dict, degrees: float, count: int) -> list:
+    """``count`` cameras turning ``camera`` about its target, on its up axis, ``degrees`` in
+    all: frame ``i`` is turned by ``degrees * i / count`` (a full turn loops without a repeated
+    frame)."""
+    origin, target = np.asarray(camera["origin"], float), np.asarray(camera["target"], float)
+    axis = np.asarray(camera["up"], float)
+    axis = axis / np.linalg.norm(axis)
+    out = []
+    for i in range(count):
+        a = math.radians(degrees * i / count)
+        v = origin - target
+        # Rodrigues' rotation of v about axis.
+        v = (v * math.cos(a) + np.cross(axis, v) * math.sin(a) +
+             axis * np.dot(axis, v) * (1 - math.cos(a)))
+        out.append(dict(camera, origin=[float(x) for x in target + v]))
+    return out
+
+
+def sweep(spec: str, count: int) -> list:
+    """``count`` values from ``"START:STOP"`` (both ends included), evenly or, with a ``log:``
+    prefix, evenly in the logarithm (both ends must then have the same sign)."""
+    text = str(spec).strip()
+    log = text.startswith("log:")
+    try:
+        start, stop = (float(x) for x in text[4 if log else 0:].split(":"))
+    except ValueError:
+        raise AMRError(f"--isovalues: expected START:STOP or log:START:STOP, got '{spec}'") \
+            from None
+    if not (math.isfinite(start) and math.isfinite(stop)):
+        raise AMRError(f"--isovalues: '{spec}' needs finite numbers")
+    u = np.linspace(0.0, 1.0, count) if count > 1 else np.zeros(1)
+    if not log:
+        return [float(start + (stop - start) * x) for x in u]
+    if start * stop <= 0:
+        raise AMRError(f"--isovalues: a log sweep needs two non-zero ends of one sign, got '{spec}'")
+    sign = math.copysign(1.0, start)
+    a, b = math.log(abs(start)), math.log(abs(stop))
+    return [float(sign * math.exp(a + (b - a) * x)) for x in u]
+
+
+# ---------------------------------------------------------------------- keyframes
+
+def read_keyframes(path) -> list:
+    """The keyframes of a TOML or JSON file (see the module docstring), checked: known keys,
+    increasing frame numbers, numbers of the right shape."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise AMRError(f"{path}: cannot read the keyframe file ({e.strerror})") from None
+    try:
+        if path.suffix.lower() == ".toml":
+            import tomllib
+
+            data = tomllib.loads(text)
+        else:
+            data = json.loads(text)
+    except ValueError as e:
+        raise AMRError(f"{path}: not a valid {path.suffix[1:].upper() or 'JSON'} file ({e})") \
+            from None
+    keys = data.get("keyframe", data.get("keyframes")) if isinstance(data, dict) else data
+    if not isinstance(keys, list) or not keys:
+        raise AMRError(f"{path}: expected a list of keyframes ([[keyframe]] tables)")
+    return _monotonic(path, [_check_keyframe(path, i, k) for i, k in enumerate(keys)])
+
+
+def _check_keyframe(path, i, k) -> dict:
+    if not isinstance(k, dict):
+        raise AMRError(f"{path}: keyframe {i + 1} is not a table of values")
+    unknown = sorted(set(k) - set(KEYFRAME_KEYS))
+    if unknown:
+        raise AMRError(f"{path}: keyframe {i + 1}: unknown key(s) {unknown}; allowed: "
+                       f"{', '.join(KEYFRAME_KEYS)}")
+    if "frame" not in k or not isinstance(k["frame"], int) or k["frame"] < 0:
+        raise AMRError(f"{path}: keyframe {i + 1} needs 'frame', a whole number >= 0")
+    out = {"frame": k["frame"]}
+    for name in k:
+        if name == "frame":
+            continue
+        want = 3 if name in VECTORS else 2 if name == "color_range" else 1
+        v = k[name] if want > 1 else [k[name]]
+        if not isinstance(v, list) or len(v) != want or \
+                not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
+            raise AMRError(f"{path}: keyframe {i + 1}: '{name}' needs {want} finite number(s), "
+                           f"got {k[name]!r}")
+        out[name] = [float(x) for x in v] if want > 1 else float(v[0])
+    if "color_range" in out and not out["color_range"][0] < out["color_range"][1]:
+        raise AMRError(f"{path}: keyframe {i + 1}: 'color_range' needs low < high")
+    return out
+
+
+def _monotonic(path, keys) -> list:
+    frames = [k["frame"] for k in keys]
+    for a, b in zip(frames, frames[1:]):
+        if b <= a:
+            raise AMRError(f"{path}: keyframe frame numbers must increase, got {a} then {b}")
+    return keys
+
+
+def _catmull_rom(points, frames, t):
+    """The uniform Catmull-Rom curve through ``points`` (at parameters ``frames``) at ``t``."""
+    i = int(np.clip(np.searchsorted(frames, t, side="right") - 1, 0, len(frames) - 2))
+    u = (t - frames[i]) / (frames[i + 1] - frames[i])
+    p0 = points[max(i - 1, 0)]
+    p1, p2 = points[i], points[i + 1]
+    p3 = points[min(i + 2, len(points) - 1)]
+    return 0.5 * ((2 * p1) + (-p0 + p2) * u + (2 * p0 - 5 * p1 + 4 * p2 - p3) * u * u +
+                  (-p0 + 3 * p1 - 3 * p2 + p3) * u ** 3)
+
+
+def keyframe_value(keys, name, t, default):
+    """The value of ``name`` at frame ``t``: interpolated between the keyframes that give it
+    (Catmull-Rom for origin and target, linear otherwise), held beyond them."""
+    have = [k for k in keys if name in k]
+    if not have:
+        return default
+    frames = np.array([k["frame"] for k in have], dtype=float)
+    values = np.array([np.atleast_1d(k[name]) for k in have], dtype=float)
+    if len(have) == 1 or t <= frames[0]:
+        v = values[0]
+    elif t >= frames[-1]:
+        v = values[-1]
+    elif name in ("origin", "target"):
+        v = _catmull_rom(values, frames, t)
+    else:
+        v = np.array([np.interp(t, frames, values[:, c]) for c in range(values.shape[1])])
+    return [float(x) for x in v] if values.shape[1] > 1 else float(v[0])
+
+
+def append_keyframe(path, frame: int, camera: dict | None = None, isovalue=None,
+                    color_range=None) -> dict:
+    """Add a keyframe to the file ``path`` (JSON, or TOML by its suffix; made when missing) and
+    write it atomically. The frame number must be above the file's last one."""
+    path = Path(path)
+    keys = read_keyframes(path) if path.exists() else []
+    if keys and frame <= keys[-1]["frame"]:
+        raise AMRError(f"{path}: keyframe frame {frame} must come after {keys[-1]['frame']}")
+    new = {"frame": int(frame)}
+    if camera is not None:
+        new.update({k: [float(x) for x in camera[k]] for k in VECTORS})
+        new["fov"] = float(camera["fov"])
+    if isovalue is not None:
+        new["isovalue"] = float(isovalue)
+    if color_range is not None:
+        new["color_range"] = [float(x) for x in color_range]
+    keys.append(_check_keyframe(path, len(keys), new))
+    text = _toml(keys) if path.suffix.lower() == ".toml" else json.dumps({"keyframe": keys},
+                                                                         indent=2) + "\n"
+    from mi_amr.workflows.movie.output import write_bytes_atomic
+
+    write_bytes_atomic(path, text.encode())
+    return new
+
+
+def _toml(keys) -> str:
+    def value(v):
+        return "[" + ", ".join(repr(float(x)) for x in v) + "]" if isinstance(v, list) \
+            else str(v) if isinstance(v, int) else repr(float(v))
+
+    blocks = ["[[keyframe]]\n" + "".join(f"{k} = {value(v)}\n" for k, v in key.items())
+              for key in keys]
+    return "\n".join(blocks)
+
+
+# ---------------------------------------------------------------------- planning
+
+def plan(frames: int | None, *, camera: dict, files=None, orbit_degrees=None, isovalues=None,
+         keyframes=None, color_range=None) -> list:
+    """The frames of a movie (see the module docstring). ``frames`` defaults to the number of
+    files, else to the last keyframe + 1, else to 60. With more frames than files each time
+    step is held for several frames."""
+    files = list(files or [])
+    if frames is None:
+        frames = len(files) or (keyframes[-1]["frame"] + 1 if keyframes else 60)
+    if frames < 1:
+        raise AMRError(f"--frames must be >= 1, got {frames}")
+    cams = orbit(camera, orbit_degrees, frames) if orbit_degrees else [camera] * frames
+    isos = sweep(isovalues, frames) if isovalues else [None] * frames
+    out = []
+    for i in range(frames):
+        cam, iso, rng = dict(cams[i]), isos[i], color_range
+        if keyframes:
+            cam = {k: keyframe_value(keyframes, k, i, cam[k]) for k in (*VECTORS, "fov")}
+            iso = keyframe_value(keyframes, "isovalue", i, iso)
+            rng = keyframe_value(keyframes, "color_range", i, rng)
+        step = files[min(i * len(files) // frames, len(files) - 1)] if files else None
+        out.append(FrameSpec(index=i, file=step, camera=cam, isovalue=iso,
+                             color_range=None if rng is None else tuple(rng)))
+    return out

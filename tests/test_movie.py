@@ -1,0 +1,308 @@
+"""Movies (:mod:`mi_amr.workflows.movie`): frame plans checked on camera positions, a time series
+rendered on a real Dask LocalCluster of 2 worker processes against the same frames rendered in
+this process, skipping and ``force``, a worker killed mid-run, the MP4, and the bad inputs.
+Small data, 32 x 32 frames."""
+
+import json
+import math
+import os
+import signal
+import textwrap
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from mi_amr import AMRError
+from mi_amr.synthetic import datasets
+from mi_amr.workflows.movie import spec as S
+
+RES = (32, 32)
+pytest.importorskip("drjit")
+
+
+# ---------------------------------------------------------------------- plans (no rendering)
+
+CAMERA = {"origin": [2.0, 0.0, 0.5], "target": [0.0, 0.0, 0.5], "up": [0.0, 0.0, 1.0],
+          "fov": 30.0}
+
+
+def test01_an_orbit_turns_about_the_target_on_the_up_axis():
+    cams = S.orbit(CAMERA, 360, 8)
+    for i, c in enumerate(cams):
+        a = 2 * math.pi * i / 8
+        np.testing.assert_allclose(c["origin"], [2 * math.cos(a), 2 * math.sin(a), 0.5],
+                                   atol=1e-12)
+        assert c["target"] == CAMERA["target"] and c["fov"] == 30.0
+    tilted = dict(CAMERA, up=[1.0, 0.0, 0.0], origin=[0.0, 1.0, 0.5])
+    np.testing.assert_allclose(S.orbit(tilted, 180, 2)[1]["origin"], [0.0, 0.0, 1.5], atol=1e-12)
+
+
+def test02_keyframes_pass_through_their_values_on_a_smooth_path(tmp_path):
+    """Origins follow the Catmull-Rom curve through the keyframes (hit exactly at keyframes,
+    the analytic midpoint between them), scalars go linearly, and values hold outside."""
+    path = tmp_path / "keys.toml"
+    path.write_text(textwrap.dedent("""
+        [[keyframe]]
+        frame = 0
+        origin = [0.0, 0.0, 0.0]
+        isovalue = 0.1
+        [[keyframe]]
+        frame = 10
+        origin = [1.0, 0.0, 0.0]
+        [[keyframe]]
+        frame = 20
+        origin = [1.0, 1.0, 0.0]
+        isovalue = 0.3
+        color_range = [0.0, 2.0]
+        """))
+    keys = S.read_keyframes(path)
+    specs = S.plan(25, camera=CAMERA, keyframes=keys)
+    assert len(specs) == 25
+    for f, want in ((0, [0, 0, 0]), (10, [1, 0, 0]), (20, [1, 1, 0]), (24, [1, 1, 0])):
+        np.testing.assert_allclose(specs[f].camera["origin"], want, atol=1e-12)
+    # Catmull-Rom between p1 = (0,0,0) and p2 = (1,0,0) (p0 = p1, p3 = (1,1,0)) at u = 1/2:
+    # (p1 + p2) / 2 + (p1 + p2 - p0 - p3) / 16.
+    p0, p1, p2, p3 = map(np.array, ([0, 0, 0], [0, 0, 0], [1, 0, 0], [1, 1, 0]))
+    np.testing.assert_allclose(specs[5].camera["origin"],
+                               (p1 + p2) / 2 + (p1 + p2 - p0 - p3) / 16, atol=1e-12)
+    assert specs[5].isovalue == pytest.approx(0.15)
+    assert specs[15].isovalue == pytest.approx(0.25)
+    assert specs[0].color_range == (0.0, 2.0) and specs[24].camera["target"] == CAMERA["target"]
+
+
+def test03_a_time_series_holds_each_step_and_sorts_naturally(tmp_path):
+    for name in ("plt10", "plt9", "plt100", "plt0"):
+        (tmp_path / name).write_text("x")
+    files = S.expand_files(str(tmp_path / "plt*"))
+    assert [os.path.basename(f) for f in files] == ["plt0", "plt9", "plt10", "plt100"]
+    specs = S.plan(8, camera=CAMERA, files=files)
+    assert [os.path.basename(s.file) for s in specs] == \
+        ["plt0", "plt0", "plt9", "plt9", "plt10", "plt10", "plt100", "plt100"]
+    assert S.sweep("log:0.01:1", 3) == pytest.approx([0.01, 0.1, 1.0])
+
+
+@pytest.mark.parametrize("text,message", [
+    ('{"keyframe": [{"frame": 0, "origin": [0, 0, 0], "zoom": 2}]}', "unknown key"),
+    ('{"keyframe": [{"frame": 5}, {"frame": 3}]}', "must increase"),
+    ('{"keyframe": [{"frame": 0, "origin": [0, 0]}]}', "'origin' needs 3"),
+    ('{"keyframe": [{"origin": [0, 0, 0]}]}', "needs 'frame'"),
+    ("not json", "not a valid JSON"),
+])
+def test04_bad_keyframe_files_are_refused(tmp_path, text, message):
+    path = tmp_path / "k.json"
+    path.write_text(text)
+    with pytest.raises(AMRError, match=message):
+        S.read_keyframes(path)
+
+
+def test05_keyframes_are_appended_atomically(tmp_path):
+    for suffix in (".json", ".toml"):
+        path = tmp_path / f"keys{suffix}"
+        S.append_keyframe(path, 0, camera=CAMERA, isovalue=0.1)
+        S.append_keyframe(path, 12, camera=dict(CAMERA, fov=40.0), color_range=(0, 1))
+        keys = S.read_keyframes(path)
+        assert [k["frame"] for k in keys] == [0, 12] and keys[1]["fov"] == 40.0
+        with pytest.raises(AMRError, match="must come after"):
+            S.append_keyframe(path, 12)
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+# ---------------------------------------------------------------------- rendering
+
+SCENE = """
+<scene version="3.0.0">
+    <default name="filename" value="step0.npz"/>
+    <integrator type="amr_iso" id="integrator">
+        <string name="filename" value="$filename"/>
+        <string name="field" value="f"/>
+        <float name="isovalue" value="0.25"/>
+        <string name="color_field" value="g"/>
+        <string name="colormap" value="viridis"/>
+    </integrator>
+    <sensor type="perspective" id="sensor">
+        <float name="fov" value="35"/>
+        <transform name="to_world">
+            <lookat origin="1.7, -1.0, 1.3" target="0.5, 0.5, 0.5" up="0, 0, 1"/>
+        </transform>
+        <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
+        <film type="hdrfilm">
+            <integer name="width" value="32"/><integer name="height" value="32"/>
+            <string name="pixel_format" value="rgb"/>
+        </film>
+    </sensor>
+    <emitter type="directional" id="light">
+        <vector name="direction" value="-0.4, 0.5, -1.0"/>
+        <rgb name="irradiance" value="2.5"/>
+    </emitter>
+</scene>
+"""
+
+
+def step_volume(t):
+    """A sphere moving along x, coloured by a field whose range grows with the step."""
+    from mi_amr import AMRVolume
+
+    c = np.array([0.4 + 0.1 * t, 0.5, 0.5])
+    vol = datasets.two_levels(lambda p, level: np.linalg.norm(p - c, axis=-1), 8)
+    return AMRVolume.from_grids([{"level": g.level, "origin": g.origin, "spacing": g.spacing,
+                                  "fields": {"f": g.fields["f"],
+                                             "g": (1 + t) * g.fields["f"]}}
+                                 for g in vol.grids])
+
+
+@pytest.fixture(scope="module")
+def series(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("series")
+    for t in range(3):
+        step_volume(t).save(folder / f"step{t}.npz")
+    (folder / "scene.xml").write_text(SCENE)
+    return folder
+
+
+def read(path):
+    import imageio.v2 as imageio
+
+    return np.asarray(imageio.imread(path))
+
+
+def frames_in(folder):
+    return sorted(p for p in folder.iterdir() if p.name.startswith("frame_"))
+
+
+def test06_a_time_series_on_two_dask_workers_equals_the_serial_render(series, tmp_path):
+    """3 files, 6 frames on a LocalCluster of 2 worker processes; the same frames rendered in
+    this process, one worker; a second run skips every frame (files untouched); ``force``
+    renders them again."""
+    from mi_amr.workflows.movie import render_movie
+
+    files = str(series / "step*.npz")
+    serial = render_movie(series / "scene.xml", tmp_path / "serial", files=files, frames=6,
+                          progress=False)
+    assert len(serial.rendered) == 6 and not serial.failed
+    assert [r["compiled"] for r in sorted(serial.rendered, key=lambda r: r["index"])][1:] == \
+        [0] * 5, "a new time step compiled a kernel"
+    farmed = render_movie(series / "scene.xml", tmp_path / "dask", files=files, frames=6,
+                          workers=2, progress=False)
+    assert len(farmed.rendered) == 6 and not farmed.failed
+    assert len({r["pid"] for r in farmed.rendered}) == 2
+    a, b = frames_in(tmp_path / "serial"), frames_in(tmp_path / "dask")
+    assert [p.name for p in a] == [f"frame_{i:05d}.png" for i in range(6)] == [p.name for p in b]
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(read(x), read(y))
+    assert not np.array_equal(read(a[0]), read(a[5]))
+    stamps = [p.stat().st_mtime_ns for p in b]
+    again = render_movie(series / "scene.xml", tmp_path / "dask", files=files, frames=6,
+                         workers=2, progress=False)
+    assert len(again.skipped) == 6 and not again.rendered
+    assert [p.stat().st_mtime_ns for p in b] == stamps
+    forced = render_movie(series / "scene.xml", tmp_path / "dask", files=files, frames=6,
+                          force=True, progress=False)
+    assert len(forced.rendered) == 6
+    assert all(p.stat().st_mtime_ns > s for p, s in zip(b, stamps))
+
+
+def test07_a_worker_killed_mid_run_loses_no_frame(series, tmp_path):
+    """12 frames on our own LocalCluster; once two frames are written one worker process is
+    killed; Dask reruns its frame elsewhere and every frame arrives, whole."""
+    from dask.distributed import LocalCluster
+
+    from mi_amr.workflows.movie import render_movie
+
+    cluster = LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=50)
+    out = tmp_path / "killed"
+    result = {}
+
+    def run():
+        result["s"] = render_movie(series / "scene.xml", out, files=str(series / "step*.npz"),
+                                   frames=12, scheduler=cluster.scheduler_address,
+                                   progress=False)
+
+    thread = threading.Thread(target=run)
+    try:
+        thread.start()
+        deadline = time.time() + 120
+        while len(frames_in(out)) < 2 if out.exists() else True:
+            assert time.time() < deadline, "no frames arrived"
+            time.sleep(0.05)
+        victim = next(iter(cluster.workers.values()))
+        os.kill(victim.process.process.pid, signal.SIGKILL)
+        thread.join(240)
+        assert not thread.is_alive()
+    finally:
+        cluster.close()
+    summary = result["s"]
+    assert not summary.failed, summary.text()
+    assert [p.name for p in frames_in(out)] == [f"frame_{i:05d}.png" for i in range(12)]
+    assert all(read(p).shape == (32, 32, 3) for p in frames_in(out))
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test08_the_mp4_has_every_frame(series, tmp_path):
+    import imageio.v3 as iio
+
+    from mi_amr.workflows.movie import render_movie
+
+    mp4 = tmp_path / "orbit.mp4"
+    render_movie(series / "scene.xml", tmp_path / "orbit", orbit=360, frames=5, mp4=mp4, fps=10,
+                 progress=False)
+    frames = iio.imread(mp4, plugin="pyav") if _has_pyav() else \
+        np.stack(list(iio.imiter(mp4, plugin="FFMPEG")))
+    assert len(frames) == 5 and frames.shape[1:3] == (32, 32)
+    with pytest.raises(AMRError, match="file exists"):
+        render_movie(series / "scene.xml", tmp_path / "orbit", orbit=360, frames=5, mp4=mp4,
+                     progress=False)
+
+
+def _has_pyav():
+    import importlib.util
+
+    return importlib.util.find_spec("av") is not None
+
+
+def test09_a_corrupt_file_in_the_series_fails_its_frames_only(series, tmp_path):
+    folder = tmp_path / "broken"
+    folder.mkdir()
+    for t in range(3):
+        (folder / f"step{t}.npz").write_bytes((series / f"step{t}.npz").read_bytes())
+    (folder / "step1.npz").write_bytes(b"PK\x03\x04 not really a zip")
+    summary = render_movie_quiet(series / "scene.xml", tmp_path / "out",
+                                 files=str(folder / "step*.npz"), frames=6)
+    assert sorted(f["index"] for f in summary.failed) == [2, 3]
+    assert all("step1.npz" in f["error"] or "step1.npz" in (f["file"] or "")
+               for f in summary.failed)
+    assert len(summary.rendered) == 4
+    assert "step1.npz" in summary.text()
+
+
+def render_movie_quiet(*a, **kw):
+    from mi_amr.workflows.movie import render_movie
+
+    return render_movie(*a, progress=False, **kw)
+
+
+def test10_bad_inputs_give_one_clear_error(series, tmp_path):
+    scene = series / "scene.xml"
+    with pytest.raises(AMRError, match="matches no file"):
+        render_movie_quiet(scene, tmp_path / "a", files=str(tmp_path / "nothing*.npz"))
+    other = tmp_path / "other.npz"
+    datasets.sphere(8).save(other)          # holds f but not g
+    with pytest.raises(AMRError, match=r"other.npz: has no field\(s\) \['g'\]"):
+        render_movie_quiet(scene, tmp_path / "b", files=[str(other)])
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(AMRError, match="is a file, not a folder"):
+        render_movie_quiet(scene, afile, frames=1)
+    with pytest.raises(AMRError, match="cannot write there"):
+        render_movie_quiet(scene, "/proc/mi_amr_movie", frames=1)
+    t0 = time.perf_counter()
+    with pytest.raises(AMRError, match="cannot reach the Dask scheduler"):
+        render_movie_quiet(scene, tmp_path / "c", frames=1, scheduler="tcp://127.0.0.1:9")
+    assert time.perf_counter() - t0 < 15
+    keys = tmp_path / "k.json"
+    keys.write_text(json.dumps({"keyframe": [{"frame": 3}, {"frame": 1}]}))
+    with pytest.raises(AMRError, match="must increase"):
+        render_movie_quiet(scene, tmp_path / "d", keyframes=keys)
+    assert not (tmp_path / "d").exists() or not list((tmp_path / "d").iterdir())
