@@ -88,6 +88,9 @@ TABLE = (
           lo=1e-6, hi=1e6, traversable=True),
     Param("preintegrated", "boolean", False,
           "volume mode: pre-integrated opacity per step (sampling methods)"),
+    Param("aovs", "boolean", False,
+          "report the isosurface's depth, normal, position, values, level and grid as AOVs "
+          "(:mod:`mi_amr.plugin.aovs`)"),
     Param("leaf_cells", "integer", 4, "kd leaf size in cells (empty-space skipping)",
           lo=2, hi=256),
     Param("max_layers", "integer", 8, "translucent surfaces composited per ray, at most",

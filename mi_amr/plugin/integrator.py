@@ -36,6 +36,8 @@ from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.prepared import prepare_file
 from mi_amr.kernels.surface import first_crossing
 from mi_amr.plugin import bridge, options, shading
+from mi_amr.plugin.aovs import NAMES as AOV_NAMES
+from mi_amr.plugin.aovs import iso_aovs
 from mi_amr.plugin.frame import VolumeFrame
 from mi_amr.plugin.inputs import FLAGS, PHONG, FrameInputs
 from mi_amr.plugin.layers import front_to_back
@@ -140,8 +142,13 @@ class _AMRIso:
         # ---- What lies behind them: a mesh, an emitter, or nothing.
         L += T * shading.mesh_light(scene, sampler, ray, si, self.phong(), active & (T > 0.0),
                                     self.shadows(), self.iso_transmittance)
-        hit_any = si.is_valid() | (T < 1.0)
-        return L, active & (hit_any | (dr.max(L) > 0.0)), []
+        # ---- Alpha is the coverage by surfaces (the environment behind counts as empty).
+        covered = active & (si.is_valid() | (T < 1.0))
+        aovs = iso_aovs(self, ray, o, d, t_mesh, jitter, active) if self.opt.aovs else []
+        return L, covered, aovs
+
+    def aov_names(self):
+        return list(AOV_NAMES) if self.opt.aovs else []
 
     def _layer_crossing(self, o, d, t_end, jitter):
         """The ``crossing`` callback of :func:`front_to_back` for a ray in the volume."""

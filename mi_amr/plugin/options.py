@@ -41,6 +41,7 @@ class Options:
     band_support: Optional[tuple]
     band_peak: float
     preintegrated: bool
+    aovs: bool
     leaf_cells: int
     max_layers: int
 

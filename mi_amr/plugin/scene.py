@@ -11,18 +11,60 @@ import mitsuba as mi
 from mi_amr.errors import AMRError
 
 
-def load_scene(path, **params):
+def load_scene(path, *, integrator=None, pixel_format=None, **params):
     """``mi.load_file`` that reports an amr_iso parameter or data mistake as :class:`AMRError`
-    (Mitsuba wraps errors raised while building plugins in a RuntimeError with a traceback)."""
+    (Mitsuba wraps errors raised while building plugins in a RuntimeError with a traceback).
+
+    ``params`` set the scene's ``<default>`` values (as ``-D``). ``integrator`` (a mapping)
+    sets parameters of the ``amr_iso`` integrator that the file may not mention (e.g.
+    ``{"aovs": True}``) and ``pixel_format`` the films' format (e.g. ``"rgba"``), without
+    touching the file."""
     path = Path(path)
     if not path.is_file():
         raise AMRError(f"{path}: no such scene file")
+    values = {k: str(v) for k, v in params.items()}
     try:
-        scene = mi.load_file(str(path), **{k: str(v) for k, v in params.items()})
+        if integrator or pixel_format:
+            scene = _load_edited(path, integrator or {}, pixel_format, values)
+        else:
+            scene = mi.load_file(str(path), **values)
     except RuntimeError as e:
         raise _unwrap(e, path) from None
     _opaque_cameras(scene)
     return scene
+
+
+def _load_edited(path, integrator: dict, pixel_format, values):
+    """The scene file with the amr_iso integrator's and films' settings changed in memory,
+    loaded with the file's folder first on the file resolver (relative paths as before)."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(str(path)).getroot()
+    except ET.ParseError as e:
+        raise AMRError(f"{path}: not a valid scene file ({e})") from None
+    node = root.find("integrator[@type='amr_iso']")
+    if node is None and integrator:
+        raise AMRError(f"{path}: the scene has no amr_iso integrator")
+    for name, value in integrator.items():
+        for old in node.findall(f"*[@name='{name}']"):
+            node.remove(old)
+        kind = "boolean" if isinstance(value, bool) else "string"
+        text = str(value).lower() if isinstance(value, bool) else str(value)
+        ET.SubElement(node, kind, name=name, value=text)
+    for film in root.iter("film") if pixel_format else ():
+        for old in film.findall("*[@name='pixel_format']"):
+            film.remove(old)
+        ET.SubElement(film, "string", name="pixel_format", value=pixel_format)
+    resolver = mi.file_resolver()
+    saved = [str(resolver[i]) for i in range(len(resolver))]
+    resolver.prepend(str(path.resolve().parent))
+    try:
+        return mi.load_string(ET.tostring(root, encoding="unicode"), **values)
+    finally:
+        resolver.clear()
+        for folder in saved:
+            resolver.append(folder)
 
 
 def _opaque_cameras(scene) -> None:
