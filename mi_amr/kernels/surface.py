@@ -127,10 +127,18 @@ def _piece_crossings(dev, cfg, num, den, L, v_prev, k_jump, active):
         jump_k = have & lnot(jumped) & ((v_prev - iso) * (v_start - iso) < 0.0)
         k_jump = dr.select(jump_k, k, k_jump)
         jumped |= jump_k
-        c = [num[i] - iso * den[i] for i in range(4)]
-        found_k, _, _ = roots.first_root_bracket(c, L, dr.abs(n_mid) + dr.abs(iso * d_mid))
+        found_k, _, _ = _bracket(num, den, iso, L, n_mid, d_mid)
         found |= have & found_k
     return have, v_end, jumped, k_jump, found
+
+
+def _bracket(num, den, iso, L, n_mid, d_mid):
+    """The first root bracket ``(found, a, b)`` of ``N - iso D`` on ``[0, L]``, kept only where
+    the weights are not vanishing at its ends (:data:`~mi_amr.tolerances.MIN_COVER`)."""
+    c = [num[i] - iso * den[i] for i in range(4)]
+    found, a, b = roots.first_root_bracket(c, L, dr.abs(n_mid) + dr.abs(iso * d_mid))
+    covered = (roots.cubic(den, a) >= tol.MIN_COVER) & (roots.cubic(den, b) >= tol.MIN_COVER)
+    return found & covered, a, b
 
 
 @dr.syntax
@@ -188,7 +196,7 @@ def _refine_exact(dev, cfg, piece: PieceHit, hit, k_jump, samples) -> Crossing:
     for k in range(cfg.num_iso):
         iso = cfg.iso(dev, k)
         c = [num[i] - iso * den[i] for i in range(4)]
-        found_k, a, b = roots.first_root_bracket(c, L, dr.abs(n_mid) + dr.abs(iso * d_mid))
+        found_k, a, b = _bracket(num, den, iso, L, n_mid, d_mid)
         s_k = dr.select(found_k, roots.refine_root(c, a, b), dr.inf)
         # A "root" where no cell has weight (N = D = 0) is not a crossing.
         s_k = dr.select(roots.cubic(den, s_k) > tol.NO_WEIGHT, s_k, dr.inf)
