@@ -62,6 +62,16 @@ def register() -> None:
     mi.register_integrator("amr_iso", lambda props: cls(props))
 
 
+def _warn_outside(prep, isovalues) -> None:
+    """A warning (Mitsuba's log) for isovalues outside the field's range: the image would show
+    no isosurface, and nothing else would say why."""
+    lo, hi = prep.volume.value_range(prep.field)
+    outside = [v for v in isovalues if not lo <= v <= hi]
+    if outside:
+        mi.Log(mi.LogLevel.Warn, f"amr_iso: isovalue(s) {', '.join(f'{v:g}' for v in outside)} "
+               f"outside the range [{lo:g}, {hi:g}] of field '{prep.field}': no isosurface")
+
+
 class _AMRIso:
     """The integrator's methods (the class itself is made per variant by :func:`register`)."""
 
@@ -81,6 +91,7 @@ class _AMRIso:
         data_range = self.prep.volume.value_range(self.prep.color_field)
         self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host)
         self.shader = IsoShader(self)
+        _warn_outside(self.prep, opt.isovalues)
 
     def _prepare(self, path):
         self.prep = prepare_file(path, self.opt.field, self.opt.color_field,

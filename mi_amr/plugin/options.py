@@ -13,6 +13,8 @@ from typing import Optional
 from mi_amr import params
 from mi_amr.errors import AMRError
 
+FLOAT32_MAX = 3.4028234663852886e38
+
 
 @dataclass
 class Options:
@@ -128,6 +130,9 @@ def _floats(values, name):
                        f"of numbers, got {v!r}") from None
     if not out or not all(math.isfinite(x) for x in out):
         raise AMRError(f"amr_iso: parameter '{name}' must hold finite numbers, got {v!r}")
+    if any(abs(x) > FLOAT32_MAX for x in out):
+        raise AMRError(f"amr_iso: parameter '{name}' must fit in float32 (|x| <= 3.4e38), "
+                       f"got {v!r}")
     return out
 
 
