@@ -45,11 +45,14 @@ BISECT_TARGET = 0.005
 # has a value) is below this, no cell has weight and the field is undefined. Next to missing
 # values the weights can sum to much less than 1 while the field is still defined.
 NO_WEIGHT = 1e-6
-# weight: a crossing counts only where the cells that have a value carry at least this much of
-# the full weight (1) at both ends of the root's bracket. Where the weights vanish next to
-# missing data, N - iso D is zero with D and has roots that are no crossing of the field; so
-# within the last cubic piece before missing data (under one cell) no surface is drawn.
-MIN_COVER = 1e-3
+# weight (the full weight is 1): an end of a root's bracket with less has no weight at all but
+# float32 rounding (seen up to 3e-6 where the valid cells' hats end next to missing data): there N - iso D is zero with D and has roots that are
+# no crossing of the field. A real weight, however small (1.7e-4 beside a missing cell), is
+# well above it.
+MIN_COVER = 2e-5
+# of a bracket: such an end is moved this far inside, where the weights tell the side; a
+# crossing within that sliver next to missing data is not drawn.
+COVER_NUDGE = 0.01
 # relative to the size of the terms: a cubic's extremum this close to zero touches it (a
 # tangent or grazing hit, an isovalue at a local extremum of the field).
 TANGENT_REL = 2e-6

@@ -1,17 +1,20 @@
 """Isosurface crossings along rays (:func:`mi_amr.trace`) on the analytic datasets, against a
-dense float64 reference built here from the slow twin reconstructions.
+dense float64 reference built here on the float64 model of the reconstruction,
+:class:`~mi_amr.core.field64.Field64`.
 
-The reference samples :func:`basis_point_reference` / :func:`finest_point_reference` densely
-along each ray (all rays' samples in one call), brackets the first sign change of
-``value - isovalue`` and bisects it on the twin down to 1e-9; where the samples come close to
+The reference samples the model (basis or finest) densely along each ray (all rays' samples in
+one call), brackets the first sign change of ``value - isovalue`` and bisects it on the model
+down to 1e-9; where the samples come close to
 the isovalue without crossing it, a ternary search finds how close the ray really gets. Rays
 that only just touch the surface are told apart by how far they get past the isovalue: a ray
 that crosses clearly must be hit within 1e-4 of a finest cell of the reference; one that
 clearly stays off must not be hit; in between (float32 cannot decide), a hit must lie on the
 isosurface.
 
-The sphere and torus use 8 level-0 cells per side (the slow twins' cost grows with the cell
-count); the level boundary x = 0.5 still cuts both surfaces. The spike is the dataset as made.
+The sphere and torus use 8 level-0 cells per side (chosen when this reference ran on the slow
+twins, whose cost grows with the cell count); the level boundary x = 0.5 still cuts both
+surfaces. The spike is the dataset as made. Normals are checked against the gradient of the slow
+twin :func:`~mi_amr.core.field64.basis_point_reference` (:class:`Field64` gives values only).
 """
 
 import numpy as np
@@ -19,7 +22,7 @@ import pytest
 
 import mi_amr
 from mi_amr.synthetic import datasets
-from mi_amr.core.field64 import basis_point_reference, finest_point_reference
+from mi_amr.core.field64 import Field64, basis_point_reference
 
 DEPTH_TOL = 1e-4     # finest cells: exact vs the reference
 STEP = 0.2           # finest cells between reference samples (0.1 inside the spike's support)
@@ -48,20 +51,16 @@ def box_interval(lo, hi, o, d):
     return np.maximum(near.max(axis=1), 0.0), far.min(axis=1)
 
 
-def twin(basis):
-    return basis_point_reference if basis else finest_point_reference
-
-
 class Reference:
-    """First crossing of any isovalue along each ray by the slow twin, from samples ``t_samples``
-    (per ray, sorted).
+    """First crossing of any isovalue along each ray by the float64 model (:class:`Field64` of
+    field ``f``, basis or finest), from samples ``t_samples`` (per ray, sorted).
 
     Per isovalue, the ray's side of it is taken at its first sample. A sign change between two
     samples brackets a crossing. A dip towards the isovalue between samples shows as a sampled
     local minimum of the distance to it; each one before the first bracket that is close
-    enough to matter is minimised by ternary search on the twin, so a crossing hidden between
+    enough to matter is minimised by ternary search on the model, so a crossing hidden between
     two samples is bracketed too.
-    Brackets are bisected on the twin down to 1e-9.
+    Brackets are bisected on the model down to 1e-9.
 
     ``t`` (inf: none) and ``k`` (isovalue index, -1: none) give the first crossing of any
     isovalue; ``touchy`` marks rays that come within ``margin`` of an isovalue, crossing it or
@@ -70,14 +69,16 @@ class Reference:
 
     def __init__(self, volume, o, d, isovalues, basis, t_samples, margin):
         self.volume, self.basis = volume, basis
+        self.field = Field64(volume, "f", basis)
         self.isovalues = np.asarray(isovalues, dtype=np.float64)
         self.o, self.d = f32(o), f32(d)
         n = len(o)
         counts = np.array([len(t) for t in t_samples])
         pts = np.concatenate([self.o[i] + t[:, None] * self.d[i]
                               for i, t in enumerate(t_samples) if len(t)])
-        per_ray = np.split(twin(basis)(volume, pts, "f")[0], np.cumsum(counts)[:-1])
-        # Points on a grid's upper face belong to no grid for the finest twin (NaN): drop them.
+        per_ray = np.split(self.field(pts), np.cumsum(counts)[:-1])
+        # Samples where the model is undefined (NaN: outside every grid, as an end sample that
+        # rounding puts just outside the volume can be) are dropped.
         t_samples = [t[np.isfinite(v)] for t, v in zip(t_samples, per_ray)]
         per_ray = [v[np.isfinite(v)] for v in per_ray]
         self.t = np.full(n, np.inf)
@@ -150,8 +151,8 @@ class Reference:
         return out
 
     def value(self, rays, t):
-        """Slow-twin value at ``o + t d`` of the given rays."""
-        return twin(self.basis)(self.volume, self.o[rays] + t[:, None] * self.d[rays], "f")[0]
+        """Float64 model's value at ``o + t d`` of the given rays."""
+        return self.field(self.o[rays] + t[:, None] * self.d[rays])
 
 
 def samples_in_box(o, d, lo, hi, step):
@@ -285,9 +286,10 @@ def grazing_rays(rng, n=24):
 def tangent_rays(sphere, rng, n=4, offsets=(-3e-4, -3e-5, -3e-6, 0.0, 3e-6, 3e-5, 3e-4)):
     """For ``n`` directions, the distance ``b*`` from the centre at which a ray is tangent to
     the *reconstructed* isosurface (bisection on ``b`` of the ray's minimum value, found by
-    ternary search on the slow twin), and rays at ``b* + offsets``: they dip below the
-    isovalue by about ``-offset``."""
+    ternary search on the float64 model of the basis reconstruction), and rays at
+    ``b* + offsets``: they dip below the isovalue by about ``-offset``."""
     d, side = random_sides(rng, n)
+    field = Field64(sphere, "f", True)
 
     def lowest(b):
         o, dd, _ = rays_past_centre(b, d, side)
@@ -295,10 +297,9 @@ def tangent_rays(sphere, rng, n=4, offsets=(-3e-4, -3e-5, -3e-6, 0.0, 3e-6, 3e-5
         lo, hi = t_c - 0.05, t_c + 0.05
         for _ in range(40):
             m1, m2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
-            f1, f2 = (basis_point_reference(sphere, o + m[:, None] * dd, "f")[0]
-                      for m in (m1, m2))
+            f1, f2 = (field(o + m[:, None] * dd) for m in (m1, m2))
             hi, lo = np.where(f1 < f2, m2, hi), np.where(f1 < f2, lo, m1)
-        return basis_point_reference(sphere, o + (0.5 * (lo + hi))[:, None] * dd, "f")[0]
+        return field(o + (0.5 * (lo + hi))[:, None] * dd)
 
     b_lo, b_hi = np.full(n, 0.28), np.full(n, 0.31)
     assert np.all(lowest(b_lo) < 0.3) and np.all(lowest(b_hi) > 0.3)
@@ -497,7 +498,7 @@ def test08_samples_count_the_work_done(sphere, method):
 def test09_normals_are_unit_and_point_to_increasing_values(sphere, torus):
     """On the sphere the normal is close to the radial direction (the field grows outwards)
     and equals the slow twin's normalised gradient; on the torus it points along the twin's
-    gradient."""
+    gradient. (The twin, not :class:`Field64`, which gives no gradients.)"""
     rng = np.random.default_rng(9)
     o, d = random_rays(rng, 60, 0.3)
     res = mi_amr.trace(sphere, o, d, field="f", isovalue=0.3, method="exact")

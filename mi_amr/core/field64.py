@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mi_amr.core.kdtree import finest_grid_bruteforce
+from mi_amr.core.points import finest_grid_bruteforce
 
 
 class Field64:
@@ -28,8 +28,11 @@ class Field64:
     value. :meth:`twin_difference` measures the agreement with the twins.
     """
 
-    def __init__(self, volume, field: str, basis: bool):
+    def __init__(self, volume, field: str, basis: bool, min_weight: float = 0.0):
         self.volume, self.field, self.basis = volume, field, basis
+        # basis: the field is undefined (NaN) where the cells with values weigh less than this
+        # (0: wherever some cell has weight); see mi_amr.tolerances.MIN_COVER.
+        self.min_weight = float(min_weight)
         self.anchor = np.asarray(volume.anchor, dtype=np.float64)
         self.h_fine = float(volume.level_spacing(volume.num_levels - 1).min())
         lo, hi = volume.index_boxes()
@@ -65,6 +68,15 @@ class Field64:
         return self._basis(points) if self.basis else self._finest(points)
 
     def _basis(self, p):
+        num, den = self.basis_sums(p)
+        defined = den >= self.min_weight if self.min_weight > 0 else den > 0.0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(defined, num / den, np.nan)
+
+    def basis_sums(self, p):
+        """The blend's numerator and denominator (the weight of the cells with values; 1 where
+        every cell has one) at points ``p`` ``(N, 3)``."""
+        p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
         num = np.zeros(len(p))
         den = np.zeros(len(p))
         for h, base, table in self._tables:
@@ -81,12 +93,11 @@ class Field64:
                 has = np.isfinite(v) & (w > 0.0)
                 num += np.where(has, w, 0.0) * np.where(has, v, 0.0)
                 den += np.where(has, w, 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(den > 0.0, num / den, np.nan)
+        return num, den
 
     def owner(self, p) -> np.ndarray:
         """Finest grid whose closed box holds each point (the first listed among one level's);
-        -1 outside all grids. Same rule as :func:`mi_amr.kdtree.finest_grid_bruteforce`."""
+        -1 outside all grids. Same rule as :func:`mi_amr.core.points.finest_grid_bruteforce`."""
         if self.basis:
             raise ValueError("owner() is for the finest reconstruction")
         p = np.asarray(p, dtype=np.float64).reshape(-1, 3)
@@ -136,6 +147,8 @@ class Field64:
         if len(points) == 0:
             return 0.0
         twin = basis_point_reference if self.basis else finest_point_reference
+        if self.basis and self.min_weight > 0:
+            points = points[self.basis_sums(points)[1] >= self.min_weight]
         a = twin(self.volume, points, self.field)[0]
         b = self(points)
         if np.any(np.isnan(a) != np.isnan(b)):

@@ -25,6 +25,8 @@ import numpy as np
 
 from mi_amr import params
 from mi_amr.core.boxes import contains_points
+from mi_amr.core.points import (_as_points, _finest_of,  # noqa: F401  (twins: tests)
+                                finest_grid_bruteforce, support_grids_bruteforce)
 from mi_amr.errors import AMRError
 
 LEAF = 3
@@ -430,43 +432,7 @@ class KDTree:
 
 # ---------------------------------------------------------------------- brute-force twins
 
-def finest_grid_bruteforce(volume, points) -> np.ndarray:
-    """Slow twin of :meth:`KDTree.finest_grid`: tests every grid against every point."""
-    points = _as_points(points)
-    lo, hi = volume.grid_boxes()
-    pi, gi = np.meshgrid(np.arange(len(points)), np.arange(len(lo)), indexing="ij")
-    pi, gi = pi.ravel(), gi.ravel()
-    inside = contains_points(lo[gi], hi[gi], points[pi])
-    return _finest_of(points, pi[inside], gi[inside], volume.levels)
-
-
-def support_grids_bruteforce(volume, points) -> list:
-    """Slow twin of :meth:`KDTree.support_grids`."""
-    points = _as_points(points)
-    lo, hi = volume.grid_boxes()
-    h = volume.spacings()
-    out = []
-    for p in points:
-        inside = np.all((p > lo - h) & (p < hi + h), axis=1)
-        out.append(np.flatnonzero(inside))
-    return out
-
-
 # ---------------------------------------------------------------------- helpers
-
-def _as_points(points) -> np.ndarray:
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise AMRError(f"points must be an (N, 3) array, got shape {points.shape}")
-    return points
-
-
-def _finest_of(points, pi, gi, level) -> np.ndarray:
-    G = len(level)
-    best = np.full(len(points), -1, dtype=np.int64)
-    np.maximum.at(best, pi, level[gi].astype(np.int64) * G + (G - 1 - gi))
-    return np.where(best >= 0, G - 1 - best % G, -1)
-
 
 def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
     """Append one depth's nodes to ``out``: split nodes point at their children (stored right

@@ -148,14 +148,13 @@ CSV_COLUMNS = ("scene", "method", "reconstruction", "step_scale", "frame_s", "co
 def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int = 3,
           variant: str = "llvm_ad_rgb", progress: bool = True) -> list:
     """Time and score every (scene, method, reconstruction, step_scale) against the exact
-    references in ``reference/`` (see :mod:`mi_amr.reference`). Writes ``sweep.csv``,
-    ``sweep.md`` and ``chart.png`` into ``out_dir``; returns the rows.
+    references in ``reference/`` (see :mod:`mi_amr.evaluation.references`). Writes
+    ``sweep.csv``, ``sweep.md`` and ``chart.png`` into ``out_dir``; returns the rows.
 
     Frames are rendered at the references' resolution with 1 sample per pixel: the frame time is
     the median of ``frames`` warm frames, the compile time is the first frame's extra time. Hit
     scores come from the primary hit buffers; the image RMSE compares with an ``exact``/``basis``
     frame rendered in the same run with the same seed (so pixel positions agree)."""
-    import drjit as dr
     import mitsuba as mi
     from tqdm import tqdm
 
@@ -163,7 +162,6 @@ def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int 
 
     mi.set_variant(variant)
     from mi_amr.plugin.integrator import register
-    from mi_amr.plugin.scene import load_scene
 
     register()
     project.ensure_scene_data(verbose=progress)
@@ -178,43 +176,68 @@ def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int 
             for s in ((None,) if m == "exact" else steps)]
     bar = tqdm(total=len(jobs), desc="bench", unit="config", disable=not progress)
     rows = []
-    w, h = ref.RESOLUTION
     for name in names:
-        ref_hits = ref.HitBuffers.load(ref.reference_path(name, "hits"))
-        base_image = None
-        for recon in recons:
-            for method in methods:
-                scene = load_scene(ref.scene_path(name), resx=w, resy=h, spp=1, method=method,
-                                   reconstruction=recon)
-                params = mi.traverse(scene)
-                step_key = _key(params, "step_scale")
-                t0 = time.perf_counter()
-                ref.render(scene, 1)
-                first = time.perf_counter() - t0
-                for step in ((None,) if method == "exact" else steps):
-                    if step is not None:
-                        params[step_key] = mi.Float(step)
-                        params.update()
-                    times = []
-                    for i in range(frames):
-                        t0 = time.perf_counter()
-                        image = ref.render(scene, 1, seed=0)
-                        times.append(time.perf_counter() - t0)
-                    if base_image is None:
-                        base_image = image  # exact + basis comes first
-                    hits = ref.hit_buffers(scene)
-                    sc = ref.score(hits, ref_hits, image, base_image)
-                    rows.append({"scene": name, "method": method, "reconstruction": recon,
-                                 "step_scale": step if step is not None else "",
-                                 "frame_s": statistics.median(times),
-                                 "compile_s": max(first - statistics.median(times), 0.0),
-                                 **sc.as_dict(),
-                                 "samples_per_ray": _samples_per_ray(scene)})
-                    bar.update(1)
-                del scene, params
-                dr.flush_malloc_cache()
+        rows += _sweep_scene(name, recons, methods, steps, frames, bar)
     bar.close()
-    out = Path(out_dir)
+    _write_sweep(rows, Path(out_dir), skipped)
+    if not quick:
+        run_peers_only(Path(out_dir), variant=variant, progress=progress)
+    return rows
+
+
+def _sweep_scene(name, recons, methods, steps, frames, bar) -> list:
+    """The sweep's rows of reference scene ``name``: per reconstruction and method, the scene
+    loaded at the references' resolution (1 spp), its first frame timed, then per step scale
+    (``exact``: none) ``frames`` warm frames timed (seconds, median) and scored against the
+    reference hit buffers and the scene's first ``exact``/``basis`` image. Advances ``bar``
+    once per configuration."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_amr.evaluation import references as ref
+    from mi_amr.plugin.scene import load_scene
+
+    w, h = ref.RESOLUTION
+    ref_hits = ref.HitBuffers.load(ref.reference_path(name, "hits"))
+    base_image = None
+    rows = []
+    for recon in recons:
+        for method in methods:
+            scene = load_scene(ref.scene_path(name), resx=w, resy=h, spp=1, method=method,
+                               reconstruction=recon)
+            params = mi.traverse(scene)
+            step_key = _key(params, "step_scale")
+            t0 = time.perf_counter()
+            ref.render(scene, 1)
+            first = time.perf_counter() - t0
+            for step in ((None,) if method == "exact" else steps):
+                if step is not None:
+                    params[step_key] = mi.Float(step)
+                    params.update()
+                times = []
+                for i in range(frames):
+                    t0 = time.perf_counter()
+                    image = ref.render(scene, 1, seed=0)
+                    times.append(time.perf_counter() - t0)
+                if base_image is None:
+                    base_image = image  # exact + basis comes first
+                hits = ref.hit_buffers(scene)
+                sc = ref.score(hits, ref_hits, image, base_image)
+                rows.append({"scene": name, "method": method, "reconstruction": recon,
+                             "step_scale": step if step is not None else "",
+                             "frame_s": statistics.median(times),
+                             "compile_s": max(first - statistics.median(times), 0.0),
+                             **sc.as_dict(),
+                             "samples_per_ray": _samples_per_ray(scene)})
+                bar.update(1)
+            del scene, params
+            dr.flush_malloc_cache()
+    return rows
+
+
+def _write_sweep(rows, out: Path, skipped):
+    """Write ``sweep.csv``, ``sweep.md`` and ``chart.png`` into ``out`` (made if missing) and
+    say so, naming the ``skipped`` scenes (no data here)."""
     out.mkdir(parents=True, exist_ok=True)
     _write_csv(rows, out / "sweep.csv")
     table = sweep_table(rows)
@@ -223,9 +246,6 @@ def sweep(out_dir="out/bench", *, quick: bool = False, scenes=None, frames: int 
     if skipped:
         print(f"skipped scenes without data: {', '.join(skipped)}")
     print(f"wrote {out / 'sweep.csv'}, {out / 'sweep.md'} and {out / 'chart.png'}")
-    if not quick:
-        run_peers_only(out, variant=variant, progress=progress)
-    return rows
 
 
 def run_peers_only(out_dir="out/bench", variant: str = "llvm_ad_rgb", progress: bool = True):

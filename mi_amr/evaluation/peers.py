@@ -47,6 +47,7 @@ from __future__ import annotations
 import math
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -239,6 +240,31 @@ def _load_reference_scene(scene_name: str):
     return scene, ref_hits
 
 
+@dataclass
+class _RouteScene:
+    """What a peer route reads off the reference scene: the scene (references' resolution,
+    1 spp), its reference hit buffers, the integrator, its volume, field and first isovalue
+    (field units), and ``to_world`` (4x4, volume space to world)."""
+
+    scene: object
+    ref_hits: object
+    integ: object
+    vol: object
+    field: str
+    iso: float
+    to_world: np.ndarray
+
+
+def _route_scene(scene_name: str) -> _RouteScene:
+    """The reference scene ``scene_name`` and what the routes read off it."""
+    scene, ref_hits = _load_reference_scene(scene_name)
+    integ = scene.integrator()
+    vol = integ.prep.volume
+    return _RouteScene(scene=scene, ref_hits=ref_hits, integ=integ, vol=vol,
+                       field=integ.prep.field, iso=float(integ.opt.isovalues[0]),
+                       to_world=_matrix(integ.frame.to_scene))
+
+
 def _ray_arrays(ray, h, w):
     o = np.stack([ray.o.x.numpy(), ray.o.y.numpy(), ray.o.z.numpy()], axis=-1)
     d = np.stack([ray.d.x.numpy(), ray.d.y.numpy(), ray.d.z.numpy()], axis=-1)
@@ -393,24 +419,48 @@ def marching_cubes_route(scene_name: str, *, ghost_cells: bool = False) -> dict:
     ``direct`` integrator with the scene's camera, emitters and other shapes. Time to image =
     marching cubes + mesh building (culling, colours, Mitsuba mesh and scene) + first render.
     """
-    import drjit as dr
     import mitsuba as mi
     import scipy.ndimage  # noqa: F401  (imported before the clock starts; colours use it)
     from skimage.measure import marching_cubes
 
-    scene, _ = _load_reference_scene(scene_name)
-    integ = scene.integrator()
-    vol = integ.prep.volume
-    field = integ.prep.field
-    iso = float(integ.opt.isovalues[0])
-    to_world = _matrix(integ.frame.to_scene)
+    rs = _route_scene(scene_name)
+    vol = rs.vol
 
     # ---- Marching cubes per grid.
     t0 = time.perf_counter()
-    arrays = _padded_arrays(vol, field) if ghost_cells else \
-        [np.asarray(g.fields[field]) for g in vol.grids]
+    arrays = _padded_arrays(vol, rs.field) if ghost_cells else \
+        [np.asarray(g.fields[rs.field]) for g in vol.grids]
     t_ghost = time.perf_counter() - t0
     t0 = time.perf_counter()
+    pieces = _grid_pieces(marching_cubes, vol, arrays, rs.iso, ghost_cells)
+    t_mc = time.perf_counter() - t0
+
+    # ---- Mesh building: drop covered triangles, join, colour, place, hand to Mitsuba.
+    t0 = time.perf_counter()
+    mesh, mesh_scene, triangles = _mesh_scene(mi, rs, pieces)
+    t_mesh = time.perf_counter() - t0
+
+    first = _timed_render(mi, mesh_scene)
+    warm = _timed_render(mi, mesh_scene)
+    hits = _mesh_hit_buffers(mi, mesh_scene, mesh)
+
+    detail = {"ghost_fill": t_ghost} if ghost_cells else {}
+    detail.update({"marching_cubes": t_mc, "mesh": t_mesh, "render": first, "warm_frame": warm,
+                   "data_shared": _data_seconds(rs.scene)})
+    peer = "marching_cubes+ghost" if ghost_cells else "marching_cubes"
+    notes = (f"skimage lewiner per grid ({len(pieces)} of {len(vol.grids)} grids cut), "
+             f"{triangles:,} triangles; covered cells: triangle dropped if its centroid is in a "
+             f"covered cell; {'1 ghost layer per grid' if ghost_cells else 'no ghost cells'}; "
+             f"Mitsuba 'direct', 1 spp")
+    return _scored_row(scene_name, peer, t_ghost + t_mc + t_mesh + first, detail, hits,
+                       rs.scene, notes=notes)
+
+
+def _grid_pieces(marching_cubes, vol, arrays, iso, ghost_cells) -> list:
+    """``marching_cubes`` (scikit-image's) on each grid's cell-centred array in ``arrays``
+    (padded by one ghost layer when ``ghost_cells``) at ``iso``: ``(grid index, vertices,
+    faces, normals)`` per grid the isovalue cuts, vertices in volume space (the cell centres
+    are the nodes)."""
     pieces = []
     # Index 0 of a padded array is the ghost cell centred half a cell outside the grid.
     first_centre = -0.5 if ghost_cells else 0.5
@@ -420,22 +470,31 @@ def marching_cubes_route(scene_name: str, *, ghost_cells: bool = False) -> dict:
         h = np.asarray(g.spacing)
         verts, faces, normals, _ = marching_cubes(arr, level=iso, spacing=tuple(h))
         pieces.append((gi, verts + g.lo + first_centre * h, faces, normals))
-    t_mc = time.perf_counter() - t0
+    return pieces
 
-    # ---- Mesh building: drop covered triangles, join, colour, place, hand to Mitsuba.
-    t0 = time.perf_counter()
-    V, F, N, C = _join_pieces(vol, pieces, integ)
+
+def _mesh_scene(mi, rs, pieces):
+    """The per-grid pieces joined into one mesh (:func:`_join_pieces`), placed in the scene's
+    world space with the integrator's ``to_world`` (vertices, and normals by the inverse
+    transpose), made a Mitsuba mesh and put in a scene with ``rs.scene``'s camera, emitters and
+    other shapes. Returns ``(mesh, scene, triangle count)``."""
+    to_world = rs.to_world
+    V, F, N, C = _join_pieces(rs.vol, pieces, rs.integ)
     Vw = V @ to_world[:3, :3].T + to_world[:3, 3]
     Nw = N @ np.linalg.inv(to_world[:3, :3])
     Nw /= np.maximum(np.linalg.norm(Nw, axis=1, keepdims=True), 1e-30)
     mesh = _mitsuba_mesh(mi, Vw, F, Nw, C)
-    mesh_scene = mi.load_dict(_scene_dict(scene, mesh))
-    t_mesh = time.perf_counter() - t0
+    mesh_scene = mi.load_dict(_scene_dict(rs.scene, mesh))
+    return mesh, mesh_scene, len(F)
 
-    first = _timed_render(mi, mesh_scene)
-    warm = _timed_render(mi, mesh_scene)
 
-    # ---- Hit buffers: one ray per pixel centre against the mesh and the scene's shapes.
+def _mesh_hit_buffers(mi, mesh_scene, mesh):
+    """Hit buffers of ``mesh`` in ``mesh_scene``: one ray per pixel centre against the mesh
+    and the scene's other shapes; a pixel is hit where its first intersection is the mesh
+    (depth ``t`` in world units along the camera ray, inf elsewhere; world-space shading
+    normals, NaN elsewhere)."""
+    import drjit as dr
+
     sensor = mesh_scene.sensors()[0]
     w, h = sensor.film().crop_size()
     ray = pixel_rays(sensor)
@@ -447,18 +506,7 @@ def marching_cubes_route(scene_name: str, *, ghost_cells: bool = False) -> dict:
     t = np.where(hit, si.t.numpy().reshape(h, w), np.inf)
     normal = np.stack([n.x.numpy(), n.y.numpy(), n.z.numpy()], axis=-1).reshape(h, w, 3)
     normal[~hit] = np.nan
-    hits = ref.HitBuffers(t=t, hit=hit, normal=normal, cell=math.nan)
-
-    detail = {"ghost_fill": t_ghost} if ghost_cells else {}
-    detail.update({"marching_cubes": t_mc, "mesh": t_mesh, "render": first, "warm_frame": warm,
-                   "data_shared": _data_seconds(scene)})
-    peer = "marching_cubes+ghost" if ghost_cells else "marching_cubes"
-    notes = (f"skimage lewiner per grid ({len(pieces)} of {len(vol.grids)} grids cut), "
-             f"{len(F):,} triangles; covered cells: triangle dropped if its centroid is in a "
-             f"covered cell; {'1 ghost layer per grid' if ghost_cells else 'no ghost cells'}; "
-             f"Mitsuba 'direct', 1 spp")
-    return _scored_row(scene_name, peer, t_ghost + t_mc + t_mesh + first, detail, hits, scene,
-                       notes=notes)
+    return ref.HitBuffers(t=t, hit=hit, normal=normal, cell=math.nan)
 
 
 def _padded_arrays(vol, field) -> list:
@@ -611,26 +659,12 @@ def yt_volume_route(scene_name: str, *, ghost_zones: bool = False) -> dict:
     from yt.visualization.volume_rendering.api import ColorTransferFunction
     from yt.visualization.volume_rendering.zbuffer_array import ZBuffer
 
-    scene, ref_hits = _load_reference_scene(scene_name)
-    integ = scene.integrator()
-    vol = integ.prep.volume
-    field = integ.prep.field
-    iso = float(integ.opt.isovalues[0])
-    to_world = _matrix(integ.frame.to_scene)
-    scale = _similarity_scale(to_world)
-    sensor = scene.sensors()[0]
-    w, h = sensor.film().crop_size()
-    ray = pixel_rays(sensor)
-    o, d = _ray_arrays(ray, h, w)
-    t_occ = _occluder_t(scene, ray).reshape(h, w)
-    vmin, vmax = vol.value_range(field)
-    sigma = YT_SIGMA * (vmax - vmin)
-    gmed = _median_gradient(vol, field, iso)
-
+    rs = _route_scene(scene_name)
+    view = _yt_view(rs)
     with _quiet_yt():
         # ---- Dataset.
         t0 = time.perf_counter()
-        ds = _yt_dataset(yt, vol, field)
+        ds = _yt_dataset(yt, rs.vol, rs.field)
         if ghost_zones:
             # yt will not fill ghost zones past the faces of a non-periodic domain; its error
             # message advises this (the wrapped values touch only the outermost cells).
@@ -639,46 +673,117 @@ def yt_volume_route(scene_name: str, *, ghost_zones: bool = False) -> dict:
 
         # ---- Scene, transfer function, camera.
         t0 = time.perf_counter()
-        sc = yt.create_scene(ds, field=("stream", field), lens_type="perspective")
-        source = sc.get_source(0)
-        source.log_field = False
-        source.set_use_ghost_zones(ghost_zones)
-        cam = sc.camera
-        frame = _yt_camera(ds, cam, sensor, to_world, w, h)
-        # Optical depth across the band (head on, gradient gmed): A * sigma sqrt(2 pi) / gmed
-        # over the ray's parameter length |vp_dir|, which the sampler's dt is a share of.
-        ray_len = float(np.median(np.linalg.norm(frame["vp_dir"], axis=-1)))
-        height = YT_DEPTH * gmed * ray_len / (sigma * math.sqrt(2.0 * math.pi))
-        tf = ColorTransferFunction((vmin, vmax), nbins=YT_BINS, grey_opacity=True)
-        colour = list(integ.opt.iso_colors[0])
-        tf.add_gaussian(iso, 2.0 * sigma ** 2, colour + [height])
-        source.set_transfer_function(tf)
-        # The scene's other shapes, as the depth at which each yt ray stops (its parameter
-        # runs from 0 to 1 along vp_dir).
-        t_occ_yt = frame["to_yt"](t_occ) / np.linalg.norm(frame["vp_dir"], axis=-1) / scale
-        zbuffer = ZBuffer(np.zeros((w, h, 4)), np.where(np.isfinite(t_occ_yt), t_occ_yt, 1.0))
+        setup = _yt_setup(yt, ColorTransferFunction, ZBuffer, ds, rs, view, ghost_zones)
         t_setup = time.perf_counter() - t0
 
         # ---- Render.
         t0 = time.perf_counter()
-        image = np.asarray(source.render(cam, zbuffer=zbuffer))
+        image = np.asarray(setup.source.render(setup.cam, zbuffer=setup.zbuffer))
         t_render = time.perf_counter() - t0
+    return _yt_row(scene_name, rs, view, setup, image, (t_ds, t_setup, t_render), ghost_zones)
 
+
+@dataclass
+class _YtView:
+    """The Mitsuba view yt must reproduce: the uniform scale of ``to_world`` (world units per
+    volume unit), the sensor and its image size ``w x h``, the pixel-centre rays (``o``, ``d``:
+    ``(h, w, 3)``, world), the distance ``t_occ`` (world, inf where none) to the scene's other
+    shapes along them, the field's range ``vmin``, ``vmax``, the Gaussian's ``sigma`` (field
+    units) and the median ``|grad f|`` near the isosurface ``gmed`` (per volume unit)."""
+
+    scale: float
+    sensor: object
+    w: int
+    h: int
+    o: np.ndarray
+    d: np.ndarray
+    t_occ: np.ndarray
+    vmin: float
+    vmax: float
+    sigma: float
+    gmed: float
+
+
+def _yt_view(rs: _RouteScene) -> _YtView:
+    """Read :class:`_YtView` off the reference scene (AMRError unless ``to_world`` is a
+    similarity)."""
+    scale = _similarity_scale(rs.to_world)
+    sensor = rs.scene.sensors()[0]
+    w, h = sensor.film().crop_size()
+    ray = pixel_rays(sensor)
+    o, d = _ray_arrays(ray, h, w)
+    t_occ = _occluder_t(rs.scene, ray).reshape(h, w)
+    vmin, vmax = rs.vol.value_range(rs.field)
+    sigma = YT_SIGMA * (vmax - vmin)
+    gmed = _median_gradient(rs.vol, rs.field, rs.iso)
+    return _YtView(scale=scale, sensor=sensor, w=w, h=h, o=o, d=d, t_occ=t_occ, vmin=vmin,
+                   vmax=vmax, sigma=sigma, gmed=gmed)
+
+
+@dataclass
+class _YtSetup:
+    """yt's scene ``sc`` ready to render: its volume ``source``, the camera ``cam``, the
+    camera's ``frame`` (see :func:`_yt_camera`), the Gaussian's ``height`` (opacity per unit of
+    yt's ray parameter) and the depth buffer of the scene's other shapes."""
+
+    sc: object
+    source: object
+    cam: object
+    frame: dict
+    height: float
+    zbuffer: object
+
+
+def _yt_setup(yt, ColorTransferFunction, ZBuffer, ds, rs, view, ghost_zones) -> _YtSetup:
+    """yt's scene for dataset ``ds``: a perspective lens on the scene's field (linear, with
+    ``ghost_zones`` or not), the Mitsuba camera rebuilt (:func:`_yt_camera`), the Gaussian
+    transfer function at the isovalue and the scene's other shapes as a depth buffer."""
+    sc = yt.create_scene(ds, field=("stream", rs.field), lens_type="perspective")
+    source = sc.get_source(0)
+    source.log_field = False
+    source.set_use_ghost_zones(ghost_zones)
+    cam = sc.camera
+    frame = _yt_camera(ds, cam, view.sensor, rs.to_world, view.w, view.h)
+    # Optical depth across the band (head on, gradient gmed): A * sigma sqrt(2 pi) / gmed
+    # over the ray's parameter length |vp_dir|, which the sampler's dt is a share of.
+    ray_len = float(np.median(np.linalg.norm(frame["vp_dir"], axis=-1)))
+    height = YT_DEPTH * view.gmed * ray_len / (view.sigma * math.sqrt(2.0 * math.pi))
+    tf = ColorTransferFunction((view.vmin, view.vmax), nbins=YT_BINS, grey_opacity=True)
+    colour = list(rs.integ.opt.iso_colors[0])
+    tf.add_gaussian(rs.iso, 2.0 * view.sigma ** 2, colour + [height])
+    source.set_transfer_function(tf)
+    # The scene's other shapes, as the depth at which each yt ray stops (its parameter
+    # runs from 0 to 1 along vp_dir).
+    t_occ_yt = frame["to_yt"](view.t_occ) / np.linalg.norm(frame["vp_dir"], axis=-1) / \
+        view.scale
+    zbuffer = ZBuffer(np.zeros((view.w, view.h, 4)),
+                      np.where(np.isfinite(t_occ_yt), t_occ_yt, 1.0))
+    return _YtSetup(sc=sc, source=source, cam=cam, frame=frame, height=height, zbuffer=zbuffer)
+
+
+def _yt_row(scene_name, rs, view, setup, image, seconds, ghost_zones) -> dict:
+    """The route's row from yt's ``image`` (``(W, H, 4)``, yt's layout): hit where the
+    accumulated opacity exceeds 0.5, scored against the reference hit buffers (no depth or
+    normals: NaN) with its gaps counted; ``seconds``: dataset, set-up and render times."""
+    frame = setup.frame
     alpha = frame["from_yt"](image[..., 3])
     hit = alpha > 0.5
     # No depth or normal from yt: placeholders for score(), whose depth and normal errors are
     # replaced by NaN below.
     hits = ref.HitBuffers(t=np.where(hit, np.nan, np.inf), hit=hit,
-                          normal=np.zeros((h, w, 3)), cell=math.nan)
-    scored = ref.score(hits, ref_hits).as_dict()
+                          normal=np.zeros((view.h, view.w, 3)), cell=math.nan)
+    scored = ref.score(hits, rs.ref_hits).as_dict()
     for k in ("depth_mean", "depth_p99", "normal_mean"):
         scored[k] = math.nan
-    gaps = _gaps(vol, to_world, ref_hits, hits, o, d, _finest_spacing(vol))
+    gaps = _gaps(rs.vol, rs.to_world, rs.ref_hits, hits, view.o, view.d,
+                 _finest_spacing(rs.vol))
+    t_ds, t_setup, t_render = seconds
     detail = {"dataset": t_ds, "setup": t_setup, "render": t_render,
-              "data_shared": _data_seconds(scene)}
+              "data_shared": _data_seconds(rs.scene)}
     notes = (f"perspective lens, max ray angle error {frame['angle_error']:.1e} rad; Gaussian "
-             f"sigma {sigma:.3g} ({YT_SIGMA:g} of range), {YT_BINS} bins, height {height:.3g} "
-             f"(median gradient norm {gmed:.3g}); {source.num_samples} samples/cell; ghost zones "
+             f"sigma {view.sigma:.3g} ({YT_SIGMA:g} of range), {YT_BINS} bins, height "
+             f"{setup.height:.3g} (median gradient norm {view.gmed:.3g}); "
+             f"{setup.source.num_samples} samples/cell; ghost zones "
              f"{'on' if ghost_zones else 'off'}; hit = alpha > 0.5; {_gap_note(gaps)}")
     peer = "yt_volume+ghost" if ghost_zones else "yt_volume"
     return _row(scene_name, peer, t_ds + t_setup + t_render, detail, scored,

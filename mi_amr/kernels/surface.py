@@ -133,12 +133,23 @@ def _piece_crossings(dev, cfg, num, den, L, v_prev, k_jump, active):
 
 
 def _bracket(num, den, iso, L, n_mid, d_mid):
-    """The first root bracket ``(found, a, b)`` of ``N - iso D`` on ``[0, L]``, kept only where
-    the weights are not vanishing at its ends (:data:`~mi_amr.tolerances.MIN_COVER`)."""
+    """The first root bracket ``(found, a, b)`` of ``N - iso D`` on ``[0, L]``, for the field
+    ``N / D``. Next to missing data ``D`` falls to 0, and ``N - iso D`` with it, which is no
+    crossing of the field: an end whose weight is below :data:`~mi_amr.tolerances.MIN_COVER`
+    (none but rounding) is moved :data:`~mi_amr.tolerances.COVER_NUDGE` of the bracket
+    inside, and the signs there must still differ (a tangent needs the weight where it
+    touches)."""
     c = [num[i] - iso * den[i] for i in range(4)]
     found, a, b = roots.first_root_bracket(c, L, dr.abs(n_mid) + dr.abs(iso * d_mid))
-    covered = (roots.cubic(den, a) >= tol.MIN_COVER) & (roots.cubic(den, b) >= tol.MIN_COVER)
-    return found & covered, a, b
+    thin_a = roots.cubic(den, a) < tol.MIN_COVER
+    thin_b = roots.cubic(den, b) < tol.MIN_COVER
+    nudge = tol.COVER_NUDGE * (b - a)
+    a2 = dr.select(thin_a, a + nudge, a)
+    b2 = dr.select(thin_b, b - nudge, b)
+    crosses = (roots.cubic(c, a2) > 0.0) != (roots.cubic(c, b2) > 0.0)
+    touch = (a == b) & lnot(thin_a)
+    keep = dr.select(thin_a | thin_b, crosses | touch, True)
+    return found & keep, a2, b2
 
 
 @dr.syntax
