@@ -285,3 +285,23 @@ def test13_explicit_velocity_names_and_shared_fields():
         np.testing.assert_allclose(h.fields["q_criterion"], -0.5 * np.trace(A @ A), atol=1e-4)
     # The input volume is unchanged.
     assert vol.field_names == ("a", "b", "c")
+
+
+def test30_cell_values_match_their_slow_twin():
+    """One gather per field across a level's grids gives what the grid-by-grid lookup gives,
+    including cells no grid of the level holds (NaN, not found)."""
+    from conftest import random_grids
+    from mi_amr import AMRVolume
+    from mi_amr.core import levels
+
+    vol = AMRVolume.from_grids(random_grids(5, fn=lambda p: p[..., 0] * 3 + p[..., 1]))
+    rng = np.random.default_rng(1)
+    for level in range(vol.num_levels):
+        lo, hi = vol.index_boxes()
+        sel = vol.levels == level
+        idx = rng.integers(lo[sel].min(axis=0) - 2, hi[sel].max(axis=0) + 2, size=(500, 3))
+        a, fa = levels.cell_values(vol, level, idx, ["f"])
+        b, fb = levels.cell_values_reference(vol, level, idx, ["f"])
+        np.testing.assert_array_equal(fa, fb)
+        np.testing.assert_array_equal(a, b)
+        assert fa.any() and not fa.all()

@@ -71,27 +71,64 @@ def level_index(volume, level: int) -> LevelIndex:
     return cache[level]
 
 
+def level_values(volume, level: int, name: str) -> np.ndarray:
+    """Field ``name`` of every grid of ``level``, grid after grid in the order of
+    :class:`LevelIndex` (each in C order of its ``(nx, ny, nz)`` array), as one flat array
+    (cached on the volume while the field is the same array)."""
+    cache = volume.__dict__.setdefault("_level_values", {})
+    table = level_index(volume, level)
+    arrays = [volume.grids[g].fields[name] for g in table.grids]
+    key = (level, name)
+    if key not in cache or cache[key][0] != [id(a) for a in arrays]:
+        flat = np.concatenate([a.ravel() for a in arrays]) if arrays else np.zeros(0)
+        cache[key] = ([id(a) for a in arrays], arrays, flat)
+    return cache[key][2]
+
+
+def grid_offsets(volume, level: int) -> np.ndarray:
+    """Where each grid of :class:`LevelIndex` ``level`` starts in :func:`level_values`."""
+    table = level_index(volume, level)
+    counts = np.prod(table.hi - table.lo, axis=1)
+    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+
+
 def cell_values(volume, level: int, index, fields):
     """Values of ``fields`` at level-``level`` cells ``index`` (``(N, 3)`` int).
 
     Returns ``(values, found)``: ``values`` is ``(len(fields), N)`` float64 (NaN where not found)
-    and ``found`` is True where some grid of that level holds the cell.
+    and ``found`` is True where some grid of that level holds the cell. One gather per field
+    from :func:`level_values`, whatever the number of grids; :func:`cell_values_reference` is
+    the slow twin.
     """
     index = np.asarray(index, dtype=np.int64)
     table = level_index(volume, level)
     pos = table.find(index)
     found = pos >= 0
     values = np.full((len(fields), len(index)), np.nan)
-    order = np.argsort(pos, kind="stable")
-    sorted_pos = pos[order]
-    starts = np.searchsorted(sorted_pos, np.arange(len(table.grids) + 1))
-    for p in np.flatnonzero(np.diff(starts)):
-        sel = order[starts[p]:starts[p + 1]]
-        gi = table.grids[p]
+    sel = np.flatnonzero(found)
+    p = pos[sel]
+    local = index[sel] - table.lo[p]
+    n = (table.hi - table.lo)[p]
+    flat = grid_offsets(volume, level)[p] + (local[:, 0] * n[:, 1] + local[:, 1]) * n[:, 2] + \
+        local[:, 2]
+    for f, name in enumerate(fields):
+        values[f, sel] = np.take(level_values(volume, level, name), flat)
+    return values, found
+
+
+def cell_values_reference(volume, level: int, index, fields):
+    """Slow twin of :func:`cell_values`: grid by grid."""
+    index = np.asarray(index, dtype=np.int64)
+    table = level_index(volume, level)
+    pos = table.find(index)
+    values = np.full((len(fields), len(index)), np.nan)
+    for p in np.unique(pos[pos >= 0]):
+        sel = np.flatnonzero(pos == p)
         local = index[sel] - table.lo[p]
         for f, name in enumerate(fields):
-            values[f, sel] = volume.grids[gi].fields[name][local[:, 0], local[:, 1], local[:, 2]]
-    return values, found
+            arr = volume.grids[table.grids[p]].fields[name]
+            values[f, sel] = arr[local[:, 0], local[:, 1], local[:, 2]]
+    return values, pos >= 0
 
 
 def interpolate(volume, level: int, points, fields, *, complete: bool = False):
