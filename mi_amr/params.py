@@ -66,6 +66,10 @@ TABLE = (
           choices=METHODS),
     Param("reconstruction", "string", "basis", "``basis`` (Wald et al.) or ``finest``",
           choices=RECONSTRUCTIONS),
+    Param("jitter", "string", "stable",
+          "sampling methods' step offset per pixel sample: ``stable`` (a hash of the sample's "
+          "index: the same every frame, so a still camera does not flicker) or ``random`` "
+          "(from the sampler)", choices=("stable", "random")),
     Param("step_scale", "float", 0.5, "step in finest cells (sampling methods)",
           lo=1e-4, hi=64.0, traversable=True),
     Param("shadows", "boolean", True, "shadow rays test meshes and isosurfaces",

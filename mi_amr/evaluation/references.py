@@ -78,6 +78,7 @@ def hit_buffers(scene) -> HitBuffers:
     import drjit as dr
     import mitsuba as mi
 
+    from mi_amr.kernels.jitter import stable_jitter
     from mi_amr.kernels.surface import first_crossing
     from mi_amr.kernels.reconstruct import reconstruct
 
@@ -92,8 +93,7 @@ def hit_buffers(scene) -> HitBuffers:
     t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
     m = integ.m
     o, d = integ.frame.ray_to_volume(integ.m, ray.o, ray.d)
-    golden = m.Float(idx) * 0.6180339887
-    jitter = golden - dr.floor(golden)
+    jitter = stable_jitter(m, m.UInt32(idx))
     cfg = integ.config()
     c = first_crossing(integ.dev, cfg, o, d, m.Float(0.0), m.Float(t_mesh), jitter, m.Bool(True))
     _, grad = reconstruct(integ.dev, cfg.basis, dr.fma(d, c.t, o), integ.dev.arrays(cfg.basis),

@@ -33,6 +33,7 @@ from mi_amr.errors import AMRError
 from mi_amr.kernels.composite import composite
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import backend_of
+from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import prepare_file
 from mi_amr.kernels.surface import first_crossing
 from mi_amr.plugin import bridge, options, shading
@@ -141,7 +142,7 @@ class _AMRIso:
         si = scene.ray_intersect(ray, active)
         t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
         o, d = self.frame.ray_to_volume(self.m, ray.o, ray.d)
-        jitter = bridge.to_kernel(self.m, sampler.next_1d(active))
+        jitter = self._jitter(sampler.next_1d(active), ray)
         # One light sample per emitter and ray, drawn here: the sampler's state must not
         # change inside the symbolic loops below.
         light_u = [sampler.next_2d(active) for _ in scene.emitters()]
@@ -160,6 +161,14 @@ class _AMRIso:
 
     def aov_names(self):
         return list(AOV_NAMES) if self.opt.aovs else []
+
+    def _jitter(self, u, ray):
+        """The sampling methods' step offset: ``u`` from the sampler, or (``jitter="stable"``)
+        a hash of the lane -- pixel and sample index of Mitsuba's wavefront -- the same every
+        frame."""
+        if self.opt.jitter == "random" or not bridge.vectorised():
+            return bridge.to_kernel(self.m, u)
+        return stable_jitter(self.m, dr.arange(self.m.UInt32, dr.width(ray.o)))
 
     def _layer_crossing(self, o, d, t_end, jitter):
         """The ``crossing`` callback of :func:`front_to_back` for a ray in the volume."""

@@ -32,6 +32,7 @@ class Options:
     mode: str
     method: str
     reconstruction: str
+    jitter: str
     step_scale: float
     shadows: bool
     ka: float
