@@ -112,18 +112,38 @@ def test06_band_alpha_and_preintegration_match_numpy():
     shape = band.OpacityBand(width=0.01, support=(-0.02, 0.03), peak=1.2, dx0=0.5)
     inputs = shape.inputs(m)
     v = np.linspace(-0.05, 0.05, 301)
-    np.testing.assert_allclose(band.alpha(inputs, f(v), Float(0.0)).numpy(),
+    np.testing.assert_allclose(band.alpha(m, inputs, 0, f(v), Float(0.0)).numpy(),
                                shape.alpha_numpy(v, 0.0), atol=1e-6)
     # A linear ramp from a to b over dx: optical depth dx * mean of tau over [a, b].
     a, b, dx = -0.015, 0.02, 0.3
     xs = np.linspace(a, b, 20001)
     tau = -np.log1p(-np.minimum(shape.alpha_numpy(xs, 0.0), tolerances.OPACITY_CAP)) / 0.5
     want = 1.0 - math.exp(-np.trapezoid(tau, xs) / (b - a) * dx)
-    got = band.segment_alpha(m, inputs, Float(a), Float(b), Float(dx), Float(0.0)).numpy()[0]
+    got = band.segment_alpha(m, inputs, 0, Float(a), Float(b), Float(dx), Float(0.0)).numpy()[0]
     assert got == pytest.approx(want, abs=2e-4)
     # Opacity correction: two half steps compose to one full step.
     half = band.corrected(inputs, Float(0.6), Float(0.25)).numpy()[0]
     assert 1 - (1 - half) ** 2 == pytest.approx(0.6, abs=1e-6)
+
+
+def test06b_several_bands_keep_their_own_shapes_and_add_optical_depths():
+    """Two bands on one device table: each reads its own width, support and table; together
+    their opacity is 1 - (1 - a0)(1 - a1), shared in proportion to their optical depths."""
+    b0 = band.OpacityBand(width=0.01, support=(-0.02, 0.03), peak=1.2, dx0=0.5)
+    b1 = band.OpacityBand(width=0.05, support=(-0.1, 0.1), peak=0.3, dx0=0.5)
+    inputs = band.band_inputs(m, [b0, b1])
+    v = np.linspace(-0.2, 0.2, 100)     # (no value exactly on a support's end)
+    for k, shape in enumerate((b0, b1)):
+        np.testing.assert_allclose(band.alpha(m, inputs, k, f(v), Float(0.0)).numpy(),
+                                   shape.alpha_numpy(v, 0.0), atol=1e-6)
+        one = band.segment_alpha(m, shape.inputs(m), 0, Float(-0.01), Float(0.02), Float(0.3),
+                                 Float(0.0)).numpy()
+        two = band.segment_alpha(m, inputs, k, Float(-0.01), Float(0.02), Float(0.3),
+                                 Float(0.0)).numpy()
+        np.testing.assert_allclose(one, two, rtol=1e-6)
+    a, shares = band.combine([Float(0.5), Float(0.75)])
+    assert a.numpy()[0] == pytest.approx(1 - 0.5 * 0.25, abs=1e-6)
+    assert shares[0].numpy()[0] == pytest.approx(np.log(2) / (np.log(2) + np.log(4)), abs=1e-6)
 
 
 def test07_bad_band_shapes_are_refused():

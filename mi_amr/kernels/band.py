@@ -9,8 +9,11 @@ units; the finest cell width). A step of length ``dx`` has the corrected opacity
 the extinction ``tau(x) = -ln(1 - alpha) / dx0`` over value offsets, tabulated once per band
 shape (:data:`TABLE_SIZE` + 1 points over the support).
 
-:class:`OpacityBand` holds the shape on the host and makes :class:`BandInputs`, the opaque
-device values the kernels read, so a new width, support, peak or isovalue is new kernel input.
+:class:`OpacityBand` holds one band's shape on the host; :func:`band_inputs` makes
+:class:`BandInputs` of one band per isovalue, the opaque device values the kernels read, so a new
+width, support, peak or isovalue is new kernel input. Several bands add their optical depths
+(their opacities combine as ``1 - prod(1 - alpha_k)``); the kernel functions take the band's
+index ``k`` (a Python int: the number of bands is part of the scene's structure).
 """
 
 from __future__ import annotations
@@ -30,7 +33,8 @@ TABLE_SIZE = 1024
 
 @dataclass
 class BandInputs:
-    """The band on the device: one-element opaque arrays and the integral table."""
+    """The bands on the device: ``width``, ``lo``, ``hi``, ``peak`` one value per band, ``dx0``
+    one value, and the bands' integral tables one after another (``TABLE_SIZE + 1`` each)."""
 
     width: Any
     lo: Any
@@ -38,6 +42,22 @@ class BandInputs:
     peak: Any
     dx0: Any
     table: Any
+    count: int = 1
+
+    def get(self, m, name, k):
+        return dr.gather(m.Float, getattr(self, name), m.UInt32(k))
+
+
+def band_inputs(m, bands) -> BandInputs:
+    """The device values of the bands ``bands`` (one :class:`OpacityBand` per isovalue, with
+    the same ``dx0``), opaque."""
+    return BandInputs(width=opaque_floats(m, [b.width for b in bands]),
+                      lo=opaque_floats(m, [b.lo for b in bands]),
+                      hi=opaque_floats(m, [b.hi for b in bands]),
+                      peak=opaque_floats(m, [b.peak for b in bands]),
+                      dx0=opaque_floats(m, [bands[0].dx0]),
+                      table=opaque_floats(m, np.concatenate([b.table_T for b in bands])),
+                      count=len(bands))
 
 
 class OpacityBand:
@@ -68,20 +88,16 @@ class OpacityBand:
         return np.where((x > self.lo) & (x < self.hi), a, 0.0)
 
     def inputs(self, m) -> BandInputs:
-        """The device values of this band on backend ``m`` (opaque)."""
-        def scalar(x):
-            return opaque_floats(m, [x])
-
-        table = opaque_floats(m, self.table_T)
-        return BandInputs(width=scalar(self.width), lo=scalar(self.lo), hi=scalar(self.hi),
-                          peak=scalar(self.peak), dx0=scalar(self.dx0), table=table)
+        """The device values of this band alone on backend ``m`` (opaque)."""
+        return band_inputs(m, [self])
 
 
-def alpha(band: BandInputs, v, centre):
-    """Opacity of one step of length ``dx0`` at value ``v``."""
+def alpha(m, band: BandInputs, k, v, centre):
+    """Opacity of band ``k`` for one step of length ``dx0`` at value ``v``."""
     x = v - centre
-    a = dr.minimum(1.0, band.peak * dr.exp(-0.5 * dr.square(x / band.width)))
-    return dr.select((x > band.lo) & (x < band.hi), a, 0.0)
+    width, peak = band.get(m, "width", k), band.get(m, "peak", k)
+    a = dr.minimum(1.0, peak * dr.exp(-0.5 * dr.square(x / width)))
+    return dr.select((x > band.get(m, "lo", k)) & (x < band.get(m, "hi", k)), a, 0.0)
 
 
 def corrected(band: BandInputs, a, dx):
@@ -89,21 +105,36 @@ def corrected(band: BandInputs, a, dx):
     return 1.0 - dr.power(dr.maximum(1.0 - dr.minimum(a, tol.OPACITY_CAP), 0.0), dx / band.dx0)
 
 
-def integral(m, band: BandInputs, x):
-    """``T(x)``: the extinction integrated from the support's low end to offset ``x``."""
-    u = dr.clip((x - band.lo) / (band.hi - band.lo), 0.0, 1.0) * TABLE_SIZE
-    i = dr.minimum(m.UInt32(dr.floor(u)), TABLE_SIZE - 1)
-    f = u - m.Float(i)
+def integral(m, band: BandInputs, k, x):
+    """``T(x)`` of band ``k``: its extinction integrated from its support's low end to offset
+    ``x``."""
+    lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
+    u = dr.clip((x - lo) / (hi - lo), 0.0, 1.0) * TABLE_SIZE
+    i = dr.minimum(m.UInt32(dr.floor(u)), TABLE_SIZE - 1) + k * (TABLE_SIZE + 1)
+    f = u - m.Float(i - k * (TABLE_SIZE + 1))
     return dr.lerp(dr.gather(m.Float, band.table, i), dr.gather(m.Float, band.table, i + 1), f)
 
 
-def segment_alpha(m, band: BandInputs, a, b, dx, centre):
-    """Pre-integrated opacity of a step of length ``dx`` (world) along which the value goes
-    linearly from ``a`` to ``b``."""
+def segment_alpha(m, band: BandInputs, k, a, b, dx, centre):
+    """Pre-integrated opacity of band ``k`` for a step of length ``dx`` (world) along which the
+    value goes linearly from ``a`` to ``b``."""
     xa, xb = a - centre, b - centre
-    Ta, Tb = integral(m, band, xa), integral(m, band, xb)
-    flat = dr.abs(xb - xa) < tol.RAMP_FLAT_REL * band.width
-    tau_point = -dr.log(1.0 - dr.minimum(alpha(band, 0.5 * (a + b), centre),
+    Ta, Tb = integral(m, band, k, xa), integral(m, band, k, xb)
+    flat = dr.abs(xb - xa) < tol.RAMP_FLAT_REL * band.get(m, "width", k)
+    tau_point = -dr.log(1.0 - dr.minimum(alpha(m, band, k, 0.5 * (a + b), centre),
                                          tol.OPACITY_CAP)) / band.dx0
     tau_mean = dr.select(flat, tau_point, (Tb - Ta) / (xb - xa))
     return 1.0 - dr.exp(-dr.maximum(tau_mean, 0.0) * dx)
+
+
+def combine(alphas):
+    """The opacity of bands of opacities ``alphas`` together, and each band's share of it (its
+    optical depth over the total; 0 where all are 0)."""
+    if len(alphas) == 1:
+        return alphas[0], [1.0]
+    taus = [-dr.log(1.0 - dr.minimum(a, tol.OPACITY_CAP)) for a in alphas]
+    total = taus[0]
+    for t in taus[1:]:
+        total = total + t
+    shares = [dr.select(total > 0.0, t / total, 0.0) for t in taus]
+    return 1.0 - dr.exp(-total), shares

@@ -14,7 +14,7 @@ import drjit as dr
 from mi_amr import tolerances as tol
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
-from mi_amr.kernels.band import alpha, corrected, segment_alpha
+from mi_amr.kernels.band import alpha, combine, corrected, segment_alpha
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.traverse import Walk, clip_to_volume, epsilon, next_dual_plane, seek
@@ -31,16 +31,19 @@ class Composite:
 
 def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lighting,
               active) -> Composite:
-    """Front-to-back compositing of the opacity band ``cfg.band`` along the ray, with early
-    termination when less than :data:`~mi_amr.tolerances.T_MIN` of the light gets through.
+    """Front-to-back compositing of the opacity bands ``cfg.band`` (one around each isovalue)
+    along the ray, with early termination when less than :data:`~mi_amr.tolerances.T_MIN` of
+    the light gets through.
 
-    ``color_of(value)`` gives the colour (``m.Array3f``) for a colour-field value;
+    ``color_of(shares, value)`` gives the colour (``m.Array3f``) of a stretch where the bands
+    hold ``shares`` of the optical depth (a list, one per band) and the colour field is
+    ``value``;
     ``lighting(p, gradient, active)`` gives ``(A, S)`` such that the shaded colour of a sample of
     colour ``c`` is ``c * A + S`` (the Phong terms). With ``lighting=None`` only the
     transmittance is computed (shadow rays).
 
-    ``exact``: each cubic piece is cut where the reconstructed value can turn relative to the
-    band (at the extrema of ``N - v D`` for the band's low end, centre and high end), and each
+    ``exact``: each cubic piece is cut where the reconstructed value can turn relative to a
+    band (at the extrema of ``N - v D`` for each band's low end, centre and high end), and each
     resulting piece contributes the pre-integrated opacity of a linear ramp between its end
     values: the band is never stepped over. The sampling methods take one sample per step with
     opacity correction (or pre-integration between consecutive samples); ``bisect`` moves a
@@ -63,10 +66,26 @@ def _sort(values):
     return v
 
 
-def _band_pieces(dev, cfg, num, den, L, dnorm, have, marks, centre):
-    """A cubic piece of length ``L`` cut where the value can turn relative to the band (the
-    extrema of ``N - v D`` for each of ``marks``): per sub-piece its pre-integrated opacity
-    and middle, and the middle of the most opaque one with its opacity."""
+def _bands(dev, cfg):
+    """The bands' centres (the isovalues) and their ``(lo, hi)`` value ranges."""
+    m = dev.m
+    centres = [cfg.iso(dev, k) for k in range(cfg.num_iso)]
+    bands = [(c + cfg.band.get(m, "lo", k), c + cfg.band.get(m, "hi", k))
+             for k, c in enumerate(centres)]
+    return centres, bands
+
+
+def _marks(centres, bands):
+    """Each band's low end, centre and high end: where a piece is cut at the extrema of
+    ``N - v D`` (a dr.syntax function may not unpack in a comprehension)."""
+    return [v for lo_hi, c in zip(bands, centres) for v in (lo_hi[0], c, lo_hi[1])]
+
+
+def _band_pieces(dev, cfg, num, den, L, dnorm, have, marks, centres):
+    """A cubic piece of length ``L`` cut where the value can turn relative to a band (the
+    extrema of ``N - v D`` for each of ``marks``): per sub-piece its pre-integrated opacity,
+    the bands' shares of it and its middle, and the middle of the most opaque one with its
+    opacity."""
     m = dev.m
     cuts = []
     for v in marks:
@@ -74,20 +93,22 @@ def _band_pieces(dev, cfg, num, den, L, dnorm, have, marks, centre):
         cuts += [r1, r2]
     s_pts = [0.0 * L] + _sort(cuts) + [L]
     values = [roots.cubic(num, s) / roots.cubic(den, s) for s in s_pts]
-    alphas, mids = [], []
+    alphas, shares, mids = [], [], []
     best_alpha = m.Float(0.0)
     s_best = m.Float(0.0)
     for i in range(len(s_pts) - 1):
         dx = (s_pts[i + 1] - s_pts[i]) * dnorm
-        a = segment_alpha(m, cfg.band, values[i], values[i + 1], dx, centre)
+        a, share = combine([segment_alpha(m, cfg.band, k, values[i], values[i + 1], dx, c)
+                            for k, c in enumerate(centres)])
         a = dr.select(have & (dx > 0.0), a, 0.0)
         mid = 0.5 * (s_pts[i] + s_pts[i + 1])
         alphas.append(a)
+        shares.append(share)
         mids.append(mid)
         better = a > best_alpha
         best_alpha = dr.select(better, a, best_alpha)
         s_best = dr.select(better, mid, s_best)
-    return alphas, mids, s_best, best_alpha
+    return alphas, shares, mids, s_best, best_alpha
 
 
 @dr.syntax
@@ -98,8 +119,8 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     shade = lighting is not None
     arrays = dev.arrays(cfg.basis, color=True)
     level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
-    centre = cfg.iso(dev, 0)
-    marks = [centre + cfg.band.lo, centre, centre + cfg.band.hi]
+    centres, bands = _bands(dev, cfg)
+    marks = _marks(centres, bands)
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     w = Walk.start(m, t0)
@@ -122,8 +143,8 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
                                       arrays, work)
         samples += dr.select(work, 1, 0)
         have = work & (roots.cubic(den, 0.5 * L) > tol.NO_WEIGHT)
-        alphas, mids, s_best, best_alpha = _band_pieces(dev, cfg, nums[0], den, L, dnorm, have,
-                                                        marks, centre)
+        alphas, shares, mids, s_best, best_alpha = _band_pieces(dev, cfg, nums[0], den, L,
+                                                                dnorm, have, marks, centres)
 
         # --- Light once per piece of the ray, where it is most opaque.
         lit = have & (best_alpha > tol.ALPHA_LIT)
@@ -135,7 +156,7 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
             a = alphas[i]
             if dr.hint(shade, mode="scalar"):
                 cval = roots.cubic(nums[1], mids[i]) / roots.cubic(den, mids[i])
-                C += dr.select(a > 0.0, T * a * (color_of(cval) * A + S), 0.0)
+                C += dr.select(a > 0.0, T * a * (color_of(shares[i], cval) * A + S), 0.0)
             T *= 1.0 - a
 
         w.t = dr.select(active, t_b, w.t)
@@ -176,26 +197,33 @@ def _volume_sample(dev, cfg, o, d, dnorm, w: Walk, t1, t_anchor, rho, dt, arrays
     return Sample(b=b, t_s=t_s, take=take, v=vals[0], cval=vals[1], grad=grad)
 
 
-def _into_band(dev, cfg, o, d, smp: Sample, t_prev, v_prev, band_lo, band_hi, arrays):
-    """``bisect``: two samples on either side of the band; move this sample into it if a point
-    in between lies in the band (course report, section 3.6.2)."""
-    straddle = smp.take & (((v_prev < band_lo) & (smp.v > band_hi)) |
-                           ((v_prev > band_hi) & (smp.v < band_lo)))
-    t_m, found = _bisect_band(dev, cfg, o, d, t_prev, smp.t_s, v_prev, band_lo, band_hi,
-                              straddle)
-    moved = straddle & found
+def _into_band(dev, cfg, o, d, smp: Sample, t_prev, v_prev, bands, arrays):
+    """``bisect``: two samples on either side of a band (``bands``: ``(lo, hi)`` value ranges;
+    the first listed that is straddled); move this sample into it if a point in between lies in
+    it (course report, section 3.6.2)."""
+    m = dev.m
+    moved = m.Bool(False)
+    t_m = m.Float(smp.t_s)
+    for band_lo, band_hi in bands:
+        straddle = smp.take & lnot(moved) & (((v_prev < band_lo) & (smp.v > band_hi)) |
+                                             ((v_prev > band_hi) & (smp.v < band_lo)))
+        t_k, found = _bisect_band(dev, cfg, o, d, t_prev, smp.t_s, v_prev, band_lo, band_hi,
+                                  straddle)
+        t_m = dr.select(straddle & found, t_k, t_m)
+        moved |= straddle & found
     vals_m, grad_m = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_m, o), arrays, moved)
     return Sample(b=smp.b, t_s=dr.select(moved, t_m, smp.t_s), take=smp.take,
                   v=dr.select(moved, vals_m[0], smp.v), cval=dr.select(moved, vals_m[1], smp.cval),
                   grad=dr.select(moved, grad_m, smp.grad))
 
 
-def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centre):
+def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centres):
     """The opacity of a sample's step. Opacity-correction weight: the step (uniform), the
     sub-interval (adaptive, ExaBricks) or the distance from the previous sample (bisect, course
     report). Pre-integrated: the value runs from the previous sample to this one, integrated
     over that distance (steps tile the ray from one sample to the next; the first, from where
-    the ray or the leaf starts, at the first sample's value)."""
+    the ray or the leaf starts, at the first sample's value). Returns the opacity and the
+    bands' shares of it."""
     band = cfg.band
     if cfg.method == "uniform":
         dx = dt * dnorm
@@ -203,20 +231,28 @@ def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centre):
         dx = (smp.b - t) * dnorm
     else:
         dx = (smp.t_s - t_prev) * dnorm
-    if cfg.preintegrated:
-        span = (smp.t_s - t_prev) * dnorm
-        a = dr.select(dr.isfinite(v_prev), segment_alpha(m, band, v_prev, smp.v, span, centre),
-                      corrected(band, alpha(band, smp.v, centre), span))
-    else:
-        a = corrected(band, alpha(band, smp.v, centre), dx)
-    return dr.select(smp.take & dr.isfinite(smp.v), a, 0.0)
+    alphas = []
+    for k, centre in enumerate(centres):
+        if cfg.preintegrated:
+            span = (smp.t_s - t_prev) * dnorm
+            a = dr.select(dr.isfinite(v_prev),
+                          segment_alpha(m, band, k, v_prev, smp.v, span, centre),
+                          corrected(band, alpha(m, band, k, smp.v, centre), span))
+        else:
+            a = corrected(band, alpha(m, band, k, smp.v, centre), dx)
+        alphas.append(dr.select(smp.take & dr.isfinite(smp.v), a, 0.0))
+    return combine(alphas)
 
 
-def _light_point(cfg, smp: Sample, t_prev, v_prev, centre):
+def _light_point(cfg, smp: Sample, t_prev, v_prev, centres, shares):
     """Where a sample is lit: the sample, or for a pre-integrated step where the value ramp
-    passes the band's centre (where its opacity sits)."""
+    passes the centre of the band holding most of its opacity (where that opacity sits)."""
     if not cfg.preintegrated:
         return smp.t_s
+    centre, best = centres[0], shares[0]
+    for c, share in zip(centres[1:], shares[1:]):
+        centre = dr.select(share > best, c, centre)
+        best = dr.maximum(best, share)
     f = dr.clip((centre - v_prev) / (smp.v - v_prev), 0.0, 1.0)
     return dr.select(dr.isfinite(f), dr.lerp(t_prev, smp.t_s, f), smp.t_s)
 
@@ -228,8 +264,7 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
     shade = lighting is not None
     uniform = cfg.method == "uniform"
     arrays = dev.arrays(cfg.basis, color=True)
-    centre = cfg.iso(dev, 0)
-    band_lo, band_hi = centre + cfg.band.lo, centre + cfg.band.hi
+    centres, bands = _bands(dev, cfg)
     # A shadow ray starts inside the band: uniform steps then sample the middle of each step,
     # so its first half step (the most opaque stretch) is not stepped over.
     rho = m.Float(-0.5 if not shade else 0.0) if uniform else jitter
@@ -258,13 +293,13 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
         smp = _volume_sample(dev, cfg, o, d, dnorm, w, t1, t_anchor, rho, dt, arrays, active)
         samples += dr.select(smp.take, 1, 0)
         if dr.hint(cfg.method == "bisect", mode="scalar"):
-            smp = _into_band(dev, cfg, o, d, smp, t_prev, v_prev, band_lo, band_hi, arrays)
-        a = _sample_alpha(m, cfg, smp, w.t, t_prev, v_prev, dt, dnorm, centre)
+            smp = _into_band(dev, cfg, o, d, smp, t_prev, v_prev, bands, arrays)
+        a, shares = _sample_alpha(m, cfg, smp, w.t, t_prev, v_prev, dt, dnorm, centres)
         if dr.hint(shade, mode="scalar"):
             lit = smp.take & (a > tol.ALPHA_LIT)
-            t_light = _light_point(cfg, smp, t_prev, v_prev, centre)
+            t_light = _light_point(cfg, smp, t_prev, v_prev, centres, shares)
             A, S = lighting(dr.fma(d, t_light, o), smp.grad, lit)
-            C += dr.select(lit, T * a * (color_of(smp.cval) * A + S), 0.0)
+            C += dr.select(lit, T * a * (color_of(shares, smp.cval) * A + S), 0.0)
         T *= 1.0 - a
         t_prev = dr.select(smp.take, smp.t_s, t_prev)
         v_prev = dr.select(smp.take, smp.v, v_prev)

@@ -20,7 +20,8 @@ from mi_amr.params import METHODS, RECONSTRUCTIONS  # noqa: F401  (re-exported)
 class MarchConfig:
     """``isovalues``: a device array of ``num_iso`` values; ``step_scale``: a one-element
     device array (finest cells per step of the sampling methods); ``band``: volume mode's
-    :class:`~mi_amr.kernels.band.BandInputs` around isovalue 0, or None for surfaces."""
+    :class:`~mi_amr.kernels.band.BandInputs`, one band around each isovalue, or None for
+    surfaces."""
 
     method: str
     basis: bool
@@ -39,10 +40,13 @@ class MarchConfig:
 def holds(dev, cfg: MarchConfig, r_lo, r_hi):
     """Can a value range ``[r_lo, r_hi]`` hold a crossing (or band opacity)?"""
     m = dev.m
-    if cfg.band is not None:
-        centre = cfg.iso(dev, 0)
-        return (r_lo < centre + cfg.band.hi) & (r_hi > centre + cfg.band.lo)
     out = m.Bool(False)
+    if cfg.band is not None:
+        for k in range(cfg.num_iso):
+            centre = cfg.iso(dev, k)
+            out |= (r_lo < centre + cfg.band.get(m, "hi", k)) & \
+                (r_hi > centre + cfg.band.get(m, "lo", k))
+        return out
     for k in range(cfg.num_iso):
         iso = cfg.iso(dev, k)
         out |= (r_lo <= iso) & (iso <= r_hi)

@@ -15,9 +15,9 @@ to_world             4x4 transform                always (volume world -> scene)
 colormap_values      512 edges on [0, 1]          with a colour map (:mod:`.colormap`)
 colormap_colors      3 x 512 floats (linear RGB)  with a colour map
 color_range          2 floats (field units)       with a colour map
-band_width           1 float (field units)        volume mode
-band_offsets         2 floats: support - iso      volume mode
-band_peak            1 float                      volume mode
+band_width           k floats (field units)       volume mode (one band per isovalue)
+band_offsets         2 k floats: support - iso    volume mode
+band_peak            k floats                     volume mode
 ===================  ===========================  ==========================================
 
 ``k`` (the number of isovalues) and the table sizes are part of the scene's structure: a change
@@ -32,7 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_amr.errors import AMRError
-from mi_amr.kernels.band import OpacityBand
+from mi_amr.kernels.band import OpacityBand, band_inputs
 from mi_amr.kernels.colormap import ColorMap, check_range
 from mi_amr.kernels.device import opaque_bools, opaque_floats
 
@@ -73,10 +73,11 @@ class FrameInputs:
             self.values.update(colormap_values=m.Float(edges), colormap_colors=m.Float(colors),
                                color_range=m.Float(rng))
         if opt.mode == "volume":
-            iso = opt.isovalues[0]
-            lo, hi = (-2.0 * opt.band_width, 2.0 * opt.band_width) if opt.band_support is None \
-                else (opt.band_support[0] - iso, opt.band_support[1] - iso)
-            self.values.update(band_width=m.Float(opt.band_width), band_offsets=m.Float([lo, hi]),
+            offsets = [(-2.0 * w, 2.0 * w) for w in opt.band_width] \
+                if opt.band_support is None else \
+                [(lo - iso, hi - iso) for (lo, hi), iso in zip(opt.band_support, opt.isovalues)]
+            self.values.update(band_width=m.Float(opt.band_width),
+                               band_offsets=m.Float(np.ravel(offsets)),
                                band_peak=m.Float(opt.band_peak))
         self._sizes = {name: dr.width(v) for name, v in self.values.items()}
         self.refresh()
@@ -107,9 +108,10 @@ class FrameInputs:
         self._kernel["shadows"] = opaque_bools(m, host["shadows"] != 0)
         self.band = None
         if "band_width" in host:
-            lo, hi = host["band_offsets"]
-            self.band = OpacityBand(float(host["band_width"][0]), (lo, hi),
-                                    float(host["band_peak"][0]), dx0=self.min_h).inputs(m)
+            offsets = host["band_offsets"].reshape(-1, 2)
+            self.band = band_inputs(m, [OpacityBand(float(w), tuple(o), float(p), dx0=self.min_h)
+                                        for w, o, p in zip(host["band_width"], offsets,
+                                                           host["band_peak"])])
 
 
 def _check(host: dict) -> None:
@@ -132,10 +134,10 @@ def _check(host: dict) -> None:
         if np.any(np.diff(host["colormap_values"]) < 0):
             bad("colormap_values", "must not decrease")
     if "band_width" in host:
-        lo, hi = host["band_offsets"]
-        if not host["band_width"][0] > 0:
+        offsets = host["band_offsets"].reshape(-1, 2)
+        if not np.all(host["band_width"] > 0):
             bad("band_width", "must be > 0")
-        if not lo < 0.0 < hi:
-            bad("band_offsets", "must be (low < 0 < high) offsets from the isovalue")
-        if not host["band_peak"][0] > 0:
+        if not np.all((offsets[:, 0] < 0) & (offsets[:, 1] > 0)):
+            bad("band_offsets", "must be (low < 0 < high) offsets from each isovalue")
+        if not np.all(host["band_peak"] > 0):
             bad("band_peak", "must be > 0")

@@ -218,6 +218,6 @@ class _AMRIso:
         """Front-to-back compositing of the opacity band up to the mesh hit."""
         m = self.m
         res = composite(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh), jitter,
-                        self.shader.color_of_k(0), self.shader.lighting(scene, light_u, ray, o, d),
+                        self.shader.band_colors(), self.shader.lighting(scene, light_u, ray, o, d),
                         m.Bool(active))
         return mi.Spectrum(res.C.x, res.C.y, res.C.z), mi.Float(res.T)

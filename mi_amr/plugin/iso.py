@@ -29,8 +29,21 @@ class IsoShader:
                                    m.Float(value))
         return dr.gather(m.Array3f, inputs["iso_color"], m.UInt32(k))
 
-    def color_of_k(self, k):
-        return lambda value: self.color(k, value)
+    def band_colors(self):
+        """The ``color_of(shares, value)`` callback of the volume compositing: the colour map
+        at the colour field's ``value``, else the isovalues' colours mixed by the bands'
+        shares of the opacity."""
+        m, k = self.m, len(self.integ.opt.isovalues)
+        if self.integ.inputs.has_colormap or k == 1:
+            return lambda shares, value: self.color(0, value)
+
+        def mix(shares, value):
+            out = m.Array3f(0.0)
+            for i in range(k):
+                out += shares[i] * self.color(i, value)
+            return out
+
+        return mix
 
     def light(self, scene, light_u, ray, t, grad, active):
         """``(A, S)`` (Mitsuba spectra) at the scene point ``ray(t)`` with volume-space

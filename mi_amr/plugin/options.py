@@ -40,9 +40,9 @@ class Options:
     ks: float
     shininess: float
     ambient: float
-    band_width: float
-    band_support: Optional[tuple]
-    band_peak: float
+    band_width: list
+    band_support: Optional[list]
+    band_peak: list
     preintegrated: bool
     aovs: bool
     leaf_cells: int
@@ -69,14 +69,43 @@ def parse(values: dict) -> Options:
     read = {p.name: _READERS[p.kind](values, p.name) for p in params.TABLE
             if p.kind in _READERS and p.name not in ("isovalue", "iso_color", "iso_opacity")}
     opt = Options(isovalues=isovalues, iso_colors=_colors(values, k),
-                  iso_opacity=_opacities(values, k), **read)
+                  iso_opacity=_opacities(values, k), band_width=_per_iso(values, "band_width", k),
+                  band_peak=_per_iso(values, "band_peak", k),
+                  band_support=_supports(values, isovalues), **read)
     if (opt.color_field is None) != (opt.colormap is None):
         raise AMRError("amr_iso: 'color_field' and 'colormap' go together; give both or neither")
     opt.leaf_cells, opt.max_layers = int(opt.leaf_cells), int(opt.max_layers)
-    if opt.mode == "volume" and k != 1:
-        raise AMRError(f"amr_iso: mode 'volume' renders one opacity band; give one isovalue, "
-                       f"got {k}")
     return opt
+
+
+def _per_iso(values, name, k):
+    """A number or one per isovalue (each checked against the table's range)."""
+    p = params.BY_NAME[name]
+    out = _floats({name: values.get(name, p.default)}, name)
+    if len(out) not in (1, k) or not all(p.lo <= x <= p.hi for x in out):
+        counts = "1 value" if k == 1 else f"1 or {k} values"
+        raise AMRError(f"amr_iso: parameter '{name}' needs {counts} in [{p.lo:g}, {p.hi:g}], "
+                       f"got {values.get(name)!r}")
+    return out * k if len(out) == 1 else out
+
+
+def _supports(values, isovalues):
+    """``band_support``: one ``lo hi`` pair, or one per isovalue, each around its isovalue."""
+    v = values.get("band_support")
+    if v is None:
+        return None
+    groups = v.split(";") if isinstance(v, str) else [v]
+    pairs = [_pair({"band_support": g}, "band_support") for g in groups]
+    k = len(isovalues)
+    if len(pairs) not in (1, k):
+        raise AMRError(f"amr_iso: parameter 'band_support' needs 1 or {k} 'lo hi' pairs, "
+                       f"got {v!r}")
+    pairs = pairs * k if len(pairs) == 1 else pairs
+    for (lo, hi), iso in zip(pairs, isovalues):
+        if not lo < iso < hi:
+            raise AMRError(f"amr_iso: parameter 'band_support' ({lo:g}, {hi:g}) must contain "
+                           f"its isovalue {iso:g}")
+    return pairs
 
 
 def _value(values, name):
