@@ -1,4 +1,5 @@
-"""The one exception type for mistakes a user can make (bad file, bad hierarchy, bad parameter)."""
+"""The one exception type for mistakes a user can make (bad file, bad hierarchy, bad parameter),
+and :func:`shown`, how a value is written in its messages."""
 
 
 class AMRError(ValueError):
@@ -6,3 +7,18 @@ class AMRError(ValueError):
 
     Deriving from ``ValueError`` lets callers that already catch ``ValueError`` keep working.
     """
+
+
+def shown(value) -> str:
+    """``repr(value)`` with NumPy scalars and arrays, also inside tuples and lists, written as
+    plain Python numbers and lists: ``(0.5, 2.25)``, not ``(np.float64(0.5), np.float64(2.25))``.
+    (Duck-typed, so this module needs no NumPy.)"""
+    return repr(_plain(value))
+
+
+def _plain(value):
+    if type(value) in (tuple, list):
+        return type(value)(_plain(v) for v in value)
+    if type(value).__module__ == "numpy" and callable(getattr(value, "tolist", None)):
+        return value.tolist()
+    return value

@@ -409,3 +409,73 @@ def test23_info_command_reports_a_broken_plotfile(tmp_path, capsys):
     (root / "Level_1" / "Cell_D_00000").unlink()
     assert cli.main(["info", str(root)]) == 2
     assert "Level_1/Cell_D_00000: missing" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- values that lie
+
+def test24_fab_holding_doubles_under_a_float_header_is_refused(tmp_path):
+    """A FAB whose header declares 4-byte reals but which holds doubles used to load with
+    values around -3e12: each FAB must be exactly the size its header declares."""
+    root = copy_plotfile("plt_eb_3d", tmp_path)
+    path = root / "Level_0" / "Cell_D_00000"    # one FAB, at byte 0
+    replace_bytes(path, DESCRIPTORS["<f8"].encode(), DESCRIPTORS["<f4"].encode())
+    with pytest.raises(AMRError, match=r"Level_0/Cell_D_00000: FAB 0 at byte 0: the FAB holds "
+                                       r"\d+ data bytes, but its header declares box .* of "
+                                       r"4-byte reals .*does not match the data"):
+        mi_amr.load(root)
+
+
+def test25_header_index_beyond_32_bits_is_refused(tmp_path):
+    """A domain lo of 10^26 (Header fuzzing) overflowed int64 in the grid checks: the grid was
+    moved to y = -1.25e23 and accepted with only a NumPy RuntimeWarning."""
+    root = copy_plotfile("plt_eb_3d", tmp_path)
+    replace_bytes(root / "Header", b"((0,0,0) (63,31,15) (0,0,0))",
+                  b"((0," + str(10 ** 26).encode() + b",0) (63,31,15) (0,0,0))")
+    with pytest.raises(AMRError, match=r"plt_eb_3d/Header: line 11: level domain box .* has an "
+                                       r"index beyond AMReX's 32-bit range"):
+        with np.errstate(all="raise"):
+            mi_amr.load(root)
+
+
+def test26_header_messages_show_plain_numbers(tmp_path):
+    root = copy_plotfile("plt_eb_3d", tmp_path)
+    replace_bytes(root / "Header", b"0.06 0.04 0.02\n", b"-0.06 0.04 0.02\n")
+    with pytest.raises(AMRError) as info:
+        mi_amr.load(root)
+    assert "domain [-0.02, 0.0, 0.0] .. [-0.06, 0.04, 0.02] is not a finite box" in \
+        str(info.value)
+    assert "np." not in str(info.value)
+
+
+def test27_a_fifo_as_fab_file_is_refused(tmp_path):
+    """A Cell_D that is a FIFO would block the reader; it is refused from its stat."""
+    import os
+    import subprocess
+    import sys
+
+    root = copy_plotfile("plt_eb_3d", tmp_path)
+    (root / "Level_1" / "Cell_D_00000").unlink()
+    os.mkfifo(root / "Level_1" / "Cell_D_00000")
+    run = subprocess.run([sys.executable, "-m", "mi_amr", "info", str(root)],
+                         capture_output=True, text=True, timeout=60)
+    assert run.returncode == 2, run.stderr
+    assert "Level_1/Cell_D_00000: not a regular file" in run.stderr
+
+
+@pytest.mark.parametrize("old, new, message", [
+    (b"\n0.00125 0.00125 0.00125\n", b"\n0.00125 1e308 0.00125\n",
+     r"refinement ratio 2 from level 0 to 1 disagrees with the cell sizes \[0\.00125, 1e\+308"),
+    (b"\n-0.02 0.06\n", b"\n-0.02 1e308\n", r"box 0 .* does not match grid 0 of level 0"),
+])
+def test28_huge_header_numbers_are_refused_without_overflow_warnings(tmp_path, old, new,
+                                                                     message):
+    """Numbers near the float limit (Header fuzzing) overflow to inf in the checks; that must
+    be an AMRError, not a NumPy RuntimeWarning on the way to it."""
+    import warnings
+
+    root = copy_plotfile("plt_eb_3d", tmp_path)
+    replace_bytes(root / "Header", old, new)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(AMRError, match=message):
+            mi_amr.load(root)

@@ -2,6 +2,8 @@
 the analytic fields hold their closed forms on two levels whose boundary x = 0.5 cuts the
 isosurface; both are written and refused like any other volume."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -213,3 +215,71 @@ def test14_cli_dataset_command(tmp_path, capsys):
     capsys.readouterr()
     np.testing.assert_array_equal(mi_amr.load(path).grids[1].fields["f"],
                                   datasets.torus().grids[1].fields["f"])
+
+
+# ---------------------------------------------------------------------- output paths
+
+def output_cases(tmp_path):
+    """``(output path, extra arguments, expected message)`` for paths that cannot be written."""
+    tmp_path.mkdir(exist_ok=True)
+    afile = tmp_path / "afile.txt"
+    afile.write_text("a file, not a folder")
+    folder = tmp_path / "folder.npz"
+    folder.mkdir()
+    return [
+        (afile / "out.npz", [], f"{afile / 'out.npz'}: {afile} is a file, not a folder"),
+        (afile / "sub" / "out.npz", [], f"{afile / 'sub' / 'out.npz'}: {afile} is a file, "
+                                        f"not a folder"),
+        (Path("/proc/x.npz"), [], "/proc/x.npz: cannot write in folder /proc"),
+        (folder, ["--force"], f"{folder}: is a folder; give the name of a file to write"),
+        (tmp_path / "missing" / "x.npz", [], f"{tmp_path / 'missing' / 'x.npz'}: folder "
+                                             f"{tmp_path / 'missing'} does not exist"),
+        (tmp_path / "x.png", [], f"{tmp_path / 'x.png'}: the output must end in .npz"),
+    ]
+
+
+def test15_dataset_output_paths_are_checked_before_the_work(tmp_path, capsys, monkeypatch):
+    """Each bad output path is one ``error:`` line, before the dataset is built (the builder is
+    replaced by one that fails the test), and nothing is written."""
+    def no_build(*args, **kwargs):
+        raise AssertionError("the dataset was built before the output path was checked")
+
+    monkeypatch.setattr(datasets, "sphere_wake", no_build)
+    monkeypatch.setitem(datasets.DATASETS, "sphere", no_build)
+    for name in ("sphere", "sphere_wake"):
+        work = tmp_path / name
+        for path, extra, message in output_cases(work):
+            before = sorted(work.rglob("*"))
+            assert main(["dataset", name, "-o", str(path), *extra]) == 2, path
+            captured = capsys.readouterr()
+            assert captured.err.splitlines()[0].startswith(f"error: {message}"), captured.err
+            assert len(captured.err.splitlines()) == 1, captured.err
+            assert sorted(work.rglob("*")) == before
+
+
+def test16_dataset_to_a_png_name_is_refused(tmp_path):
+    with pytest.raises(AMRError, match=r"x\.png: the output must end in \.npz"):
+        datasets.make("sphere", tmp_path / "x.png", progress=False)
+    assert list(tmp_path.iterdir()) == []
+    # Upper case is the same extension.
+    datasets.make("sphere", tmp_path / "X.NPZ", progress=False)
+    assert mi_amr.load(tmp_path / "X.NPZ").num_levels == 2
+
+
+def test17_ball_mesh_is_written_atomically(tmp_path, monkeypatch):
+    """A failed mesh export leaves an existing ball.ply as it was, and no temporary file."""
+    import trimesh
+
+    path = tmp_path / "ball.ply"
+    datasets.write_ball_mesh(path, subdivisions=1)
+    before = path.read_bytes()
+
+    def broken(self, file_obj=None, file_type=None, **kw):
+        Path(file_obj).write_bytes(b"ply\nhalf a mesh")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(trimesh.Trimesh, "export", broken)
+    with pytest.raises(OSError, match="disk full"):
+        datasets.write_ball_mesh(path, subdivisions=1)
+    assert [p.name for p in tmp_path.iterdir()] == ["ball.ply"]
+    assert path.read_bytes() == before

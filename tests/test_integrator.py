@@ -10,6 +10,7 @@ floor blue, the blocking ball red).
 """
 
 import json
+import re
 import subprocess
 import sys
 import textwrap
@@ -23,6 +24,7 @@ dr = pytest.importorskip("drjit")
 
 import mi_amr  # noqa: E402
 from mi_amr import AMRError  # noqa: E402
+from mi_amr.cli import main as cli_main  # noqa: E402
 from mi_amr.synthetic import datasets
 from mi_amr.workflows import project  # noqa: E402
 
@@ -81,13 +83,17 @@ for i, path in enumerate(sys.argv[3:]):
 
 
 def data_path(path: Path) -> Path:
-    """The file or folder the scene's integrator reads (its ``filename``, relative to the
-    scene file)."""
+    """The file or folder the scene's integrator reads (its ``filename``, a ``$name`` taken
+    from the scene's ``<default>``, relative to the scene file)."""
     import xml.etree.ElementTree as ET
 
-    for node in ET.parse(path).iter("string"):
+    root = ET.parse(path).getroot()
+    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
+    for node in root.find("integrator").iter("string"):
         if node.get("name") == "filename":
-            return (path.parent / node.get("value")).resolve()
+            value = node.get("value")
+            value = defaults[value[1:]] if value.startswith("$") else value
+            return (path.parent / value).resolve()
     raise AssertionError(f"{path.name}: no amr_iso filename")
 
 
@@ -560,3 +566,120 @@ def test14_scalar_variant_renders_a_tiny_image(sphere_file, tmp_path):
     assert np.all(np.isfinite(scalar))
     assert (llvm.sum(axis=2) > 0).sum() > 10
     np.testing.assert_allclose(scalar, llvm, atol=2e-3)
+
+# ---------------------------------------------------------------------- scene files and output
+
+def test15_every_scene_reads_filename_from_a_default_and_names_its_light():
+    """``-D filename=...`` swaps the data file of any repository scene, and every emitter has
+    an ``id``, so ``mi.traverse`` names its parameters ``light.*``, not ``object_1398...``."""
+    import xml.etree.ElementTree as ET
+
+    for path in SCENE_FILES:
+        root = ET.parse(path).getroot()
+        defaults = {d.get("name") for d in root.iter("default")}
+        assert "filename" in defaults, path.name
+        strings = {s.get("name"): s.get("value") for s in root.find("integrator").iter("string")}
+        assert strings["filename"] == "$filename", path.name
+        emitters = root.findall("emitter")
+        assert emitters and all(e.get("id") for e in emitters), path.name
+
+
+def test16_the_light_is_traversable_by_its_id(shipped):
+    path, result = rendered(shipped)
+    assert any(k.startswith("light.") for k in result["keys"]), (path.name, result["keys"])
+
+
+def test17_D_filename_swaps_the_data_file(scene_files_ready, monkeypatch):
+    scene = SCENES / "analytic_sphere.xml"
+    sphere = render(load_scene(scene, resx=16, resy=16))
+    torus_file = SCENES / "data" / "torus.npz"
+    torus = render(load_scene(scene, resx=16, resy=16, filename=str(torus_file)))
+    assert np.abs(sphere - torus).max() > 0.1
+    # A relative name is found from the current folder too.
+    monkeypatch.chdir(torus_file.parent)
+    again = render(load_scene(scene, resx=16, resy=16, filename=torus_file.name))
+    np.testing.assert_array_equal(again, torus)
+
+
+def render_output_cases(tmp_path):
+    """``(output, extra arguments, message)`` for image paths that cannot be written."""
+    afile = tmp_path / "afile.txt"
+    afile.write_text("a file, not a folder")
+    folder = tmp_path / "folder.png"
+    folder.mkdir()
+    existing = tmp_path / "keep.png"
+    existing.write_bytes(b"an image")
+    return [
+        (afile / "out.png", [], f"{afile / 'out.png'}: {afile} is a file, not a folder"),
+        (Path("/proc/x.png"), [], "/proc/x.png: cannot write in folder /proc"),
+        (Path("/proc/x.png"), ["--force"], "/proc/x.png: cannot write in folder /proc"),
+        (folder, ["--force"], f"{folder}: is a folder; give the name of a file to write"),
+        (folder, [], f"{folder}: is a folder; give the name of a file to write"),
+        (existing, [], f"{existing}: file exists; pass --force to replace it"),
+        (tmp_path / "x.jpg", [], f"{tmp_path / 'x.jpg'}: the image must end in .png or .exr"),
+    ]
+
+
+def test18_render_output_paths_are_checked_before_the_work(tmp_path, capsys):
+    """One ``error:`` line about the output, before the scene is read (the scene file given
+    does not exist, so an error about it would mean the work had started), nothing written."""
+    for output, extra, message in render_output_cases(tmp_path):
+        before = sorted(tmp_path.rglob("*"))
+        code = cli_main(["render", str(tmp_path / "no_such_scene.xml"), "-o",
+                                str(output), *extra])
+        captured = capsys.readouterr()
+        assert code == 2, (output, captured.err)
+        lines = captured.err.splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: {message}"), captured.err
+        assert sorted(tmp_path.rglob("*")) == before
+    assert (tmp_path / "keep.png").read_bytes() == b"an image"
+
+
+def test19_a_failed_image_write_leaves_the_old_file(scene_files_ready, tmp_path, monkeypatch):
+    """The image goes to a temporary file that is renamed: a write that fails half-way (as
+    libpng does after the render) leaves an existing image as it was and no other file."""
+    from mi_amr.workflows.render import render_file
+
+    keep = tmp_path / "keep.png"
+    render_file(SCENES / "analytic_sphere.xml", keep, resolution=(8, 8), quiet=True)
+    before = keep.read_bytes()
+
+    def broken(self, path, *args, **kwargs):
+        Path(path).write_bytes(b"\x89PNG half an image")
+        raise RuntimeError("[bitmap.cpp] Fatal libpng error: Invalid IHDR data")
+
+    monkeypatch.setattr(mi.Bitmap, "write", broken)
+    with pytest.raises(AMRError, match=re.escape(f"{keep}: cannot write the image") +
+                       r".*libpng.*existing file is unchanged"):
+        render_file(SCENES / "analytic_sphere.xml", keep, resolution=(8, 8), overwrite=True,
+                    quiet=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.png"]
+    assert keep.read_bytes() == before
+    with pytest.raises(AMRError, match="cannot write the image"):
+        render_file(SCENES / "analytic_sphere.xml", tmp_path / "new.exr", resolution=(8, 8),
+                    quiet=True)
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.png"]
+
+
+def test20_png_wider_than_libpng_allows_is_refused_before_rendering(scene_files_ready, tmp_path,
+                                                                    monkeypatch):
+    """``render S.xml -o keep.png --resolution 2000000 1 --force`` failed inside libpng after
+    the render and left keep.png at 0 bytes."""
+    from mi_amr.workflows.render import render_file
+
+    keep = tmp_path / "keep.png"
+    keep.write_bytes(b"an image")
+
+    def no_render(*args, **kwargs):
+        raise AssertionError("rendered before the image size was checked")
+
+    monkeypatch.setattr(mi, "render", no_render)
+    message = r"keep\.png: a PNG image can be at most 1,000,000 pixels a side .*2000000x1"
+    with pytest.raises(AMRError, match=message):
+        render_file(SCENES / "analytic_sphere.xml", keep, resolution=(2000000, 1),
+                    overwrite=True, quiet=True)
+    with pytest.raises(AMRError, match=message):     # the size from the scene's defaults
+        render_file(SCENES / "analytic_sphere.xml", keep, defines={"resx": "2000000",
+                                                                   "resy": "1"},
+                    overwrite=True, quiet=True)
+    assert keep.read_bytes() == b"an image"

@@ -6,6 +6,7 @@ import re
 import subprocess
 import sys
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -297,3 +298,127 @@ def test20_python_m_mi_amr_info_exit_status(tmp_path):
     lines = run.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"error: {bad}: ")
     assert "Traceback" not in run.stderr
+
+
+# ---------------------------------------------------------------------- damaged and odd files
+
+def saved_arrays(tmp_path):
+    """The arrays of a saved file, to write variants of it with np.savez."""
+    good = tmp_path / "good.npz"
+    mixed_volume().save(good)
+    with np.load(good) as archive:
+        return {k: archive[k] for k in archive.files}
+
+
+@pytest.mark.parametrize("keep", [0.1, 0.5, 0.9, 0.999])
+def test21_truncated_file_is_reported_as_damaged(tmp_path, keep):
+    """Cut before its zip directory, the file is still recognised (its first entry is the
+    marker) and reported damaged, not as an unrecognised format."""
+    full = tmp_path / "full.npz"
+    mixed_volume().save(full)
+    data = full.read_bytes()
+    cut = tmp_path / "cut.npz"
+    cut.write_bytes(data[:int(len(data) * keep)])
+    with pytest.raises(AMRError, match=at(cut) + "damaged mi_amr volume"):
+        mi_amr.load(cut)
+
+
+def test22_damaged_zip_directory_and_unknown_compression_are_amr_errors(tmp_path):
+    path = tmp_path / "v.npz"
+    mixed_volume().save(path)
+    data = path.read_bytes()
+    directory = data.find(b"PK\x01\x02")
+    # The zip directory's first signature broken: zipfile raises BadZipFile.
+    broken = tmp_path / "directory.npz"
+    broken.write_bytes(data[:directory] + b"PK\x01\x03" + data[directory + 4:])
+    with pytest.raises(AMRError, match=at(broken) + "damaged mi_amr volume"):
+        mi_amr.load(broken)
+    # Compression method 99 (AES) in the directory entry of 'level': NotImplementedError.
+    with zipfile.ZipFile(path) as z:
+        names = [i.filename for i in z.infolist()]
+    k = names.index("level.npy")
+    entry = directory
+    for _ in range(k):
+        entry = data.find(b"PK\x01\x02", entry + 4)
+    method = tmp_path / "method.npz"
+    method.write_bytes(data[:entry + 10] + (99).to_bytes(2, "little") + data[entry + 12:])
+    with pytest.raises(AMRError, match=at(method) + "damaged mi_amr volume"):
+        mi_amr.load(method)
+
+
+def rezip(source, target, change):
+    """Copy the archive ``source`` to ``target`` with ``change(name, data) -> data`` applied
+    to every entry (CRCs recomputed, so only the change itself is damage)."""
+    with zipfile.ZipFile(source) as z, zipfile.ZipFile(target, "w") as out:
+        for name in z.namelist():
+            out.writestr(name, change(name, z.read(name)))
+    return target
+
+
+@pytest.mark.parametrize("old, new", [
+    (b"), }", b" , }"),          # an unclosed bracket: tokenize.TokenError
+    (b"'shape'", b"'shape_'"),    # a key NumPy does not expect: ValueError
+    (b"'<i4'", b"'<i9'"),         # no such dtype
+    (b"(8,)", b"(9,)"),           # more values declared than stored
+])
+def test23_damaged_npy_header_is_an_amr_error(tmp_path, old, new):
+    good = tmp_path / "v.npz"
+    mixed_volume().save(good)
+    path = rezip(good, tmp_path / "bad.npz",
+                 lambda name, data: data.replace(old, new, 1) if name == "level.npy" else data)
+    with pytest.raises(AMRError, match=at(path) + "damaged mi_amr volume"):
+        mi_amr.load(path)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("level", lambda a: a[:-1], r"entry 'origin' has 8 row\(s\) but 'level' has 7"),
+    ("shape", lambda a: a[:-1], r"entry 'shape' has 7 row\(s\) but 'level' has 8"),
+    ("level", lambda a: a.astype(np.float64), r"entry 'level' must be integers"),
+    ("level", lambda a: np.int32(0), r"entry 'level' must be integers shaped \(G,\)"),
+    ("origin", lambda a: a[:, :2], r"entry 'origin' must be numbers shaped \(G, 3\)"),
+    ("shape", lambda a: -a, r"grid 0 has shape \[-4, -8, -8\]"),
+    ("field_names", lambda a: np.arange(2), r"entry 'field_names' must be a list of names"),
+    ("version", lambda a: np.array("1"), r"entry 'version' must be one integer"),
+    ("allow_nonfinite", lambda a: np.array([True, False]),
+     r"entry 'allow_nonfinite' must be one boolean"),
+])
+def test24_entries_of_the_wrong_kind_or_length_are_refused(tmp_path, key, value, message):
+    """A ``level`` array shorter than ``shape`` no longer drops grids silently; wrong dtypes
+    and negative shapes are AMRErrors, not IndexError or ValueError."""
+    arrays = saved_arrays(tmp_path)
+    path = tmp_path / "bad.npz"
+    np.savez(path, **{**arrays, key: value(arrays[key])})
+    with pytest.raises(AMRError, match=at(path) + message):
+        mi_amr.load(path)
+
+
+def test25_fields_may_be_one_name(tmp_path):
+    path = tmp_path / "v.npz"
+    vol = mixed_volume()
+    vol.save(path)
+    got = mi_amr.load(path, fields="b")
+    assert got.field_names == ("b",)
+    assert_same_volume(got, vol, fields=("b",))
+    with pytest.raises(AMRError, match=at(path) + "no fields requested"):
+        mi_amr.load(path, fields=[])
+
+
+def test26_a_fifo_is_refused_without_blocking(tmp_path):
+    """Opening a FIFO blocks until a writer comes: the readers and their format probes must
+    not open one. Run in a child so a regression times out instead of hanging the tests."""
+    fifo = tmp_path / "x.npz"
+    os.mkfifo(fifo)
+    code = ("import sys; from mi_amr.readers import vdb, native, amrex; "
+            "p = sys.argv[1]; print(vdb.is_vdb(p), native.is_native(p), amrex.is_plotfile(p))")
+    probe = subprocess.run([sys.executable, "-c", code, str(fifo)], capture_output=True,
+                           text=True, timeout=60)
+    assert probe.stdout.split() == ["False", "False", "False"], probe.stderr
+    for command in (["info", str(fifo)], ["info", str(fifo), "--fields", "a"]):
+        run = subprocess.run([sys.executable, "-m", "mi_amr", *command], capture_output=True,
+                             text=True, timeout=60)
+        assert run.returncode == 2, run.stderr
+        assert run.stderr.splitlines() == [f"error: {fifo}: not a regular file or a folder (a "
+                                           f"FIFO, socket or device); mi_amr reads data files "
+                                           f"and plotfile folders"]
+    with pytest.raises(AMRError, match=at(Path("/dev/null")) + "not a regular file"):
+        mi_amr.load("/dev/null")

@@ -438,3 +438,79 @@ def test42_grids_sharing_faces_edges_or_corners_are_allowed():
                                 grid(1, (3, 1, 1), (5, 2, 2), 0.5)])
     assert len(vol.grids) == 5
     assert (~vol.leaf_mask(0)).sum() == 1 and (~vol.leaf_mask(1)).sum() == 1
+
+
+# ---------------------------------------------------------------------- far-off grids, odd input
+
+@pytest.mark.parametrize("records, where", [
+    # A fine grid at x = 1e21, far outside level 0: the int64 cast of its index overflowed and
+    # the nesting check passed.
+    (two_levels(fine_origin=(1e21, 0, 0)), grid_label(1, 1)),
+    # A level-0 grid at y = -1.25e23, where a damaged plotfile Header put it.
+    ([cube(), cube(origin=(0, -1.25e23, 0))], grid_label(1, 0)),
+])
+def test43_grids_too_far_from_the_lattice_anchor_are_refused(records, where):
+    with pytest.raises(AMRError, match=where + r".*cells of level 0 from the level-0 lattice "
+                       r"anchored at \(0\.0, 0\.0, 0\.0\)"):
+        with np.errstate(all="raise"):
+            AMRVolume.from_grids(records)
+
+
+def test44_grids_that_are_not_a_sequence_of_records_are_refused():
+    for grids, kind in ((None, "NoneType"), (3, "int"), (cube(), "dict"), ("grid", "str")):
+        with pytest.raises(AMRError, match=f"grids must be a sequence of grid records .*got "
+                                           f"{kind}"):
+            AMRVolume.from_grids(grids)
+
+
+@pytest.mark.parametrize("records, message", [
+    ([cube(level=np.int64(-1))], "level must be an integer >= 0, got -1"),
+    ([cube(origin=(np.float64(0), np.float64(math.nan), 0))],
+     "origin must be finite, got (0.0, nan, 0)"),
+    ([cube(h=np.array([1.0, 1.0]))], "spacing must be a number or 3 numbers, got [1.0, 1.0]"),
+    ([cube(), cube(origin=(np.float64(4.5), 0, 0))],
+     "offset (4.5, 0.0, 0.0) cells from the level-0 lattice anchored at (0.0, 0.0, 0.0)"),
+])
+def test45_messages_show_plain_numbers_not_numpy_reprs(records, message):
+    with pytest.raises(AMRError) as info:
+        AMRVolume.from_grids(records)
+    assert message in str(info.value)
+    assert "np." not in str(info.value) and "array(" not in str(info.value)
+
+
+def test46_summary_columns_line_up_for_long_spacings():
+    """Spacings such as 0.000625 (the plt_eb_3d plotfile) are wider than the old fixed column;
+    every row of the level table must still end where its heading does."""
+    h = 0.00125
+    vol = AMRVolume.from_grids([cube(h=h), grid(1, (h, h, h), (3 * h, 3 * h, 3 * h), h / 2)])
+    lines = vol.summary().splitlines()
+    start = next(i for i, line in enumerate(lines) if line.lstrip().startswith("level"))
+    table = lines[start:start + 1 + vol.num_levels]
+    assert "(0.000625, 0.000625, 0.000625)" in table[2]
+    assert len({len(line) for line in table}) == 1, table
+    for column in ("grids", "cells"):
+        end = table[0].index(column) + len(column)
+        assert all(line[end - 1] != " " and (end == len(line) or line[end] == " ")
+                   for line in table[1:]), (column, table)
+
+
+def test47_an_absurd_finest_level_is_refused_at_once():
+    """Levels 0 and 10^12: the contiguity check must not enumerate the missing levels (that
+    took all memory). In a child with a memory limit, so a regression fails instead of
+    swapping."""
+    import subprocess
+    import sys
+
+    code = ("import resource, numpy as np\n"
+            "resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))\n"
+            "from mi_amr import AMRVolume, AMRError\n"
+            "f = {'f': np.zeros((2, 2, 2))}\n"
+            "try:\n"
+            "    AMRVolume.from_grids([{'level': 0, 'origin': (0, 0, 0), 'spacing': 1.0, "
+            "'fields': f}, {'level': 10**12, 'origin': (0, 0, 0), 'spacing': 0.5, 'fields': f}])\n"
+            "except AMRError as e:\n"
+            "    print(e)\n")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=60)
+    assert run.stdout.startswith("level(s) [1, 2, 3] ... have no grids") or \
+        run.stdout.startswith("level(s) [1, 2, 3] have no grids"), run.stdout + run.stderr

@@ -9,25 +9,19 @@ grid, each in C order of its ``(nx, ny, nz)`` array.
 
 from __future__ import annotations
 
-import os
-import tempfile
-from pathlib import Path
-
 import numpy as np
 
-from mi_amr.errors import AMRError
+from mi_amr.core.atomic import check_output, replacing
 
 MAGIC = "mi_amr-volume"
 VERSION = 1
 
 
 def save(volume, path, *, overwrite: bool = False) -> None:
-    """Write ``volume`` to ``path`` atomically; refuse to replace a file unless ``overwrite``."""
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise AMRError(f"{path}: file exists; pass overwrite=True (or --force) to replace it")
-    if not path.parent.exists():
-        raise AMRError(f"{path}: folder {path.parent} does not exist")
+    """Write ``volume`` to ``path`` atomically (see :mod:`mi_amr.core.atomic`); refuse to
+    replace a file unless ``overwrite``, and refuse paths that cannot be written."""
+    path = check_output(path, overwrite=overwrite,
+                        exists_hint="pass overwrite=True (or --force) to replace it")
     grids = volume.grids
     arrays = {
         "mi_amr_format": np.array(MAGIC),
@@ -41,21 +35,5 @@ def save(volume, path, *, overwrite: bool = False) -> None:
     }
     for name in volume.field_names:
         arrays[f"field:{name}"] = np.concatenate([g.fields[name].ravel() for g in grids])
-    # Write next to the target and rename, so an interrupted save never leaves half a file
-    # under the user's name (and never destroys the file it replaces).
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **arrays)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; a saved file is a normal file
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
+    with replacing(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)

@@ -26,12 +26,16 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 from mi_amr.core.boxes import intersection_volume, overlap_pairs
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, shown
 
 ALLOWED_RATIOS = (2, 4)
 # How far (in cells) a grid corner may sit from the lattice and still count as aligned: float
 # rounding of origins such as 0.1 * k must pass, a real misalignment of a quarter cell must not.
 LATTICE_TOLERANCE = 1e-3
+# How far (in cells of the level above) a grid may lie from the lattice anchor. Index boxes are
+# int64 and the kd-tree scales them to the finest level (4^11 = 2^22 at most), so 2^40 leaves
+# room; beyond it the cast to integers overflows and a grid would land somewhere else.
+MAX_LATTICE_OFFSET = float(2 ** 40)
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,12 +120,17 @@ class AMRVolume:
         treats those cells as *missing data*: they get no weight in the reconstruction and are
         left out of value ranges. ``source`` (a file name) prefixes error messages.
 
-        Raises :class:`AMRError` naming the offending grids for: an empty hierarchy, a malformed
-        record, zero-size grids, fields that are missing or disagree in shape, non-finite values,
-        levels with a gap or mixed spacings, refinement ratios other than 2 or 4, grids off the
-        lattice, overlapping grids of one level, and fine grids outside the coarser level.
+        Raises :class:`AMRError` naming the offending grids for: ``grids`` that is not a
+        sequence, an empty hierarchy, a malformed record, zero-size grids, fields that are
+        missing or disagree in shape, non-finite values, levels with a gap or mixed spacings,
+        refinement ratios other than 2 or 4, grids off the lattice or too far from it for
+        integer cell indices (:data:`MAX_LATTICE_OFFSET`), overlapping grids of one level, and
+        fine grids outside the coarser level.
         """
         prefix = f"{source}: " if source else ""
+        if isinstance(grids, (str, bytes, Mapping)) or not isinstance(grids, Iterable):
+            raise AMRError(f"{prefix}grids must be a sequence of grid records (mappings with "
+                           f"level, origin, spacing and fields), got {type(grids).__name__}")
         records = [_parse_record(g, i, prefix) for i, g in enumerate(grids)]
         if not records:
             raise AMRError(f"{prefix}empty hierarchy: at least one level-0 grid is needed")
@@ -265,16 +274,19 @@ class AMRVolume:
                      f"{_format_bytes(self.nbytes)} of field data")
         lines.append(f"bounds: ({', '.join(f'{x:g}' for x in lo)}) .. "
                      f"({', '.join(f'{x:g}' for x in hi)})")
-        lines.append(f"{'level':>5}  {'ratio':>5}  {'spacing':<28}{'grids':>8}{'cells':>14}"
-                     f"{'leaf cells':>14}")
         levels = self.levels
-        for level in range(self.num_levels):
+        spacings = ["(" + ", ".join(f"{x:.4g}" for x in self.level_spacing(level)) + ")"
+                    for level in range(self.num_levels)]
+        # The spacing column is as wide as its longest entry, so the columns after it line up.
+        width = max(len("spacing"), *(len(s) for s in spacings)) + 2
+        lines.append(f"{'level':>5}  {'ratio':>5}  {'spacing':<{width}}{'grids':>8}{'cells':>14}"
+                     f"{'leaf cells':>14}")
+        for level, spacing in enumerate(spacings):
             ids = np.flatnonzero(levels == level)
             cells = sum(self.grids[i].num_cells for i in ids)
             leaf = sum(int(self.leaf_mask(i).sum()) for i in ids)
             ratio = "-" if level == 0 else str(self.ratios[level - 1])
-            spacing = "(" + ", ".join(f"{x:.4g}" for x in self.level_spacing(level)) + ")"
-            lines.append(f"{level:>5}  {ratio:>5}  {spacing:<28}{len(ids):>8,}{cells:>14,}"
+            lines.append(f"{level:>5}  {ratio:>5}  {spacing:<{width}}{len(ids):>8,}{cells:>14,}"
                          f"{leaf:>14,}")
         lines.append("fields:")
         for name in self.field_names:
@@ -313,7 +325,7 @@ def _parse_record(g, index: int, prefix: str) -> Grid:
         raise AMRError(f"{where}: missing key(s) {missing}")
     level = g["level"]
     if isinstance(level, (bool, np.bool_)) or not isinstance(level, (int, np.integer)) or level < 0:
-        raise AMRError(f"{where}: level must be an integer >= 0, got {level!r}")
+        raise AMRError(f"{where}: level must be an integer >= 0, got {shown(level)}")
     origin = _float3(g["origin"], f"{where}: origin", positive=False)
     spacing = _float3(g["spacing"], f"{where}: spacing", positive=True)
     fields = g["fields"]
@@ -359,12 +371,13 @@ def _float3(value, what: str, positive: bool) -> tuple:
         out = tuple(float(x) for x in value)
     except (TypeError, ValueError):
         raise AMRError(f"{what} must be {'a number or ' if positive else ''}3 numbers, "
-                       f"got {value!r}") from None
+                       f"got {shown(value)}") from None
     if len(out) != 3:
         raise AMRError(f"{what} must be {'a number or ' if positive else ''}3 numbers, "
-                       f"got {value!r}")
+                       f"got {shown(value)}")
     if not all(math.isfinite(x) and (x > 0 or not positive) for x in out):
-        raise AMRError(f"{what} must be finite{' and > 0' if positive else ''}, got {value!r}")
+        raise AMRError(f"{what} must be finite{' and > 0' if positive else ''}, got "
+                       f"{shown(value)}")
     return out
 
 
@@ -396,10 +409,12 @@ def _check_levels(records, prefix: str) -> tuple:
     if present[0] != 0:
         raise AMRError(f"{prefix}no level-0 grid: the coarsest level must be 0, got levels "
                        f"{present.tolist()}")
-    gaps = sorted(set(range(present[-1] + 1)) - set(present.tolist()))
-    if gaps:
-        raise AMRError(f"{prefix}level(s) {gaps} have no grids but finer levels do; levels must "
-                       f"be contiguous")
+    if present[-1] != len(present) - 1:
+        # The missing levels, without enumerating up to a (possibly absurd) finest level.
+        gaps = [int(level) for a, b in zip(present[:-1], present[1:])
+                for level in range(a + 1, min(b, a + 4))][:8]
+        raise AMRError(f"{prefix}level(s) {gaps}{' ...' if len(gaps) == 8 else ''} have no "
+                       f"grids but finer levels do; levels must be contiguous")
     first = np.array([np.flatnonzero(levels == level)[0] for level in present])
     ref = spacings[first[levels]]
     bad = np.flatnonzero(np.any(np.abs(spacings - ref) > 1e-6 * ref, axis=1))
@@ -429,16 +444,25 @@ def _check_lattice(records, ratios, prefix: str):
     first0 = int(np.flatnonzero(levels == 0)[0])
     anchor = origins[first0]
     ratio = np.array((1,) + tuple(ratios), dtype=np.int64)[levels]
-    offset = (origins - anchor) / (spacings * ratio[:, None])
+    with np.errstate(over="ignore", invalid="ignore"):
+        offset = (origins - anchor) / (spacings * ratio[:, None])
+    far = np.flatnonzero(~np.all(np.abs(offset) <= MAX_LATTICE_OFFSET, axis=1))
+    if len(far):
+        i = far[0]
+        g = records[i]
+        raise AMRError(f"{prefix}{g.describe(i)}: origin is {shown(tuple(np.round(offset[i])))} "
+                       f"cells of level {max(g.level - 1, 0)} from the level-0 lattice anchored "
+                       f"at {shown(tuple(anchor))}; mi_amr indexes cells with integers up to "
+                       f"{MAX_LATTICE_OFFSET:.0e}, so the grids cannot lie this far apart")
     rounded = np.round(offset)
     bad = np.flatnonzero(np.any(np.abs(offset - rounded) > LATTICE_TOLERANCE, axis=1))
     if len(bad):
         i = bad[0]
         g = records[i]
         raise AMRError(f"{prefix}{g.describe(i)}: origin is not on a cell face of level "
-                       f"{max(g.level - 1, 0)} (offset {tuple(np.round(offset[i], 4))} cells from "
-                       f"the level-0 lattice anchored at {tuple(anchor)}); grids must align with "
-                       f"the coarser level's cells")
+                       f"{max(g.level - 1, 0)} (offset {shown(tuple(np.round(offset[i], 4)))} "
+                       f"cells from the level-0 lattice anchored at {shown(tuple(anchor))}); "
+                       f"grids must align with the coarser level's cells")
     bad = np.flatnonzero(np.any(shapes % ratio[:, None], axis=1))
     if len(bad):
         i = bad[0]

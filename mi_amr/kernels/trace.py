@@ -6,13 +6,14 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import drjit as dr
 import numpy as np
 
 from mi_amr import params
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, shown
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import device_array, lnot, opaque_floats
 from mi_amr.kernels.jitter import stable_jitter
@@ -46,7 +47,9 @@ def trace(volume, origins, directions, *, field: str, isovalue,
     space. ``origins`` and ``directions`` are ``(N, 3)``; directions need not be unit length.
     ``jitter`` (``(N,)`` in [0, 1)) offsets the adaptive methods' steps; by default
     :func:`~mi_amr.kernels.jitter.stable_jitter` of the ray index. ``backend`` is a Dr.Jit
-    module (default ``drjit.llvm.ad``). Defaults come from :mod:`mi_amr.params`."""
+    module (default ``drjit.llvm.ad``). Defaults come from :mod:`mi_amr.params`. Raises
+    :class:`AMRError` for an isovalue that is not a finite number (in float32, the kernels'
+    precision) and for rays with a non-finite origin or a zero or non-finite direction."""
     if method not in METHODS:
         raise AMRError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if reconstruction not in RECONSTRUCTIONS:
@@ -54,12 +57,8 @@ def trace(volume, origins, directions, *, field: str, isovalue,
                        f"got {reconstruction!r}")
     if not step_scale > 0:
         raise AMRError(f"step_scale must be > 0, got {step_scale}")
-    origins = np.asarray(origins, dtype=np.float64)
-    directions = np.asarray(directions, dtype=np.float64)
-    if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
-        raise AMRError(f"origins and directions must both be (N, 3) arrays, got "
-                       f"{origins.shape} and {directions.shape}")
-    isovalues = [float(x) for x in np.atleast_1d(isovalue)]
+    origins, directions = _rays(origins, directions)
+    isovalues = _isovalues(isovalue)
     m = backend or dr.llvm.ad
     prep = _prepared(volume, field, leaf_cells, m)
     dev = prep.device
@@ -89,6 +88,53 @@ def trace(volume, origins, directions, *, field: str, isovalue,
     nrm[~hit] = np.nan
     return TraceResult(t=t, hit=hit, normal=nrm, samples=c.samples.numpy().astype(np.int64),
                        iso_index=np.where(hit, c.k.numpy().astype(np.int64), -1))
+
+
+def _rays(origins, directions):
+    """``(N, 3)`` float64 origins and directions, or an AMRError: a ray whose origin is not
+    finite, or whose direction is zero or not finite, has no defined path."""
+    try:
+        origins = np.asarray(origins, dtype=np.float64)
+        directions = np.asarray(directions, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise AMRError(f"origins and directions must be (N, 3) arrays of numbers ({e})") from None
+    if origins.ndim != 2 or origins.shape[1] != 3 or directions.shape != origins.shape:
+        raise AMRError(f"origins and directions must both be (N, 3) arrays, got "
+                       f"{origins.shape} and {directions.shape}")
+    bad = np.flatnonzero(~np.all(np.isfinite(origins), axis=1))
+    if len(bad):
+        raise AMRError(f"origins: {len(bad)} ray(s) have a NaN or infinite origin (first: ray "
+                       f"{bad[0]}, {shown(origins[bad[0]])})")
+    # A direction that float32 (the kernels' precision) turns into zero or inf counts as well.
+    with np.errstate(over="ignore", invalid="ignore"):
+        d32 = directions.astype(np.float32)
+        usable = np.all(np.isfinite(d32), axis=1) & np.any(d32 != 0, axis=1) \
+            & np.isfinite(np.sum(d32.astype(np.float64) ** 2, axis=1))
+    bad = np.flatnonzero(~usable)
+    if len(bad):
+        raise AMRError(f"directions: {len(bad)} ray(s) have a zero, NaN or infinite direction "
+                       f"(first: ray {bad[0]}, {shown(directions[bad[0]])}); every ray needs a "
+                       f"finite, non-zero direction")
+    return origins, directions
+
+
+def _isovalues(isovalue) -> list:
+    """``isovalue`` (a number or a list of numbers) as floats that stay finite in float32."""
+    if isinstance(isovalue, (str, bytes)):
+        raise AMRError(f"isovalue must be a number or a list of numbers, got the text "
+                       f"{isovalue!r}")
+    try:
+        isovalues = [float(x) for x in np.atleast_1d(np.asarray(isovalue, dtype=object))]
+    except (TypeError, ValueError):
+        raise AMRError(f"isovalue must be a number or a list of numbers, got "
+                       f"{shown(isovalue)}") from None
+    if not isovalues:
+        raise AMRError("isovalue must hold at least one number, got an empty list")
+    limit = float(np.finfo(np.float32).max)
+    if not all(math.isfinite(x) and abs(x) <= limit for x in isovalues):
+        raise AMRError(f"isovalue must hold finite numbers within float32's range "
+                       f"(+-{limit:.3g}), got {shown(isovalue)}")
+    return isovalues
 
 
 def _prepared(volume, field, leaf_cells, m) -> PreparedVolume:

@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import stat
 from pathlib import Path
 
 from mi_amr.errors import AMRError
@@ -19,13 +20,15 @@ def load(path, fields=None, **options):
     ``.vdb`` files, one grid per patch (see :mod:`mi_amr.readers.vdb`); last, when yt is
     installed, every grid-based format yt reads (see :mod:`mi_amr.readers.ytsource`; the
     ``options`` go to ``yt.load``). ``fields``
-    (a list of names) reads only those fields from disk. Derived fields (``speed``,
+    (a name or a list of names) reads only those fields from disk. Derived fields (``speed``,
     ``q_criterion``) are not read here; see :func:`mi_amr.derive`. Raises
-    :class:`~mi_amr.AMRError` for a missing file, an unrecognised format or a malformed file.
+    :class:`~mi_amr.AMRError` for a missing file, something that is neither a regular file nor
+    a folder (a FIFO or a device, which would block or never end), an unrecognised format or a
+    malformed file.
     """
-    path = Path(path)
-    if not path.exists():
-        raise AMRError(f"{path}: no such file or folder")
+    path = _existing(path)
+    if isinstance(fields, str):
+        fields = [fields]
     if native.is_native(path):
         _no_options(path, options, "an mi_amr .npz file")
         return native.load(path, fields)
@@ -45,9 +48,7 @@ def load(path, fields=None, **options):
 
 def available_fields(path) -> list:
     """Names of the fields stored in ``path``, without reading their data."""
-    path = Path(path)
-    if not path.exists():
-        raise AMRError(f"{path}: no such file or folder")
+    path = _existing(path)
     if native.is_native(path):
         return native.field_names(path)
     if amrex.is_plotfile(path):
@@ -58,6 +59,22 @@ def available_fields(path) -> list:
     if ds is not None:
         return ytsource.field_names(ds)
     return list(load(path).field_names)
+
+
+def _existing(path) -> Path:
+    """``path`` as a Path, when it is a regular file or a folder; the format probes below open
+    files, and opening a FIFO or a device blocks or reads forever."""
+    path = Path(path)
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise AMRError(f"{path}: no such file or folder") from None
+    except OSError as e:
+        raise AMRError(f"{path}: cannot read ({e.strerror or e})") from None
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):
+        raise AMRError(f"{path}: not a regular file or a folder (a FIFO, socket or device); "
+                       f"mi_amr reads data files and plotfile folders")
+    return path
 
 
 def _no_options(path: Path, options: dict, what: str) -> None:

@@ -25,8 +25,10 @@ components are read from disk: memory grows with the fields asked for, not with 
 
 from __future__ import annotations
 
+import math
 import os
 import re
+import stat
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, shown
 from mi_amr.core.volume import AMRVolume
 
 # "HyperCLaw-V1.1" is AMReX's default; codes may pass their own name to WriteMultiLevelPlotfile,
@@ -51,6 +53,9 @@ _FAB_ON_DISK_RE = re.compile(r"^FabOnDisk:\s*(\S+)\s+(\d+)$")
 _IEEE_FORMATS = {8: (64, 11, 52, 0, 1, 12, 0, 1023), 4: (32, 8, 23, 0, 1, 9, 0, 127)}
 # A FAB header line is about 100 bytes; reading more than this means the offset is wrong.
 _MAX_FAB_HEADER = 4096
+# AMReX stores cell indices as 32-bit ints; larger ones are damage, and would overflow the
+# integer arithmetic of the grid checks.
+_MAX_INDEX = 2 ** 31 - 1
 # Header grid extents are printed text; half a cell separates "rounded" from "a different box".
 _EXTENT_TOLERANCE = 0.5
 
@@ -197,7 +202,7 @@ def read_header(root) -> PlotfileHeader:
         prob_hi = np.array(lines.numbers("prob_hi (3 numbers)", float, 3))
         if not (np.all(np.isfinite(prob_lo)) and np.all(np.isfinite(prob_hi))
                 and np.all(prob_hi > prob_lo)):
-            raise lines.fail(f"domain {tuple(prob_lo)} .. {tuple(prob_hi)} is not a finite box "
+            raise lines.fail(f"domain {shown(prob_lo)} .. {shown(prob_hi)} is not a finite box "
                              f"with prob_hi > prob_lo")
         # Some writers list a ratio for every level up to max_level, not just finest_level.
         ratios = tuple(lines.numbers(f"{finest} refinement ratio(s)", int, finest, extra_ok=True))
@@ -211,11 +216,12 @@ def read_header(root) -> PlotfileHeader:
         if not np.all(np.isfinite(cell_sizes) & (cell_sizes > 0)):
             raise AMRError(f"{path}: cell sizes {cell_sizes.tolist()} must be finite and > 0")
         for lev, r in enumerate(ratios):
-            actual = cell_sizes[lev] / cell_sizes[lev + 1]
+            with np.errstate(over="ignore"):  # 1e308 / 0.1 is inf, refused below
+                actual = cell_sizes[lev] / cell_sizes[lev + 1]
             if not np.allclose(actual, r, rtol=1e-6, atol=0):
                 raise AMRError(f"{path}: refinement ratio {r} from level {lev} to {lev + 1} "
-                               f"disagrees with the cell sizes {tuple(cell_sizes[lev])} and "
-                               f"{tuple(cell_sizes[lev + 1])}")
+                               f"disagrees with the cell sizes {shown(cell_sizes[lev])} and "
+                               f"{shown(cell_sizes[lev + 1])}")
         (coord_sys,) = lines.numbers("the coordinate system", int, 1)
         if coord_sys != 0:
             raise lines.fail(f"coordinate system {coord_sys} (1 = cylindrical, 2 = spherical); "
@@ -320,6 +326,9 @@ def _parse_boxes(lines: _Lines, text: str, count: int, what: str) -> list:
     boxes = []
     for m in found:
         v = [int(x) for x in m.groups()]
+        if max(abs(x) for x in v) > _MAX_INDEX:
+            raise lines.fail(f"{what} box {text[:80]!r} has an index beyond AMReX's 32-bit "
+                             f"range (+-{_MAX_INDEX})")
         boxes.append(Box(tuple(v[0:3]), tuple(v[3:6]), tuple(v[6:9])))
     return boxes
 
@@ -394,8 +403,10 @@ def _check_boxes(header_path: Path, cell_h: Path, header: PlotfileHeader, entry:
     # index 0; the two agree whenever the domain starts at 0, and either placement is accepted.
     ok = np.zeros(len(cell.boxes), dtype=bool)
     for shift in (domain_lo, np.zeros(3)):
-        cells_lo = (listed[:, :, 0] - header.prob_lo) / dx - (lo - shift)
-        cells_hi = (listed[:, :, 1] - header.prob_lo) / dx - (hi - shift)
+        # Extents such as 1e308 overflow to inf here, and inf is refused just the same.
+        with np.errstate(over="ignore", invalid="ignore"):
+            cells_lo = (listed[:, :, 0] - header.prob_lo) / dx - (lo - shift)
+            cells_hi = (listed[:, :, 1] - header.prob_lo) / dx - (hi - shift)
         ok |= np.all((np.abs(cells_lo) <= _EXTENT_TOLERANCE)
                      & (np.abs(cells_hi) <= _EXTENT_TOLERANCE), axis=1)
     if not np.all(ok):
@@ -435,11 +446,15 @@ def _fab_limits(folder: Path, cell_h: Path, fabs: tuple) -> list:
         if name not in sizes:
             d_path = folder / name
             try:
-                sizes[name] = os.stat(d_path).st_size
+                st = os.stat(d_path)
             except FileNotFoundError:
                 raise AMRError(f"{d_path}: missing; {cell_h} puts FAB {i} in this file") from None
             except OSError as e:
                 raise AMRError(f"{d_path}: cannot read FAB data ({e})") from None
+            # Opening a FIFO or a device would block or read forever.
+            if not stat.S_ISREG(st.st_mode):
+                raise AMRError(f"{d_path}: not a regular file; {cell_h} puts FAB {i} in it")
+            sizes[name] = st.st_size
     # Sorted offsets per file: the limit of a FAB is the first offset above its own.
     starts = {name: np.unique(found) for name, found in offsets.items()}
     limits = []
@@ -482,7 +497,7 @@ def _read_fab(f, d_path: Path, cell_h: Path, index: int, offset: int, limit: int
         raise AMRError(f"{where}: the FAB holds {ncomp} component(s), but the plotfile Header "
                        f"lists {nfields} field(s)")
     shape = fab_box.shape
-    block = int(np.prod(shape)) * dtype.itemsize
+    block = math.prod(shape) * dtype.itemsize
     start = offset + len(line)
     end = start + ncomp * block
     if end > limit:
@@ -492,6 +507,14 @@ def _read_fab(f, d_path: Path, cell_h: Path, index: int, offset: int, limit: int
         raise AMRError(f"{where}: the FAB is shorter than its box {fab_box} needs "
                        f"({ncomp * block} data bytes): {cell_h} puts the next FAB of this file "
                        f"at byte {limit}")
+    if end < limit:
+        # Data in another precision than the header declares (doubles under a float header)
+        # would otherwise be read as wrong values without a word.
+        what = "the next FAB of this file starts" if limit < size else "the file ends"
+        raise AMRError(f"{where}: the FAB holds {limit - start} data bytes, but its header "
+                       f"declares box {fab_box} with {ncomp} component(s) of {dtype.itemsize}-"
+                       f"byte reals ({ncomp * block} bytes); {what} at byte {limit}. The real "
+                       f"format in the FAB header does not match the data")
     inner = tuple(slice(g, n - g) for g, n in zip(ngrow, shape))
     arrays = {}
     for c in comps:

@@ -1,9 +1,20 @@
 """Reading mi_amr's own ``.npz`` files (layout: :mod:`mi_amr.core.npz`); only the requested
-fields are read from disk."""
+fields are read from disk.
+
+Every way a file can be damaged (a cut-off or corrupt zip archive, an unsupported compression
+method, a broken ``.npy`` header, entries of the wrong type, shape or size) ends as an
+:class:`~mi_amr.AMRError` naming the file, before any array is allocated from a size the file
+merely claims.
+"""
 
 from __future__ import annotations
 
+import math
+import struct
+import tokenize
 import zipfile
+import zlib
+from itertools import accumulate
 from pathlib import Path
 
 import numpy as np
@@ -12,69 +23,227 @@ from mi_amr.errors import AMRError
 from mi_amr.core.npz import MAGIC, VERSION
 from mi_amr.core.volume import AMRVolume
 
+# The marker is the first entry the writer stores, so even a file cut off before its zip
+# directory starts with a local header naming it.
+_MARKER_MEMBER = b"mi_amr_format.npy"
+_LOCAL_HEADER = struct.Struct("<4s22xHH")
+# What reading a damaged archive or .npy entry raises, besides OSError: the zip module
+# (BadZipFile, NotImplementedError for compression methods it lacks, zlib/lzma/bz2 errors,
+# EOFError), NumPy's .npy header parser (ValueError, and tokenize's or ast's own errors), and
+# sizes no array can have.
+_DAMAGE = (OSError, EOFError, ValueError, KeyError, OverflowError,
+           MemoryError, RecursionError, SyntaxError, NotImplementedError, UnicodeError,
+           struct.error, zlib.error, zipfile.BadZipFile, tokenize.TokenError)
+# The largest grid extent per axis (as in AMReX, whose indices are 32-bit).
+_MAX_CELLS_PER_AXIS = 2 ** 31 - 1
+
 
 def is_native(path) -> bool:
-    """True when ``path`` is a zip archive holding the mi_amr marker."""
+    """True when ``path`` is a regular file that is a zip archive holding the mi_amr marker, or
+    one that starts like the files mi_amr writes (its first entry is the marker), so that a
+    truncated file is reported as damaged rather than unrecognised."""
     path = Path(path)
-    if not path.is_file() or not zipfile.is_zipfile(path):
+    try:
+        if not path.is_file():
+            return False
+        with open(path, "rb") as f:
+            head = f.read(_LOCAL_HEADER.size + len(_MARKER_MEMBER))
+    except OSError:
         return False
-    with zipfile.ZipFile(path) as z:
-        return "mi_amr_format.npy" in z.namelist()
+    if len(head) == _LOCAL_HEADER.size + len(_MARKER_MEMBER):
+        signature, name_len, _ = _LOCAL_HEADER.unpack(head[:_LOCAL_HEADER.size])
+        if signature == b"PK\x03\x04" and name_len == len(_MARKER_MEMBER) \
+                and head[_LOCAL_HEADER.size:] == _MARKER_MEMBER:
+            return True
+    try:
+        with zipfile.ZipFile(path) as z:
+            return _MARKER_MEMBER.decode() in z.namelist()
+    except _DAMAGE:
+        return False
 
 
 def field_names(path) -> list:
     """The field names stored in an mi_amr file (reads only the small index entry)."""
-    try:
-        with np.load(path, allow_pickle=False) as archive:
-            return [str(n) for n in archive["field_names"]]
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile) as e:
-        raise AMRError(f"{path}: cannot read the field names ({e})") from None
+    path = Path(path)
+    with _archive(path) as archive, _damage(path):
+        return _names(path, _entry(path, archive, "field_names"))
 
 
 def load(path, fields=None) -> AMRVolume:
-    """Read a file written by :func:`mi_amr.core.npz.save`; ``fields`` (names) limits what is read from disk."""
+    """Read a file written by :func:`mi_amr.core.npz.save`; ``fields`` (a name or a list of
+    names) limits what is read from disk."""
     path = Path(path)
-    try:
-        archive = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, zipfile.BadZipFile) as e:
-        raise AMRError(f"{path}: not a readable .npz file ({e})") from None
-    # A damaged archive (bad CRC, truncated member, object arrays) fails only when a member is
-    # read, so the reads are guarded too, not just np.load.
-    try:
-        with archive:
-            if "mi_amr_format" not in archive.files or str(archive["mi_amr_format"]) != MAGIC:
-                raise AMRError(f"{path}: not an mi_amr volume (no 'mi_amr_format' marker); "
-                               f"write one with AMRVolume.save or 'python -m mi_amr dataset'")
-            version = int(archive["version"])
-            if version != VERSION:
-                raise AMRError(f"{path}: mi_amr volume format version {version}, this mi_amr reads "
-                               f"version {VERSION}")
-            level = archive["level"]
-            origin = archive["origin"]
-            spacing = archive["spacing"]
-            shape = archive["shape"]
-            names = [str(n) for n in archive["field_names"]]
-            allow_nonfinite = bool(archive["allow_nonfinite"])
-            wanted = names if fields is None else list(fields)
-            unknown = [n for n in wanted if n not in names]
-            if unknown:
-                raise AMRError(f"{path}: unknown field(s) {unknown}; the file holds {names}")
-            counts = np.prod(shape, axis=1)
-            offsets = np.concatenate([[0], np.cumsum(counts)])
-            data = {}
-            for n in wanted:
-                flat = archive[f"field:{n}"]
-                if flat.size != offsets[-1]:
-                    raise AMRError(f"{path}: field '{n}' holds {flat.size} values, the grids need "
-                                   f"{offsets[-1]}")
-                data[n] = flat
-    except AMRError:
-        raise
-    except KeyError as e:
-        raise AMRError(f"{path}: mi_amr volume is missing entry {e}") from None
-    except (OSError, EOFError, ValueError, zipfile.BadZipFile) as e:
-        raise AMRError(f"{path}: damaged mi_amr volume ({e})") from None
-    grids = [{"level": int(level[i]), "origin": origin[i], "spacing": spacing[i],
+    with _archive(path) as archive, _damage(path):
+        index = _read_index(path, archive)
+        wanted = _wanted(path, fields, index["names"])
+        total = index["offsets"][-1]
+        data = {}
+        for n in wanted:
+            flat = _entry(path, archive, f"field:{n}")
+            if flat.size != total:
+                raise AMRError(f"{path}: field '{n}' holds {flat.size} values, the grids need "
+                               f"{total}")
+            if flat.ndim != 1:
+                raise AMRError(f"{path}: field '{n}' has shape {flat.shape}; the file stores "
+                               f"each field as one row of every grid's values")
+            data[n] = flat
+    offsets, shape = index["offsets"], index["shape"]
+    grids = [{"level": int(index["level"][i]), "origin": index["origin"][i],
+              "spacing": index["spacing"][i],
               "fields": {n: data[n][offsets[i]:offsets[i + 1]].reshape(shape[i]) for n in wanted}}
-             for i in range(len(level))]
-    return AMRVolume.from_grids(grids, allow_nonfinite=allow_nonfinite, source=str(path))
+             for i in range(len(shape))]
+    return AMRVolume.from_grids(grids, allow_nonfinite=index["allow_nonfinite"],
+                                source=str(path))
+
+
+# ---------------------------------------------------------------------- reading the archive
+
+class _archive:
+    """``with _archive(path) as archive``: the open ``np.load`` archive, or an AMRError."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def __enter__(self):
+        if not self.path.is_file():
+            raise AMRError(f"{self.path}: not a regular file")
+        try:
+            self.archive = np.load(self.path, allow_pickle=False)
+        except _DAMAGE as e:
+            raise AMRError(f"{self.path}: damaged mi_amr volume: not a readable zip archive "
+                           f"({_why(e)}); the file may be truncated") from None
+        if not isinstance(self.archive, np.lib.npyio.NpzFile):
+            raise AMRError(f"{self.path}: not an mi_amr volume (not a zip archive of arrays)")
+        return self.archive
+
+    def __exit__(self, *exc):
+        self.archive.close()
+
+
+class _damage:
+    """Turn a failure while reading entries (bad CRC, cut-off entry, broken header) into an
+    AMRError; a damaged archive often fails only when an entry is read."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, e, tb):
+        if kind is None or issubclass(kind, AMRError):
+            return False
+        if issubclass(kind, KeyError):
+            raise AMRError(f"{self.path}: mi_amr volume is missing entry {e}") from None
+        if issubclass(kind, _DAMAGE):
+            raise AMRError(f"{self.path}: damaged mi_amr volume ({_why(e)})") from None
+        return False
+
+
+def _entry(path: Path, archive, key: str) -> np.ndarray:
+    """The array ``key`` of the archive, after checking that the size its ``.npy`` header
+    declares is the size the zip entry holds (so no array is allocated from a damaged size)."""
+    name = f"{key}.npy"
+    if name not in archive.zip.namelist():
+        raise KeyError(key)
+    info = archive.zip.getinfo(name)
+    if info.compress_type == zipfile.ZIP_STORED and info.compress_size != info.file_size:
+        raise AMRError(f"{path}: damaged mi_amr volume: entry '{key}' is stored with "
+                       f"{info.compress_size} bytes but claims {info.file_size}")
+    with archive.zip.open(info) as f:
+        version = np.lib.format.read_magic(f)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                       (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        if read_header is None:
+            raise AMRError(f"{path}: entry '{key}' is .npy version {version}; mi_amr writes 1.0")
+        shape, _, dtype = read_header(f)
+        header_size = f.tell()
+    if any(n < 0 for n in shape):
+        raise AMRError(f"{path}: damaged mi_amr volume: entry '{key}' has shape {shape}")
+    need = header_size + math.prod(shape) * dtype.itemsize
+    if need != info.file_size:
+        raise AMRError(f"{path}: damaged mi_amr volume: entry '{key}' declares shape {shape} "
+                       f"of {dtype} ({need} bytes with its header), the archive holds "
+                       f"{info.file_size} bytes")
+    return archive[key]
+
+
+def _read_index(path: Path, archive) -> dict:
+    """The marker, version and per-grid arrays, each checked for its kind and shape."""
+    if "mi_amr_format.npy" not in archive.zip.namelist():
+        raise AMRError(f"{path}: not an mi_amr volume (no 'mi_amr_format' marker); "
+                       f"write one with AMRVolume.save or 'python -m mi_amr dataset'")
+    marker = _entry(path, archive, "mi_amr_format")
+    if marker.shape != () or marker.dtype.kind != "U" or str(marker) != MAGIC:
+        raise AMRError(f"{path}: not an mi_amr volume (its 'mi_amr_format' marker is not "
+                       f"{MAGIC!r})")
+    version = _entry(path, archive, "version")
+    if version.shape != () or version.dtype.kind not in "iu":
+        raise AMRError(f"{path}: entry 'version' must be one integer, got {version.dtype} "
+                       f"shape {version.shape}")
+    if int(version) != VERSION:
+        raise AMRError(f"{path}: mi_amr volume format version {int(version)}, this mi_amr reads "
+                       f"version {VERSION}")
+    level = _checked(path, _entry(path, archive, "level"), "level", "iu", 1)
+    count = len(level)
+    origin = _checked(path, _entry(path, archive, "origin"), "origin", "fiu", 2, count)
+    spacing = _checked(path, _entry(path, archive, "spacing"), "spacing", "fiu", 2, count)
+    shape = _checked(path, _entry(path, archive, "shape"), "shape", "iu", 2, count)
+    if shape.size and not (shape.min() >= 1 and shape.max() <= _MAX_CELLS_PER_AXIS):
+        i = int(np.flatnonzero(np.any((shape < 1) | (shape > _MAX_CELLS_PER_AXIS), axis=1))[0])
+        raise AMRError(f"{path}: grid {i} has shape {shape[i].tolist()}; every grid needs 1 to "
+                       f"{_MAX_CELLS_PER_AXIS} cells per axis")
+    allow = _entry(path, archive, "allow_nonfinite")
+    if allow.shape != () or allow.dtype.kind != "b":
+        raise AMRError(f"{path}: entry 'allow_nonfinite' must be one boolean, got {allow.dtype} "
+                       f"shape {allow.shape}")
+    names = _names(path, _entry(path, archive, "field_names"))
+    counts = [math.prod(int(n) for n in row) for row in shape]
+    return {"level": level, "origin": origin, "spacing": spacing, "shape": shape,
+            "offsets": [0, *accumulate(counts)], "names": names,
+            "allow_nonfinite": bool(allow)}
+
+
+def _checked(path: Path, a: np.ndarray, key: str, kinds: str, ndim: int, count=None):
+    """``a`` of a dtype kind in ``kinds``, shaped ``(G,)`` (``ndim`` 1) or ``(G, 3)``, where
+    ``G`` is ``count`` (the length of ``level``) when given."""
+    want = "(G,)" if ndim == 1 else "(G, 3)"
+    if a.dtype.kind not in kinds or a.ndim != ndim or (ndim == 2 and a.shape[1] != 3):
+        kind = "integers" if kinds == "iu" else "numbers"
+        raise AMRError(f"{path}: entry '{key}' must be {kind} shaped {want}, got {a.dtype} "
+                       f"shape {a.shape}")
+    if count is not None and len(a) != count:
+        raise AMRError(f"{path}: entry '{key}' has {len(a)} row(s) but 'level' has {count}; "
+                       f"every per-grid entry needs one row per grid")
+    return a
+
+
+def _names(path: Path, names: np.ndarray) -> list:
+    if names.ndim != 1 or names.dtype.kind != "U":
+        raise AMRError(f"{path}: entry 'field_names' must be a list of names, got {names.dtype} "
+                       f"shape {names.shape}")
+    return [str(n) for n in names]
+
+
+def _wanted(path: Path, fields, names: list) -> list:
+    """The requested field names: all (``None``), one name, or a list of names."""
+    if fields is None:
+        return names
+    if isinstance(fields, str):
+        fields = [fields]
+    try:
+        wanted = list(dict.fromkeys(fields))
+    except TypeError:
+        raise AMRError(f"{path}: fields must be a field name or a list of names, got "
+                       f"{fields!r}") from None
+    if not wanted:
+        raise AMRError(f"{path}: no fields requested; the file holds {names}")
+    unknown = [n for n in wanted if n not in names]
+    if unknown:
+        raise AMRError(f"{path}: unknown field(s) {unknown}; the file holds {names}")
+    return wanted
+
+
+def _why(e: BaseException) -> str:
+    text = str(e).strip().splitlines()
+    return f"{type(e).__name__}: {text[0][:200]}" if text else type(e).__name__

@@ -64,6 +64,7 @@ data (OpenVDB's default compression) needs the ``blosc`` package (``pip install 
 
 from __future__ import annotations
 
+import math
 import mmap
 import struct
 import zlib
@@ -182,8 +183,11 @@ class VDBGrid:
 # ---------------------------------------------------------------------- public entry points
 
 def is_vdb(path) -> bool:
-    """True when ``path`` is a file that starts with the OpenVDB magic number."""
+    """True when ``path`` is a regular file that starts with the OpenVDB magic number (other
+    files are not opened: reading a FIFO or a device would block)."""
     try:
+        if not Path(path).is_file():
+            return False
         with open(path, "rb") as f:
             head = f.read(8)
     except OSError:
@@ -227,7 +231,7 @@ def read_header(path) -> VDBHeader:
     """
     path = Path(path)
     if not path.is_file():
-        raise AMRError(f"{path}: no such file")
+        raise AMRError(f"{path}: not a regular file" if path.exists() else f"{path}: no such file")
     with _mapped(path) as data:
         cur = _Cursor(data, 0, len(data), f"{path}: header")
         if len(data) < 8 or struct.unpack("<q", cur.take(8, "the magic number"))[0] != MAGIC:
@@ -686,7 +690,7 @@ def _active_box(where: str, tree: _Tree):
         raise AMRError(f"{where}: no active voxels; an empty grid gives no AMR patch")
     lo = np.min(los, axis=0).astype(np.int64)
     hi = np.max(his, axis=0).astype(np.int64)
-    cells = int(np.prod(hi - lo + 1))
+    cells = math.prod(int(n) for n in hi - lo + 1)  # Python ints: 2^32 per axis overflows int64
     if cells > MAX_DENSE_CELLS:
         raise AMRError(f"{where}: the active voxels span the index box {_ints(lo)} .. "
                        f"{_ints(hi)} ({cells:,} voxels), too big for one dense AMR grid "

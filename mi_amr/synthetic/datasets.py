@@ -20,6 +20,7 @@ import numpy as np
 from mi_amr.synthetic import flow
 from mi_amr.synthetic.cluster import berger_rigoutsos
 from mi_amr.errors import AMRError
+from mi_amr.core.atomic import check_output, replacing
 from mi_amr.core.volume import AMRVolume, Grid
 
 SIZES = {
@@ -78,7 +79,8 @@ def write_ball_mesh(path, subdivisions: int = 4) -> Path:
 
     mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=flow.BALL_RADIUS)
     path = Path(path)
-    mesh.export(path)
+    with replacing(path) as tmp:
+        mesh.export(tmp, file_type="ply")
     return path
 
 
@@ -233,13 +235,15 @@ DATASETS = {"sphere_wake": sphere_wake, **ANALYTIC}
 def make(name: str, path, *, size: str = "default", seed: int = 0, overwrite: bool = False,
          progress: bool = True) -> list:
     """Build dataset ``name`` and write it to ``path`` (``.npz``); for ``sphere_wake`` also write
-    the ball mesh ``ball.ply`` next to it. Returns the paths written."""
+    the ball mesh ``ball.ply`` next to it. Returns the paths written. The paths are checked
+    (see :func:`mi_amr.core.atomic.check_output`) before the dataset is built."""
     if name not in DATASETS:
         raise AMRError(f"unknown dataset '{name}'; available: {list(DATASETS)}")
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise AMRError(f"{path}: file exists; pass overwrite=True (--force on the command line) "
-                       f"to replace it")
+    path = check_output(path, suffixes=(".npz",), overwrite=overwrite,
+                        exists_hint="pass overwrite=True (--force on the command line) to "
+                                    "replace it")
+    if name == "sphere_wake":
+        check_output(path.parent / "ball.ply", overwrite=True)
     if name == "sphere_wake":
         vol = sphere_wake(size=size, seed=seed, progress=progress)
     else:
