@@ -106,7 +106,7 @@ def test05_keyframes_are_appended_atomically(tmp_path):
         assert [k["frame"] for k in keys] == [0, 12] and keys[1]["fov"] == 40.0
         with pytest.raises(AMRError, match="must come after"):
             S.append_keyframe(path, 12)
-        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+        assert not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
 
 
 # ---------------------------------------------------------------------- rendering
@@ -237,7 +237,7 @@ def test07_a_worker_killed_mid_run_loses_no_frame(series, tmp_path):
     assert not summary.failed, summary.text()
     assert [p.name for p in frames_in(out)] == [f"frame_{i:05d}.png" for i in range(12)]
     assert all(read(p).shape == (32, 32, 3) for p in frames_in(out))
-    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+    assert not [p for p in out.iterdir() if ".tmp-" in p.name]
 
 
 def test08_the_mp4_has_every_frame(series, tmp_path):

@@ -128,7 +128,7 @@ def render_movie(scene, out, *, frames=None, files=None, orbit=None, isovalues=N
             (summary.failed if "error" in r else summary.rendered).append(r)
     finally:
         # A worker killed while writing leaves its temporary file (never a frame's name).
-        for tmp in out.glob(f".frame_*.{fmt}"):
+        for tmp in out.glob(f"frame_*.tmp-*.{fmt}"):
             tmp.unlink(missing_ok=True)
     if mp4 is not None and not summary.failed:
         from mi_amr.workflows.movie.encode import encode_mp4

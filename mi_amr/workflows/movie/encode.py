@@ -3,12 +3,11 @@ wheel brings (no system ffmpeg needed)."""
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from mi_amr.core.atomic import replacing
 from mi_amr.errors import AMRError
 
 
@@ -47,16 +46,9 @@ def encode_mp4(frames, mp4, fps: int = 24, *, force: bool = False) -> Path:
     frames = [Path(f) for f in frames]
     if not frames:
         raise AMRError("--mp4: there are no frames to encode")
-    fd, tmp = tempfile.mkstemp(prefix=f".{mp4.stem}.", suffix=".mp4", dir=mp4.parent)
-    os.close(fd)
-    try:
-        with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=2,
-                                ffmpeg_log_level="error") as writer:
+    with replacing(mp4) as tmp:
+        with imageio.get_writer(str(tmp), fps=fps, codec="libx264", quality=8,
+                                macro_block_size=2, ffmpeg_log_level="error") as writer:
             for f in frames:
                 writer.append_data(_read(f))
-        os.replace(tmp, mp4)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return mp4

@@ -3,12 +3,12 @@ name in its folder, then renamed), and nothing is replaced without ``force``."""
 
 from __future__ import annotations
 
-import os
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from mi_amr.core.atomic import replacing
 from mi_amr.errors import AMRError
 
 FORMATS = ("png", "exr")
@@ -34,31 +34,10 @@ def check_out_dir(out_dir) -> Path:
     return out
 
 
-def _temporary(path: Path):
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    return tmp
-
-
-def _replace(tmp, path: Path) -> None:
-    mask = os.umask(0)
-    os.umask(mask)
-    os.chmod(tmp, 0o666 & ~mask)      # mkstemp makes 0600; a written file is a normal file
-    os.replace(tmp, path)
-
-
 def write_bytes_atomic(path, data: bytes) -> None:
     """Write ``data`` to ``path`` whole or not at all."""
-    path = Path(path)
-    tmp = _temporary(path)
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-        _replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with replacing(path) as tmp:
+        Path(tmp).write_bytes(data)
 
 
 def write_image_atomic(path, image: np.ndarray) -> None:
@@ -66,17 +45,9 @@ def write_image_atomic(path, image: np.ndarray) -> None:
     suffix), whole or not at all."""
     import mitsuba as mi
 
-    path = Path(path)
-    tmp = _temporary(path)
-    try:
-        bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32),
-                           pixel_format=mi.Bitmap.PixelFormat.RGB)
-        if path.suffix.lower() == ".png":
-            bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8,
-                                    srgb_gamma=True)
-        bitmap.write(tmp)
-        _replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32),
+                       pixel_format=mi.Bitmap.PixelFormat.RGB)
+    if Path(path).suffix.lower() == ".png":
+        bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
+    with replacing(path) as tmp:
+        bitmap.write(str(tmp))
