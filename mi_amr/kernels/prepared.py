@@ -20,6 +20,9 @@ from mi_amr.errors import AMRError
 from mi_amr.core.kdtree import KDTree
 
 _CACHE: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
+# A callable taking one line of text, told each step of a preparation as it ends (the command
+# line sets it to print, so a load of several seconds shows what it is doing); None: silent.
+REPORT = None
 _CACHE_SIZE = 3
 
 
@@ -49,17 +52,27 @@ class PreparedVolume:
         self.volume = volume.select_fields(wanted)
         self.field = field
         self.color_field = color_field or field
-        clock = self._lap("derive", clock)
+        clock = self._lap("derive", clock, quiet=not derivable)
         self.tree = KDTree(self.volume, leaf_cells=leaf_cells)
         clock = self._lap("tree", clock)
         self.device = DeviceVolume(self.volume, self.tree, field, self.color_field,
                                    m=m or dr.llvm.ad)
         self._lap("device", clock)
 
-    def _lap(self, name, since):
+    def _lap(self, name, since, quiet=False):
         now = time.perf_counter()
         self.timings[name] = now - since
+        if not quiet:
+            _report(f"{_STEPS[name]} in {now - since:.2f} s")
         return now
+
+
+_STEPS = {"derive": "  derived fields", "tree": "  kd-tree", "device": "  device arrays"}
+
+
+def _report(text: str) -> None:
+    if REPORT is not None:
+        REPORT(text)
 
 
 def fields_to_read(field: str, color_field: str | None, available) -> list:
@@ -86,8 +99,8 @@ def _velocity_names(available) -> list:
                    f"{', '.join('/'.join(n) for n in VELOCITY_NAMES)}); fields: {list(available)}")
 
 
-def prepare_file(path, field: str, color_field: str | None = None, *, leaf_cells: int = params.default("leaf_cells"),
-                 m=None) -> PreparedVolume:
+def prepare_file(path, field: str, color_field: str | None = None, *,
+                 leaf_cells: int = params.default("leaf_cells"), m=None) -> PreparedVolume:
     """Load ``path`` (only what is needed) and prepare it; cached by file, fields and backend."""
     from mi_amr.readers import available_fields, load
 
@@ -104,6 +117,8 @@ def prepare_file(path, field: str, color_field: str | None = None, *, leaf_cells
     t0 = time.perf_counter()
     volume = load(path, fields=names)
     read = time.perf_counter() - t0
+    _report(f"  read {os.path.basename(path)} ({', '.join(names)}: {volume.num_cells:,} cells, "
+            f"{len(volume.grids):,} grids) in {read:.2f} s")
     prepared = PreparedVolume(volume, field, color_field, leaf_cells=leaf_cells, m=m)
     prepared.timings = {"read": read, **prepared.timings}
     _CACHE[key] = prepared

@@ -14,23 +14,18 @@ PNG_MAX_SIDE = 1_000_000
 
 
 def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
-                variant: str = "llvm_ad_rgb", overwrite: bool = False, quiet: bool = False):
-    """Render ``scene_path`` to ``output`` (.png: 8-bit sRGB; .exr: linear float) and return the
-    image as a NumPy array. ``spp`` and ``resolution`` override the scene's ``spp``, ``resx``
-    and ``resy`` defaults; ``defines`` sets other ``<default>`` values. Prints what it does and
-    how long each part took (scene load, first frame with kernel compilation). The output path
-    is checked before anything else, and the image is written atomically: a failed write leaves
-    an existing ``output`` as it was."""
+                variant: str = "llvm_ad_rgb", overwrite: bool = False, quiet: bool = False,
+                aovs: bool = False):
+    """Render ``scene_path`` to ``output`` (.png: 8-bit sRGB with alpha; .exr: linear float
+    RGBA) and return the RGB image as a NumPy array. Alpha is the pixel's coverage by surfaces.
+    ``aovs=True`` (.exr only) adds the isosurface's AOV channels (:mod:`mi_amr.plugin.aovs`).
+    ``spp`` and ``resolution`` override the scene's ``spp``, ``resx`` and ``resy`` defaults;
+    ``defines`` sets other ``<default>`` values. Prints what it does and how long each part
+    took (the scene's preparation step by step, the render with a progress bar). The output
+    path is checked before anything else, and the image is written atomically: a failed write
+    leaves an existing ``output`` as it was."""
     output = Path(output)
-    if output.suffix.lower() not in IMAGE_TYPES:
-        raise AMRError(f"{output}: the image must end in {' or '.join(IMAGE_TYPES)}")
-    check_output(output, overwrite=overwrite, make_folders=True)
-    if spp is not None and spp < 1:
-        raise AMRError(f"--spp must be >= 1, got {spp}")
-    if resolution is not None and min(resolution) < 1:
-        raise AMRError(f"--resolution must be positive, got {resolution}")
-    if resolution is not None:
-        _check_png_size(output, resolution)
+    params = _check_request(scene_path, output, spp, resolution, defines, overwrite, aovs)
     import drjit as dr
     import mitsuba as mi
     import numpy as np
@@ -39,47 +34,103 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
         raise AMRError(f"variant '{variant}' is not available; choose from {mi.variants()}")
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     mi.set_variant(variant)
+    from mi_amr.kernels import prepared
     from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import load_scene
 
     register()
-    params = dict(defines or {})
-    if spp is not None:
-        params["spp"] = str(spp)
-    if resolution is not None:
-        params["resx"], params["resy"] = str(resolution[0]), str(resolution[1])
     t0 = time.perf_counter()
     say(f"loading {scene_path} ({variant})")
-    scene = load_scene(scene_path, **params)
+    prepared.REPORT = None if quiet else say
+    try:
+        scene = load_scene(scene_path, integrator={"aovs": True} if aovs else None,
+                           pixel_format="rgba", **params)
+    finally:
+        prepared.REPORT = None
     t1 = time.perf_counter()
     sensor = scene.sensors()[0]
-    total_spp = sensor.sampler().sample_count()
     size = sensor.film().size()
     _check_png_size(output, size)
+    total_spp = sensor.sampler().sample_count()
     say(f"  scene ready in {t1 - t0:.1f} s; rendering {size[0]}x{size[1]} at {total_spp} spp")
-    # Many samples per pixel go in passes, so progress can be shown and memory stays bounded.
-    passes = max(1, min(total_spp, (total_spp + 15) // 16))
-    per_pass = [total_spp // passes + (1 if i < total_spp % passes else 0) for i in range(passes)]
-    from tqdm import tqdm
-
-    accum = None
-    bar = tqdm(total=total_spp, unit="spp", disable=quiet or passes == 1, leave=False)
-    for i, n in enumerate(per_pass):
-        img = mi.render(scene, spp=n, seed=i)
-        dr.eval(img)
-        dr.sync_thread()
-        part = np.array(img) * n
-        accum = part if accum is None else accum + part
-        bar.update(n)
-    bar.close()
-    image = accum / total_spp
+    image = _render_passes(mi, dr, np, scene, total_spp, quiet)
     t2 = time.perf_counter()
-    _write_image(mi, image.astype(np.float32), output)
+    _write_image(mi, image.astype(np.float32), output, _channels(scene, aovs))
     say(f"  rendered in {t2 - t1:.2f} s (includes compiling the kernels on first use)")
     say(f"wrote {output.resolve()}  [total {t2 - t0:.1f} s]")
     if not np.all(np.isfinite(image)):
         raise AMRError(f"{output}: the image has NaN/Inf pixels; this is a bug, please report it")
-    return image
+    return image[..., :3]
+
+
+def _check_request(scene_path, output, spp, resolution, defines, overwrite, aovs) -> dict:
+    """The checks done before any work (output path, numbers, ``-D`` names against the
+    scene's ``<default>``s); returns the scene parameters."""
+    if output.suffix.lower() not in IMAGE_TYPES:
+        raise AMRError(f"{output}: the image must end in {' or '.join(IMAGE_TYPES)}")
+    if aovs and output.suffix.lower() != ".exr":
+        raise AMRError(f"{output}: --aovs writes a multichannel EXR; give a .exr output")
+    check_output(output, overwrite=overwrite, make_folders=True)
+    if spp is not None and spp < 1:
+        raise AMRError(f"--spp must be >= 1, got {spp}")
+    if resolution is not None and min(resolution) < 1:
+        raise AMRError(f"--resolution must be positive, got {resolution}")
+    if resolution is not None:
+        _check_png_size(output, resolution)
+    params = dict(defines or {})
+    _check_defines(scene_path, params)
+    if spp is not None:
+        params["spp"] = str(spp)
+    if resolution is not None:
+        params["resx"], params["resy"] = str(resolution[0]), str(resolution[1])
+    return params
+
+
+def _check_defines(scene_path, defines: dict) -> None:
+    """Every ``-D`` name must be a ``<default>`` of the scene (else Mitsuba would report
+    "unused parameters" after loading): an unknown name gets a did-you-mean."""
+    import difflib
+    import xml.etree.ElementTree as ET
+
+    if not defines:
+        return
+    try:
+        root = ET.parse(str(scene_path)).getroot()
+    except (OSError, ET.ParseError):
+        return                      # the scene loader reports an unreadable file
+    known = [d.get("name") for d in root.iter("default")]
+    for name in defines:
+        if name not in known:
+            close = difflib.get_close_matches(name, known, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise AMRError(f"-D {name}: the scene {scene_path} has no default '{name}'{hint}; "
+                           f"it has {', '.join(known) or 'none'}")
+
+
+def _render_passes(mi, dr, np, scene, total_spp, quiet):
+    """The image (all film channels), rendered in passes of at most 16 spp -- one sample per
+    pass up to 16 -- so the progress bar moves and memory stays bounded."""
+    from tqdm import tqdm
+
+    passes = max(min(total_spp, 16), -(-total_spp // 16))
+    per_pass = [total_spp // passes + (1 if i < total_spp % passes else 0) for i in range(passes)]
+    accum = None
+    with tqdm(total=total_spp, unit="spp", disable=quiet or passes == 1, leave=False) as bar:
+        for i, n in enumerate(per_pass):
+            img = mi.render(scene, spp=n, seed=i)
+            dr.eval(img)
+            dr.sync_thread()
+            part = np.array(img) * n
+            accum = part if accum is None else accum + part
+            bar.update(n)
+    return accum / total_spp
+
+
+def _channels(scene, aovs):
+    """The film's channel names: R, G, B, A and with ``aovs`` the isovalue AOVs."""
+    from mi_amr.plugin.aovs import NAMES
+
+    return ["R", "G", "B", "A"] + (list(NAMES) if aovs else [])
 
 
 def _check_png_size(output: Path, size) -> None:
@@ -88,13 +139,19 @@ def _check_png_size(output: Path, size) -> None:
                        f"(libpng), the image is {size[0]}x{size[1]}; write an .exr instead")
 
 
-def _write_image(mi, image, output: Path) -> None:
-    """Write ``image`` (linear RGB, float32) to ``output`` through a temporary file of the same
-    type in the same folder (Mitsuba picks the format from the extension), then rename it."""
+def _write_image(mi, image, output: Path, channels) -> None:
+    """Write ``image`` (linear RGBA and maybe AOVs, float32) to ``output`` through a temporary
+    file of the same type in the same folder (Mitsuba picks the format from the extension),
+    then rename it. PNG: 8-bit sRGB with alpha."""
     output.parent.mkdir(parents=True, exist_ok=True)
-    bitmap = mi.Bitmap(image, pixel_format=mi.Bitmap.PixelFormat.RGB)
     if output.suffix.lower() == ".png":
-        bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
+        bitmap = mi.Bitmap(image[..., :4], pixel_format=mi.Bitmap.PixelFormat.RGBA)
+        bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGBA, mi.Struct.Type.UInt8, srgb_gamma=True)
+    elif len(channels) == 4:
+        bitmap = mi.Bitmap(image, pixel_format=mi.Bitmap.PixelFormat.RGBA)
+    else:
+        bitmap = mi.Bitmap(image, pixel_format=mi.Bitmap.PixelFormat.MultiChannel,
+                           channel_names=channels)
     try:
         with replacing(output) as tmp:
             bitmap.write(str(tmp))
