@@ -13,8 +13,10 @@ from pathlib import Path
 from mi_amr.errors import AMRError
 
 
-def main(argv=None) -> int:
-    parser = _parser()
+def main(argv=None, prog: str = "mi-amr") -> int:
+    """Run the command line; ``prog`` is the name usage lines show (the installed ``mi-amr``
+    script, or ``python -m mi_amr`` from ``__main__``)."""
+    parser = _parser(prog)
     args = parser.parse_args(argv)
     if not hasattr(args, "run"):
         parser.print_help()
@@ -29,11 +31,20 @@ def main(argv=None) -> int:
         return 130
 
 
-def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m mi_amr",
+def _parser(prog: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog,
                                 description="Isosurfaces of AMR volumes with Mitsuba 3.")
     sub = p.add_subparsers(metavar="COMMAND")
 
+    _add_data_commands(sub)
+    _add_render(sub)
+    _add_bench(sub)
+    _add_view(sub)
+    return p
+
+
+def _add_data_commands(sub) -> None:
+    """``info``, ``dataset``, ``data``."""
     s = sub.add_parser("info", help="print the summary of an AMR file")
     s.add_argument("path")
     s.add_argument("--fields", nargs="+", help="read only these fields")
@@ -53,6 +64,9 @@ def _parser() -> argparse.ArgumentParser:
                                     "(skips files that exist)")
     s.set_defaults(run=_data)
 
+
+def _add_render(sub) -> None:
+    """``render``, ``movie``, ``histogram``."""
     s = sub.add_parser("render", help="render a scene file")
     s.add_argument("scene", help="Mitsuba scene XML")
     s.add_argument("-o", "--output", required=True, help="image to write (.png or .exr)")
@@ -64,8 +78,24 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--variant", default="llvm_ad_rgb",
                    help="Mitsuba variant (llvm_ad_rgb, cuda_ad_rgb, scalar_rgb)")
     s.add_argument("--force", action="store_true", help="replace an existing image")
+    s.add_argument("--aovs", action="store_true",
+                   help="also write the isosurface's depth, normal, position, values, level and "
+                        "grid as channels of the (.exr) image")
     s.set_defaults(run=_render)
+    _add_movie(sub)
 
+    s = sub.add_parser("histogram", help="the 2D histogram of a field's value against its "
+                                         "gradient magnitude (for a 2D transfer function)")
+    s.add_argument("path", help="an AMR file")
+    s.add_argument("--field", required=True, help="stored or derived field")
+    s.add_argument("-o", "--output", required=True, help="PNG to write")
+    s.add_argument("--bins", type=int, default=256)
+    s.add_argument("--force", action="store_true", help="replace an existing image")
+    s.set_defaults(run=_histogram)
+
+
+def _add_bench(sub) -> None:
+    """``bench``, ``reference``, ``demo``."""
     s = sub.add_parser("bench", help="measure speed (and, in full, speed against accuracy)")
     s.add_argument("--frames", action="store_true",
                    help="only the frame timings of the default scene (first, warm, new "
@@ -83,6 +113,12 @@ def _parser() -> argparse.ArgumentParser:
                    help="only the failure cases, every method on each (mi_amr.stability)")
     s.add_argument("--kdtree", action="store_true",
                    help="only validation and kd-tree build times for 10^4 and 10^5 grids")
+    s.add_argument("--limit", action="store_true",
+                   help="only the frame against a mesh of the same surface (4 sizes) and the "
+                        "load against a raw read of the file, writes limit.md")
+    s.add_argument("--movie", action="store_true",
+                   help="only the movie frame rates (1 and 2 workers) and one time step's "
+                        "cost, writes movie.md")
     s.add_argument("--out", default="out/bench", help="folder for the results")
     s.set_defaults(run=_bench)
 
@@ -96,7 +132,6 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("demo", help="create the scenes' data, then render the default scene")
     s.add_argument("-o", "--output", default="out/sphere_wake.png")
     s.set_defaults(run=_demo)
-    return p
 
 
 def _info(args) -> None:
@@ -123,14 +158,96 @@ def _data(args) -> None:
 def _render(args) -> None:
     from mi_amr.workflows.render import render_file
 
+    render_file(args.scene, args.output, spp=args.spp, resolution=args.resolution,
+                defines=_defines(args.defines), variant=args.variant, overwrite=args.force,
+                aovs=args.aovs)
+
+
+def _histogram(args) -> None:
+    from mi_amr.workflows.histogram import histogram_figure
+
+    if args.bins < 2:
+        raise AMRError(f"--bins must be >= 2, got {args.bins}")
+    out = histogram_figure(args.path, args.field, args.output, bins=args.bins,
+                           overwrite=args.force)
+    print(f"wrote {out}")
+
+
+def _defines(items) -> dict:
     defines = {}
-    for item in args.defines:
+    for item in items:
         name, sep, value = item.partition("=")
         if not sep or not name:
             raise AMRError(f"-D {item}: expected NAME=VALUE")
         defines[name] = value
-    render_file(args.scene, args.output, spp=args.spp, resolution=args.resolution,
-                defines=defines, variant=args.variant, overwrite=args.force)
+    return defines
+
+
+def _add_movie(sub) -> None:
+    s = sub.add_parser("movie", help="render a movie: an orbit, an isovalue sweep, keyframes or "
+                                     "a time series of files, in parallel on Dask")
+    s.add_argument("scene", help="Mitsuba scene XML")
+    s.add_argument("-o", "--output", required=True, help="folder for frame_00000.png ...")
+    s.add_argument("--files", help="the time series: a glob or a comma-separated list (natural "
+                                   "order); replaces the scene's data file frame by frame")
+    s.add_argument("--orbit", type=float, metavar="DEGREES",
+                   help="turn the camera about its target on its up axis over the movie")
+    s.add_argument("--frames", type=int, help="number of frames (default: one per file, or "
+                                              "the keyframes', or 60)")
+    s.add_argument("--isovalues", metavar="START:STOP",
+                   help="sweep the first isovalue (prefix log: for a logarithmic sweep)")
+    s.add_argument("--keyframes", help="a TOML or JSON keyframe file (camera, isovalue, "
+                                       "colour range by frame number)")
+    s.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"))
+    s.add_argument("--spp", type=int)
+    s.add_argument("--color-range", nargs="+", metavar="LO HI | series",
+                   help="the colour range: two numbers, or 'series' (one range over every "
+                        "file's colour field; the default for a time series)")
+    s.add_argument("--workers", type=int, default=1,
+                   help="Dask worker processes on this machine (1: render in this process)")
+    s.add_argument("--scheduler", metavar="ADDRESS",
+                   help="an existing Dask cluster, e.g. tcp://host:8786 (instead of --workers)")
+    s.add_argument("--mp4", help="also encode the frames as this MP4")
+    s.add_argument("--fps", type=int, default=24)
+    s.add_argument("--format", choices=("png", "exr"), default="png")
+    s.add_argument("-D", dest="defines", action="append", default=[], metavar="NAME=VALUE",
+                   help="set a <default> of the scene (repeatable)")
+    s.add_argument("--variant", default="llvm_ad_rgb")
+    s.add_argument("--force", action="store_true", help="render (and encode) again what exists")
+    s.set_defaults(run=_movie)
+
+
+def _color_range(values):
+    if values is None:
+        return None
+    if values == ["series"]:
+        return "series"
+    try:
+        lo, hi = (float(v) for v in values)
+    except ValueError:
+        raise AMRError(f"--color-range: expected LO HI or 'series', got {' '.join(values)}") \
+            from None
+    if not lo < hi:
+        raise AMRError(f"--color-range: needs LO < HI, got {lo:g} {hi:g}")
+    return (lo, hi)
+
+
+def _movie(args) -> int:
+    from mi_amr.workflows.movie import render_movie
+
+    if args.workers < 1:
+        raise AMRError(f"--workers must be >= 1, got {args.workers}")
+    summary = render_movie(args.scene, args.output, frames=args.frames, files=args.files,
+                           orbit=args.orbit, isovalues=args.isovalues, keyframes=args.keyframes,
+                           color_range=_color_range(args.color_range),
+                           resolution=args.resolution, spp=args.spp, fmt=args.format,
+                           workers=args.workers, scheduler=args.scheduler, mp4=args.mp4,
+                           fps=args.fps, force=args.force, defines=_defines(args.defines),
+                           variant=args.variant)
+    print(summary.text())
+    if args.mp4 and not summary.failed:
+        print(f"wrote {args.mp4}")
+    return 1 if summary.failed else 0
 
 
 def _bench(args) -> None:
@@ -138,7 +255,19 @@ def _bench(args) -> None:
     from mi_amr.workflows import project
 
     project.ensure_scene_data()
-    if args.frames:
+    if args.limit:
+        from mi_amr.evaluation.limit_bench import run_limit_bench
+
+        run_limit_bench(args.out, variant=args.variant)
+    elif args.movie:
+        from mi_amr.evaluation.movie_bench import run_movie_bench
+
+        run_movie_bench(args.out)
+    elif args.viewer:
+        from mi_amr.evaluation.bench import run_viewer
+
+        run_viewer(args.out, variant=args.variant)
+    elif args.frames:
         run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
     elif args.scaling:
         scaling(args.out, variant=args.variant)
@@ -178,3 +307,39 @@ def _demo(args) -> None:
 
     project.ensure_scene_data()
     render_file(project.scenes_dir() / "sphere_wake.xml", args.output, overwrite=True)
+
+
+def _add_view(sub) -> None:
+    """``view``, and ``bench --viewer`` (kept here so the viewer's options sit together)."""
+    sub.choices["bench"].add_argument(
+        "--viewer", action="store_true",
+        help="only the viewer's slider-to-image round trip in a browser (512^2)")
+    s = sub.add_parser("view", help="explore a scene in the browser: isovalues, method, "
+                                    "colours, camera, light; save images, scenes, keyframes")
+    s.add_argument("scene", help="Mitsuba scene XML rendered by amr_iso")
+    s.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: a free one)")
+    s.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1: this machine only)")
+    s.add_argument("--no-browser", action="store_true", help="do not open a browser")
+    s.add_argument("--out", default="out",
+                   help="folder the page saves images, scenes and keyframes in (default ./out)")
+    s.add_argument("--files", nargs="+", default=[], metavar="FILE",
+                   help="more files the page may open, besides the scene's folder")
+    s.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
+                   help="size of the view (default: 512 wide, the scene's aspect)")
+    s.add_argument("--spp", type=int, default=4,
+                   help="samples per pixel of the refined image (default 4)")
+    s.add_argument("--preview-scale", type=int, default=2,
+                   help="while a control moves, 1 spp at 1/N of the size (default 2)")
+    s.add_argument("--variant", default="llvm_ad_rgb")
+    s.set_defaults(run=_view)
+
+
+def _view(args) -> None:
+    from mi_amr.workflows.viewer import serve
+
+    if args.spp < 1 or args.preview_scale < 1 or (args.resolution and min(args.resolution) < 1):
+        raise AMRError("view: --spp, --preview-scale and --resolution must be positive")
+    serve(args.scene, host=args.host, port=args.port, open_browser=not args.no_browser,
+          out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,
+          preview_scale=args.preview_scale, variant=args.variant)

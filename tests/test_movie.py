@@ -306,3 +306,23 @@ def test10_bad_inputs_give_one_clear_error(series, tmp_path):
     with pytest.raises(AMRError, match="must increase"):
         render_movie_quiet(scene, tmp_path / "d", keyframes=keys)
     assert not (tmp_path / "d").exists() or not list((tmp_path / "d").iterdir())
+
+
+def test11_the_command_line(series, tmp_path):
+    """``python -m mi_amr movie``: frames, the summary, and one error line for a mistake."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    run = lambda *a: subprocess.run([sys.executable, "-m", "mi_amr", "movie",  # noqa: E731
+                                     str(series / "scene.xml"), *map(str, a)],
+                                    capture_output=True, text=True, cwd=root, timeout=300)
+    proc = run("-o", tmp_path / "m", "--files", series / "step*.npz", "--frames", "3",
+               "--color-range", "series")
+    assert proc.returncode == 0, proc.stderr
+    assert "3 frame(s) rendered, 0 skipped" in proc.stdout
+    assert len(frames_in(tmp_path / "m")) == 3
+    proc = run("-o", tmp_path / "n", "--isovalues", "0.1:x")
+    assert proc.returncode == 2 and proc.stderr.startswith("error: --isovalues")
+    assert "Traceback" not in proc.stderr

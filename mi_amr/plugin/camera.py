@@ -47,11 +47,20 @@ def sensor_key(params) -> str:
 def set_camera(params, camera: Camera) -> None:
     """Move the scene's camera to ``camera`` (then ``params.update()``). The position and the
     field of view are written together every time: Mitsuba's perspective camera compiles its
-    kernel again when one of them changes after the other did."""
+    kernel again when one of them changes after the other did. The transform is computed in
+    double precision and rounded once, as Mitsuba's scene loader does for a ``<lookat>``, so
+    a scene file written with this camera renders the same pixels."""
     key = sensor_key(params)
-    params[f"{key}.to_world"] = mi.Transform4f().look_at(
-        origin=list(camera.origin), target=list(camera.target), up=list(camera.up))
+    params[f"{key}.to_world"] = lookat_as_loaded(camera)
     params[f"{key}.x_fov"] = float(camera.fov)
+
+
+def lookat_as_loaded(camera: Camera):
+    """``camera``'s ``to_world`` as a scene file's ``<lookat>`` gives it (double precision,
+    then float32)."""
+    m = mi.ScalarTransform4d().look_at(origin=list(camera.origin), target=list(camera.target),
+                                       up=list(camera.up)).matrix
+    return mi.Transform4f(np.array(m, dtype=np.float64).astype(np.float32))
 
 
 def _defaults(root, defines: dict) -> dict:

@@ -1,0 +1,139 @@
+"""``python -m mi_amr bench --limit``: mi_amr against the practical limit, in one run,
+interleaved.
+
+* **Frame against a mesh of the same surface.** The report's scene (sphere_wake, exact + basis,
+  shadow rays) at 256^2 ... 2048^2, 1 spp, warm frames; against Mitsuba's ``direct`` integrator
+  drawing the marching-cubes mesh of the same isosurface (scikit-image per grid, as
+  :func:`mi_amr.evaluation.peers.marching_cubes_route` builds it) with the same camera, light,
+  ball and floor. Frames alternate between the two, so a drift of the machine hits both.
+* **Loading against reading the file.** Preparing the scene's volume (read, derive Q and speed,
+  kd-tree, device arrays, leaf value ranges) against reading the same file's arrays with NumPy
+  alone.
+
+Writes ``limit.md`` and ``limit.json``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import statistics
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mi_amr.workflows import project
+
+SIZES = (256, 512, 1024, 2048)
+FRAMES = 5
+
+
+def _frame(mi, dr, scene, seed) -> float:
+    t0 = time.perf_counter()
+    img = mi.render(scene, seed=seed)
+    dr.eval(img)
+    dr.sync_thread()
+    return time.perf_counter() - t0
+
+
+def frame_against_mesh(sizes=SIZES, frames=FRAMES) -> list:
+    """Rows ``{size, mi_amr_s, mesh_s, ratio, triangles}`` (median warm frames)."""
+    import drjit as dr
+    import mitsuba as mi
+    from skimage.measure import marching_cubes
+
+    from mi_amr.evaluation import peers
+    from mi_amr.plugin.scene import load_scene
+
+    rs = peers._route_scene("sphere_wake")
+    arrays = [np.asarray(g.fields[rs.field]) for g in rs.vol.grids]
+    pieces = peers._grid_pieces(marching_cubes, rs.vol, arrays, rs.iso, False)
+    rows = []
+    for size in sizes:
+        ours = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size, spp=1,
+                          method="exact", reconstruction="basis")
+        _, mesh_scene, triangles = peers._mesh_scene(mi, dataclasses.replace(rs, scene=ours),
+                                                     pieces)
+        _frame(mi, dr, ours, 0), _frame(mi, dr, mesh_scene, 0)     # compile both first
+        a, b = [], []
+        for i in range(frames):
+            a.append(_frame(mi, dr, ours, i + 1))
+            b.append(_frame(mi, dr, mesh_scene, i + 1))
+        row = {"size": size, "mi_amr_s": statistics.median(a), "mesh_s": statistics.median(b),
+               "triangles": triangles}
+        row["ratio"] = row["mi_amr_s"] / row["mesh_s"]
+        print(f"{size}^2: mi_amr {row['mi_amr_s']:.3f} s, mesh {row['mesh_s']:.3f} s "
+              f"({row['ratio']:.1f}x)", flush=True)
+        rows.append(row)
+        del ours, mesh_scene
+    return rows
+
+
+def load_against_read(paths) -> list:
+    """Rows ``{file, cells, raw_s, load_s, ratio, steps}`` for each data file of the scene's
+    field (q_criterion coloured by speed, from vx, vy, vz)."""
+    import drjit as dr
+
+    from mi_amr.kernels.prepared import PreparedVolume
+    from mi_amr.readers import load
+
+    rows = []
+    for path in paths:
+        t0 = time.perf_counter()
+        with np.load(path) as f:
+            raw = [np.asarray(f[f"field:{n}"]) for n in ("vx", "vy", "vz")]
+        raw_s = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        vol = load(path, fields=["vx", "vy", "vz"])
+        read = time.perf_counter() - t0
+        prep = PreparedVolume(vol, "q_criterion", "speed", m=dr.llvm.ad)
+        t1 = time.perf_counter()
+        prep.device.node_ranges(True)
+        steps = dict(read=read, **prep.timings, ranges=time.perf_counter() - t1)
+        load_s = time.perf_counter() - t0
+        rows.append({"file": Path(path).name, "cells": vol.num_cells, "raw_s": raw_s,
+                     "load_s": load_s, "ratio": load_s / raw_s, "steps": steps})
+        print(f"{Path(path).name}: load {load_s:.2f} s, raw read {raw_s:.3f} s "
+              f"({load_s / raw_s:.0f}x) {({k: round(v, 2) for k, v in steps.items()})}",
+              flush=True)
+        del raw, vol, prep
+    return rows
+
+
+def run_limit_bench(out_dir="out/bench", variant: str = "llvm_ad_rgb") -> dict:
+    import mitsuba as mi
+
+    mi.set_variant(variant)
+    from mi_amr.plugin.integrator import register
+
+    register()
+    project.ensure_scene_data()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = frame_against_mesh()
+    data = project.data_dir()
+    paths = [data / "sphere_wake.npz"] + sorted((data / "scaling").glob("cells_large*.npz"))
+    loads = load_against_read(paths)
+    table = _table(frames, loads)
+    (out / "limit.md").write_text(table + "\n")
+    (out / "limit.json").write_text(json.dumps({"frames": frames, "loads": loads}, indent=2))
+    print(table)
+    print(f"wrote {out / 'limit.md'}")
+    return {"frames": frames, "loads": loads}
+
+
+def _table(frames, loads) -> str:
+    lines = ["| image | mi_amr warm frame (s) | mesh in Mitsuba (s) | ratio |",
+             "|---|---|---|---|"]
+    lines += [f"| {r['size']}x{r['size']} | {r['mi_amr_s']:.3f} | {r['mesh_s']:.3f} | "
+              f"{r['ratio']:.1f}x |" for r in frames]
+    lines += ["", f"(mesh: {frames[0]['triangles']:,} triangles, marching cubes per grid)", "",
+              "| file | cells | raw read (s) | load (s) | ratio | read / derive / tree / device "
+              "/ ranges (s) |", "|---|---|---|---|---|---|"]
+    for r in loads:
+        s = r["steps"]
+        lines.append(f"| {r['file']} | {r['cells']:,} | {r['raw_s']:.3f} | {r['load_s']:.2f} | "
+                     f"{r['ratio']:.0f}x | {s['read']:.2f} / {s['derive']:.2f} / {s['tree']:.2f}"
+                     f" / {s['device']:.2f} / {s['ranges']:.2f} |")
+    return "\n".join(lines)

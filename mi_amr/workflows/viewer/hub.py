@@ -1,0 +1,323 @@
+"""The viewer's one shared state and the pages connected to it (every tab shows the same view
+and sees every change), the page's requests, and the files it saves.
+
+Runs in the server's event loop; Mitsuba work goes to the render thread
+(:class:`~mi_amr.workflows.viewer.worker.RenderWorker`), whose reports come back through
+:meth:`Hub.from_worker`. Each accepted change gets the next version number; frames carry the
+version they show, so a page never replaces a newer image by an older one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import struct
+import traceback
+from collections import deque
+from pathlib import Path
+
+from mi_amr.errors import AMRError
+from mi_amr.workflows.viewer import controls
+from mi_amr.workflows.viewer.paths import FileRules
+from mi_amr.workflows.viewer.sceneio import scene_text
+from mi_amr.workflows.viewer.state import Session, structure
+from mi_amr.workflows.viewer.worker import RenderWorker
+
+CHANGES = ("set", "camera", "add_isovalue", "remove_isovalue", "reset_color_range")
+COLORMAPS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm",
+             "RdBu_r", "Spectral_r", "gray")
+KEYFRAME_STEP = 24
+MAX_SIDE = 4096                 # a saved image's side: one render pass must fit in memory
+
+
+class Client:
+    """One connected page: text messages in order, and at most one frame waiting (a newer
+    frame replaces one not sent yet)."""
+
+    def __init__(self, ws):
+        self.ws = ws
+        self.messages = deque()
+        self.frame = None
+        self.wake = asyncio.Event()
+
+    def post(self, message: dict) -> None:
+        self.messages.append(message)
+        self.wake.set()
+
+    def post_frame(self, data: bytes) -> None:
+        self.frame = data
+        self.wake.set()
+
+    async def pump(self) -> None:
+        while True:
+            await self.wake.wait()
+            self.wake.clear()
+            while self.messages:
+                await self.ws.send_text(json.dumps(self.messages.popleft()))
+            if self.frame is not None:
+                data, self.frame = self.frame, None
+                await self.ws.send_bytes(data)
+
+
+class Hub:
+    """The viewer of ``scene_path``: file rules, the render thread, the shared state."""
+
+    def __init__(self, scene_path, *, out_dir="out", files=(), resolution=None, spp: int = 4,
+                 preview_scale: int = 2, idle_s: float = 0.3):
+        self.rules = FileRules(scene_path, files, out_dir)
+        self.worker = RenderWorker(lambda: Session(scene_path, resolution=resolution, spp=spp),
+                                   self.from_worker, preview_scale=preview_scale, idle_s=idle_s)
+        self.clients = set()
+        self.loop = None
+        self.version = 0
+        self.last_frame = None          # the newest frame sent, for a page that connects
+
+    def start(self) -> None:
+        """Load the scene and render its first frames (in the render thread)."""
+        self.worker.start()
+        session = self.worker.session
+        self.state = session.state
+        self._set_info(session.describe())
+        self.worker.submit(self.state, self.version)
+
+    def _set_info(self, info: dict) -> None:
+        self.info = info
+        self.ctx = controls.Context(
+            value_range=info["value_range"], color_data_range=info["color_data_range"],
+            fields=info["fields"], home=info["home"], up=info["up"],
+            resolution=info["resolution"])
+
+    # ------------------------------------------------------------------ what pages see
+    def state_message(self) -> dict:
+        s = self.state
+        light = None
+        if s.light_direction is not None:
+            az, el = controls.light_angles(s.light_direction, self.ctx.up)
+            light = {"azimuth": az, "elevation": el, "strength": max(s.light_irradiance)}
+        return {"type": "state", "version": self.version, "state": {
+            "data_file": self._shown_path(s.data_file), "field": s.field,
+            "color_field": s.color_field, "colormap": s.colormap,
+            "color_range": s.color_range, "isovalues": s.isovalues,
+            "iso_colors": [controls.linear_to_hex(c) for c in s.iso_colors],
+            "iso_opacity": s.iso_opacity, "mode": s.mode, "method": s.method,
+            "reconstruction": s.reconstruction, "step_scale": s.step_scale,
+            "band_width": s.band_width[0], "shadows": s.shadows, "camera": s.camera.as_dict(),
+            "light": light, "spp": s.spp, "structure": list(structure(s))}}
+
+    def info_message(self) -> dict:
+        from mi_amr import params
+
+        i = self.info
+        return {"type": "info", "scene": self._shown_path(i["scene"]),
+                "value_range": i["value_range"], "color_data_range": i["color_data_range"],
+                "histogram": i["histogram"], "fields": i["fields"],
+                "methods": params.METHODS, "reconstructions": params.RECONSTRUCTIONS,
+                "modes": params.MODES, "colormaps": COLORMAPS, "files": self.rules.listing(),
+                "out_dir": str(self.rules.out_dir), "resolution": i["resolution"],
+                "preview_scale": self.worker.preview_scale,
+                "max_isovalues": params.MAX_ISOVALUES}
+
+    def status(self) -> dict:
+        session = self.worker.session
+        return {"version": self.version, "compiled": dict(session.compiled),
+                "frames": dict(self.worker.frames), "dropped": self.worker.dropped,
+                "clients": len(self.clients), "resolution": list(session.resolution)}
+
+    def _shown_path(self, path) -> str:
+        p = Path(path)
+        try:
+            return str(p.relative_to(self.rules.root))
+        except ValueError:
+            return str(p)
+
+    def broadcast(self, message: dict) -> None:
+        for c in list(self.clients):
+            c.post(message)
+
+    # ------------------------------------------------------------------ connections
+    def connect(self, ws) -> Client:
+        client = Client(ws)
+        self.clients.add(client)
+        client.post(self.info_message())
+        client.post(self.state_message())
+        if self.last_frame is not None:
+            client.post_frame(self.last_frame)
+        return client
+
+    def disconnect(self, client: Client) -> None:
+        self.clients.discard(client)
+
+    async def handle(self, client: Client, text) -> None:
+        """One request from a page; a mistake is answered with a message, never a crash."""
+        try:
+            msg = json.loads(text) if isinstance(text, str) else None
+        except ValueError:
+            msg = None
+        try:
+            if not isinstance(msg, dict):
+                raise AMRError("a request must be a JSON object (text)")
+            op = msg.get("op")
+            if op in CHANGES:
+                self._change(controls.change(self.state, msg, self.ctx))
+            elif op in ACTIONS:
+                ACTIONS[op](self, client, msg)
+            else:
+                raise AMRError(f"unknown request '{op}'")
+        except AMRError as e:
+            client.post({"type": "error", "message": str(e)})
+        except Exception as e:           # a bug: report it and keep serving
+            traceback.print_exc()
+            client.post({"type": "error", "message": f"internal error: {e!r}"})
+
+    def _change(self, new) -> None:
+        if new == self.state:
+            return
+        if structure(new) != structure(self.state):
+            self.broadcast({"type": "notice", "message":
+                            "Loading the scene again: method, reconstruction, mode, fields and "
+                            "the number of isovalues are part of the kernels' structure, so "
+                            "this compiles them once (a few seconds)."})
+        self.version += 1
+        self.state = new
+        self.worker.submit(new, self.version)
+        self.broadcast(self.state_message())
+
+    def _adopt(self, state) -> None:
+        self.state = state
+        self.broadcast(self.state_message())
+
+    # ------------------------------------------------------------------ the render thread
+    def from_worker(self, kind: str, payload: dict, data) -> None:
+        """A report from the render thread (called there): handled in the event loop."""
+        if self.loop is not None:
+            self.loop.call_soon_threadsafe(self._report, kind, payload, data)
+
+    def _report(self, kind, payload, data) -> None:
+        if kind == "frame":
+            head = json.dumps(payload).encode()
+            frame = struct.pack("<I", len(head)) + head + data
+            self.last_frame = frame
+            for c in list(self.clients):
+                c.post_frame(frame)
+        elif kind == "reply":
+            payload["client"].post(payload["message"])
+        elif kind == "opened":
+            self._set_info(payload["info"])
+            self.broadcast(self.info_message())
+            self._adopt(payload["state"])
+            self.version += 1
+            self.worker.submit(self.state, self.version)
+        elif kind == "corrected" and payload["version"] == self.version:
+            self._adopt(payload["state"])
+        elif kind == "error":
+            # The newest change failed: the pages go back to what the scene shows.
+            if payload["version"] == self.version:
+                self._adopt(payload["state"])
+            self.broadcast({"type": "error", "message": payload["message"]})
+        elif kind == "info":
+            self._set_info(payload["info"])
+            self.broadcast(self.info_message())
+            if payload["how"] == "reload":
+                self.broadcast({"type": "notice", "message": "Scene loaded again; its first "
+                                "frames compile the kernels of the new structure."})
+
+
+# ---------------------------------------------------------------------- files
+
+def _confirm(client, msg, path) -> bool:
+    """True when ``path`` may be written: it does not exist, or the page confirmed."""
+    if path.exists() and msg.get("overwrite") is not True:
+        client.post({"type": "confirm", "request": dict(msg, overwrite=True),
+                     "message": f"{path.name} exists in {path.parent}. Replace it?"})
+        return False
+    return True
+
+
+def _size(msg, hub) -> tuple:
+    w, h = msg.get("width"), msg.get("height")
+    if w in (None, "") and h in (None, ""):
+        return tuple(hub.worker.session.resolution)
+    return (int(controls.number(w, "width", 1, MAX_SIDE)),
+            int(controls.number(h, "height", 1, MAX_SIDE)))
+
+
+def save_scene(hub: Hub, client: Client, msg: dict) -> None:
+    from mi_amr.core.atomic import check_output, replacing
+
+    path = hub.rules.output(msg.get("name"), (".xml",))
+    size = _size(msg, hub)
+    if not _confirm(client, msg, path):
+        return
+    check_output(path, overwrite=True)
+    text = scene_text(hub.worker.session.base_path, hub.state, spp=hub.state.spp,
+                      resolution=size)
+    with replacing(path) as tmp:
+        tmp.write_text(text)
+    client.post({"type": "saved", "what": "scene", "path": str(path),
+                 "message": f"Saved the scene to {path}; render it with: python -m mi_amr "
+                            f"render {path} -o image.png"})
+
+
+def save_image(hub: Hub, client: Client, msg: dict) -> None:
+    from mi_amr.core.atomic import check_output
+    from mi_amr.workflows.movie.output import write_image_atomic
+
+    path = hub.rules.output(msg.get("name"), (".png", ".exr"))
+    size = _size(msg, hub)
+    if not _confirm(client, msg, path):
+        return
+    check_output(path, overwrite=True)
+    state, version, worker = hub.state, hub.version, hub.worker
+
+    def job(session):
+        worker.ensure(state, version)
+        last = getattr(worker, "last_refined", None)
+        if last is not None and last[0] == version and size == tuple(session.resolution):
+            image = last[1]
+        else:
+            image = worker.counted("saves", lambda: session.render_refined(size, state.spp))
+        write_image_atomic(path, image)
+        worker.publish("reply", {"client": client, "message": {
+            "type": "saved", "what": "image", "path": str(path),
+            "message": f"Saved {size[0]}x{size[1]} at {state.spp} spp to {path}"}}, None)
+
+    client.post({"type": "notice", "message": f"Rendering {path.name} ..."})
+    worker.job(job)
+
+
+def add_keyframe(hub: Hub, client: Client, msg: dict) -> None:
+    from mi_amr.workflows.movie.spec import append_keyframe, read_keyframes
+
+    path = hub.rules.output(msg.get("name"), (".toml", ".json"))
+    frame = msg.get("frame")
+    if frame in (None, ""):
+        keys = read_keyframes(path) if path.exists() else []
+        frame = keys[-1]["frame"] + KEYFRAME_STEP if keys else 0
+    frame = int(controls.number(frame, "keyframe frame", 0, 10 ** 7))
+    s = hub.state
+    append_keyframe(path, frame, camera=s.camera.as_dict(), isovalue=s.isovalues[0],
+                    color_range=s.color_range)
+    client.post({"type": "saved", "what": "keyframe", "path": str(path),
+                 "next_frame": frame + KEYFRAME_STEP,
+                 "message": f"Added keyframe {frame} to {path} (python -m mi_amr movie "
+                            f"--keyframes {path})"})
+
+
+def open_file(hub: Hub, client: Client, msg: dict) -> None:
+    path = hub.rules.openable(msg.get("path"))
+    if path.suffix.lower() != ".xml":
+        hub._change(hub.state.replace(data_file=str(path)))
+        return
+    worker, spp = hub.worker, hub.state.spp
+
+    def job(session):
+        session.open(path, resolution=session.resolution, spp=spp)
+        worker.fresh("reloads")
+        worker.publish("opened", {"state": session.state, "info": session.describe()}, None)
+
+    hub.broadcast({"type": "notice", "message": f"Opening {path.name} ..."})
+    worker.job(job)
+
+
+ACTIONS = {"save_scene": save_scene, "save_image": save_image, "add_keyframe": add_keyframe,
+           "open": open_file}
