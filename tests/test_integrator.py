@@ -580,8 +580,10 @@ def test15_every_scene_reads_filename_from_a_default_and_names_its_light():
         assert "filename" in defaults, path.name
         strings = {s.get("name"): s.get("value") for s in root.find("integrator").iter("string")}
         assert strings["filename"] == "$filename", path.name
-        emitters = root.findall("emitter")
-        assert emitters and all(e.get("id") for e in emitters), path.name
+        # A light is an emitter, or a shape holding one (an area light): each has an id.
+        lights = root.findall("emitter") + [s for s in root.findall("shape")
+                                            if s.find("emitter") is not None]
+        assert lights and all(e.get("id") for e in lights), path.name
 
 
 def test16_the_light_is_traversable_by_its_id(shipped):
