@@ -45,12 +45,6 @@ def _key(params, name):
     raise AMRError(f"the scene has no parameter '{name}'")
 
 
-def _camera_key(params):
-    """Key of the camera's ``to_world`` (the object that also has ``x_fov``)."""
-    prefix = _key(params, "x_fov").rsplit(".", 1)[0]
-    return f"{prefix}.to_world"
-
-
 def frame_timings(scene_path=None, *, resolution=(1024, 1024), defines=None,
                   frames: int = 5, variant: str = "llvm_ad_rgb") -> dict:
     """Time a scene: load, first frame (kernel compilation), warm frames (median), a frame after
@@ -79,8 +73,11 @@ def frame_timings(scene_path=None, *, resolution=(1024, 1024), defines=None,
     p.update()
     new_iso = _frame(mi, dr, scene, 100)
     p[iso_key] = iso
-    cam_key = _camera_key(p)
-    p[cam_key] = mi.Transform4f().translate([0.05, 0.0, 0.0]) @ p[cam_key]
+    from mi_amr.plugin.camera import Camera, scene_camera, set_camera
+
+    cam = scene_camera(scene_path, params, scene)
+    set_camera(p, Camera(tuple(np.add(cam.origin, [0.05, 0.0, 0.0])), cam.target, cam.up,
+                         cam.fov))
     p.update()
     new_camera = _frame(mi, dr, scene, 101)
     return {

@@ -71,7 +71,13 @@ def _opaque_cameras(scene) -> None:
     """Write the values a frame is likely to change -- each camera's and emitter's
     ``to_world``, a camera's field of view, an emitter's strength -- back through
     ``mi.traverse`` as new opaque values: Mitsuba traced them as literals at load time, so the
-    first change would otherwise compile the rendering kernel again."""
+    first change would otherwise compile the rendering kernel again.
+
+    Mitsuba's perspective camera has two kernels of its own: one after an update that changed
+    its field of view, one after an update of its ``to_world`` alone (each compiled once, on
+    first use). The camera and field of view are written here together, as
+    :func:`mi_amr.plugin.camera.set_camera` always writes them, so moving the camera that way
+    never compiles; moving it by ``to_world`` alone compiles once."""
     params = mi.traverse(scene)
     prefixes = [s.id() for s in scene.sensors()] + [e.id() for e in scene.emitters()]
     suffixes = (".to_world", ".x_fov", ".irradiance.value", ".radiance.value",
