@@ -121,7 +121,9 @@ def run_movie_bench(out_dir="out/bench") -> dict:
     project.ensure_scene_data()
     scene = project.scenes_dir() / "sphere_wake.xml"
     files = _series(project.data_dir() / "movie")
-    work = out / "movie_frames"
+    import tempfile
+
+    work = Path(tempfile.mkdtemp(prefix="mi_amr-movie-bench-"))
     kinds = {"orbit (one file)": {"orbit": 360},
              "isovalue sweep": {"isovalues": "0.03:0.09"},
              f"time series ({STEPS} files)": {"files": [str(f) for f in files]}}
