@@ -305,3 +305,22 @@ def test30_cell_values_match_their_slow_twin():
         np.testing.assert_array_equal(fa, fb)
         np.testing.assert_array_equal(a, b)
         assert fa.any() and not fa.all()
+
+
+def test31_level_index_dense_table_and_binary_search_agree():
+    """LevelIndex.find by its dense block table and by the sorted keys (the fallback for
+    huge levels) give the same grids, -1 outside."""
+    from conftest import random_grids
+    from mi_amr import AMRVolume
+    from mi_amr.core.levels import LevelIndex
+
+    vol = AMRVolume.from_grids(random_grids(7))
+    rng = np.random.default_rng(2)
+    for level in range(vol.num_levels):
+        dense = LevelIndex(vol, level)
+        assert dense.table is not None
+        sparse = LevelIndex(vol, level)
+        sparse.table = None
+        lo, hi = vol.index_boxes()
+        idx = rng.integers(lo.min(axis=0) - 3, hi.max(axis=0) * 4 + 3, size=(2000, 3))
+        np.testing.assert_array_equal(dense.find(idx), sparse.find(idx))

@@ -11,6 +11,9 @@ from __future__ import annotations
 import numpy as np
 
 
+DENSE_BLOCKS = 1 << 24     # blocks: up to this many, LevelIndex keeps a dense table (64 MiB)
+
+
 class LevelIndex:
     """Which grid of one level holds a given cell: a sorted table of the blocks the level's grids
     cover, searched with ``np.searchsorted``.
@@ -42,6 +45,12 @@ class LevelIndex:
         order = np.argsort(keys)
         self.keys, self.owner = keys[order], owner[order]
         self.lo, self.hi = glo, ghi
+        # A dense table of the blocks when it is small (the usual case): find() is then one
+        # gather instead of a binary search.
+        self.table = None
+        if int(np.prod(self.dims)) <= DENSE_BLOCKS:
+            self.table = np.full(int(np.prod(self.dims)), -1, dtype=np.int32)
+            self.table[self.keys] = self.owner
 
     def _key(self, block_idx):
         b = block_idx - self.origin
@@ -56,6 +65,9 @@ class LevelIndex:
         if not inside.any() or len(self.keys) == 0:
             return out
         keys = self._key(b[inside])
+        if self.table is not None:
+            out[inside] = np.take(self.table, keys)
+            return out
         at = np.minimum(np.searchsorted(self.keys, keys), len(self.keys) - 1)
         hit = self.keys[at] == keys
         idx = np.flatnonzero(inside)
