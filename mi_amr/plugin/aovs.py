@@ -1,6 +1,6 @@
 """Arbitrary output variables of the isosurface (Mitsuba's ``aov_names()`` mechanism), reported
 by ``amr_iso`` when its ``aovs`` parameter is true, for the first isosurface crossing along each
-camera ray (in volume mode: the first crossing of the band's centre, the isovalue):
+camera ray (in volume mode: the first crossing of a band's centre, an isovalue):
 
 =================  =====================================================================
 channel            value (0 where the ray meets no isosurface in front of the meshes)
@@ -39,7 +39,7 @@ def iso_aovs(integ, ray, o, d, t_mesh, jitter, active) -> list:
     cfg = integ.config()
     if cfg.band is not None:
         cfg = type(cfg)(method=cfg.method, basis=cfg.basis, isovalues=cfg.isovalues,
-                        step_scale=cfg.step_scale, num_iso=1)
+                        step_scale=cfg.step_scale, num_iso=cfg.num_iso)
     c = first_crossing(dev, cfg, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh), jitter,
                        m.Bool(active))
     hit = c.hit
