@@ -74,3 +74,6 @@ OPACITY_CAP = 1.0 - 1e-4
 # relative to the band width: a value ramp whose ends are closer than this is taken as
 # constant (its pre-integrated opacity is the point opacity).
 RAMP_FLAT_REL = 1e-6
+# optical depth below which a step is thin: half its opacity lies at half its depth (the
+# exact ratio's float32 rounding error would exceed its distance from 1/2).
+HALF_DEPTH_THIN = 1e-4

@@ -387,6 +387,38 @@ def test08_opacity_correction_keeps_volume_brightness_when_the_step_changes(sphe
     assert abs(coarse.mean() / fine.mean() - 1.0) < 0.03, (coarse.mean(), fine.mean())
 
 
+def test08b_exact_volume_mode_lights_the_band_where_its_light_comes_from(sphere_file):
+    """Volume mode with shadows, a band thin against a cell: exact (one pre-integrated piece per
+    cell, lit once) agrees with uniform steps of 0.05 cells (each sample lit where it is), to
+    within 4 % relative RMSE at the same pixel positions. Lit at the middle of the cell's piece
+    instead of where the band makes its opacity, exact was 31 % off."""
+    images = {}
+    for method, step in (("exact", 0.5), ("uniform", 0.05)):
+        scene = mi.load_dict(volume_scene(sphere_file, mode="volume", method=method,
+                                          band_width=0.01, step_scale=step))
+        images[method] = render(scene)
+    err = np.sqrt(np.mean((images["exact"] - images["uniform"]) ** 2))
+    rel = err / np.sqrt(np.mean(images["uniform"] ** 2))
+    assert images["uniform"].mean() > 0.05
+    assert rel < 0.04, rel
+
+
+def test08c_exact_volume_mode_adds_no_noise_of_its_own(scene_data_ready):
+    """The analytic sphere at 64^2, 1 spp, directional light: two renders with different seeds
+    differ only where the pixel sample positions move, so volume mode (exact, the default band)
+    changes by no more than 1.2 times what surface mode does (measured: 1.15; lit at the
+    middle of each cell's piece it was 4.7)."""
+    def seed_change(**integrator):
+        scene = load_scene(SCENES / "analytic_sphere.xml", resx=64, resy=64, spp=1,
+                           integrator=integrator or None)
+        a, b = render(scene), np.array(mi.render(scene, seed=1), dtype=np.float64)
+        return np.sqrt(np.mean((a - b) ** 2) / np.mean(b ** 2))
+
+    surface, volume = seed_change(), seed_change(mode="volume")
+    assert surface > 0.01
+    assert volume < 1.2 * surface, (volume, surface)
+
+
 # ---------------------------------------------------------------------- meshes and isosurfaces
 
 LIGHT = np.array([0.8, 0.0, -1.0])     # direction the light travels: from the upper left (-x)

@@ -34,7 +34,8 @@ TABLE_SIZE = 1024
 @dataclass
 class BandInputs:
     """The bands on the device: ``width``, ``lo``, ``hi``, ``peak`` one value per band, ``dx0``
-    one value, and the bands' integral tables one after another (``TABLE_SIZE + 1`` each)."""
+    one value, the bands' integral tables one after another (``TABLE_SIZE + 1`` each) and their
+    inverses (the offset at which the integral reaches ``j / TABLE_SIZE`` of its total)."""
 
     width: Any
     lo: Any
@@ -42,6 +43,7 @@ class BandInputs:
     peak: Any
     dx0: Any
     table: Any
+    inverse: Any
     count: int = 1
 
     def get(self, m, name, k):
@@ -57,6 +59,7 @@ def band_inputs(m, bands) -> BandInputs:
                       peak=opaque_floats(m, [b.peak for b in bands]),
                       dx0=opaque_floats(m, [bands[0].dx0]),
                       table=opaque_floats(m, np.concatenate([b.table_T for b in bands])),
+                      inverse=opaque_floats(m, np.concatenate([b.table_inv for b in bands])),
                       count=len(bands))
 
 
@@ -80,12 +83,26 @@ class OpacityBand:
             self.dx0
         self.table_T = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) *
                                                         np.diff(self.table_x))])
+        # tau > 0 over the open support, so T rises strictly and has an inverse
+        self.table_inv = np.interp(np.linspace(0.0, self.table_T[-1], TABLE_SIZE + 1),
+                                   self.table_T, self.table_x)
 
     def alpha_numpy(self, v, centre):
         """Slow twin of :func:`alpha`."""
         x = np.asarray(v, dtype=np.float64) - centre
         a = np.minimum(1.0, self.peak * np.exp(-0.5 * (x / self.width) ** 2))
         return np.where((x > self.lo) & (x < self.hi), a, 0.0)
+
+    def half_point_numpy(self, a, b, dx, centre=0.0, n: int = 200001) -> float:
+        """Slow twin of :func:`segment_alpha_and_point`'s point, by float64 quadrature: the
+        fraction of a step of length ``dx`` (world), its value running linearly from ``a`` to
+        ``b``, at which the step's opacity is half made."""
+        u = np.linspace(0.0, 1.0, n)
+        alpha = np.minimum(self.alpha_numpy(a + u * (b - a), centre), tol.OPACITY_CAP)
+        tau = -np.log1p(-alpha) / self.dx0 * dx
+        depth = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(u))])
+        made = -np.expm1(-depth)
+        return float(np.interp(0.5 * made[-1], made, u))
 
     def inputs(self, m) -> BandInputs:
         """The device values of this band alone on backend ``m`` (opaque)."""
@@ -115,16 +132,50 @@ def integral(m, band: BandInputs, k, x):
     return dr.lerp(dr.gather(m.Float, band.table, i), dr.gather(m.Float, band.table, i + 1), f)
 
 
-def segment_alpha(m, band: BandInputs, k, a, b, dx, centre):
-    """Pre-integrated opacity of band ``k`` for a step of length ``dx`` (world) along which the
-    value goes linearly from ``a`` to ``b``."""
+def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre):
+    """Band ``k``'s optical depth over a step of length ``dx`` (world) along which the value
+    goes linearly from ``a`` to ``b``; with the integral at both ends and whether the ramp is
+    flat (then the depth is the point value's)."""
     xa, xb = a - centre, b - centre
     Ta, Tb = integral(m, band, k, xa), integral(m, band, k, xb)
     flat = dr.abs(xb - xa) < tol.RAMP_FLAT_REL * band.get(m, "width", k)
     tau_point = -dr.log(1.0 - dr.minimum(alpha(m, band, k, 0.5 * (a + b), centre),
                                          tol.OPACITY_CAP)) / band.dx0
     tau_mean = dr.select(flat, tau_point, (Tb - Ta) / (xb - xa))
-    return 1.0 - dr.exp(-dr.maximum(tau_mean, 0.0) * dx)
+    return dr.maximum(tau_mean, 0.0) * dx, Ta, Tb, flat
+
+
+def segment_alpha(m, band: BandInputs, k, a, b, dx, centre):
+    """Pre-integrated opacity of band ``k`` for a step of length ``dx`` (world) along which the
+    value goes linearly from ``a`` to ``b``."""
+    return 1.0 - dr.exp(-_ramp_depth(m, band, k, a, b, dx, centre)[0])
+
+
+def _inverse(m, band: BandInputs, k, T):
+    """The offset at which band ``k``'s integral reaches ``T`` (the inverse of
+    :func:`integral`)."""
+    base = k * (TABLE_SIZE + 1)
+    total = dr.gather(m.Float, band.table, m.UInt32(base + TABLE_SIZE))
+    u = dr.clip(T / total, 0.0, 1.0) * TABLE_SIZE
+    i = dr.minimum(m.UInt32(dr.floor(u)), TABLE_SIZE - 1)
+    f = u - m.Float(i)
+    return dr.lerp(dr.gather(m.Float, band.inverse, i + base),
+                   dr.gather(m.Float, band.inverse, i + base + 1), f)
+
+
+def segment_alpha_and_point(m, band: BandInputs, k, a, b, dx, centre):
+    """:func:`segment_alpha`, and where along the step band ``k`` has made half of the step's
+    opacity (a fraction of the step, 0 at ``a``): the light a viewer at the ``a`` end receives
+    from the step comes from around there, so that is where the step is lit and coloured. A
+    thin transparent step gives the point where half its optical depth lies, an opaque one a
+    point near its front."""
+    tau, Ta, Tb, flat = _ramp_depth(m, band, k, a, b, dx, centre)
+    xa, xb = a - centre, b - centre
+    # the depth at which 1 - exp(-depth) is half of 1 - exp(-tau), as a fraction of tau
+    r = dr.select(tau > tol.HALF_DEPTH_THIN, -dr.log(0.5 * (1.0 + dr.exp(-tau))) / tau, 0.5)
+    x = _inverse(m, band, k, dr.lerp(Ta, Tb, r))
+    u = dr.select(flat, r, (x - xa) / (xb - xa))
+    return 1.0 - dr.exp(-tau), dr.clip(u, 0.0, 1.0)
 
 
 def combine(alphas):

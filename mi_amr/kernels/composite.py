@@ -14,7 +14,7 @@ import drjit as dr
 from mi_amr import tolerances as tol
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
-from mi_amr.kernels.band import alpha, combine, corrected, segment_alpha
+from mi_amr.kernels.band import alpha, combine, corrected, segment_alpha_and_point
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.traverse import Walk, clip_to_volume, epsilon, next_dual_plane, seek
@@ -81,11 +81,22 @@ def _marks(centres, bands):
     return [v for lo_hi, c in zip(bands, centres) for v in (lo_hi[0], c, lo_hi[1])]
 
 
+def _dominant(points, shares):
+    """The entry of ``points`` (one per band) of the band with the largest share."""
+    point, best = points[0], shares[0]
+    for p, share in zip(points[1:], shares[1:]):
+        point = dr.select(share > best, p, point)
+        best = dr.maximum(best, share)
+    return point
+
+
 def _band_pieces(dev, cfg, num, den, L, dnorm, have, marks, centres):
     """A cubic piece of length ``L`` cut where the value can turn relative to a band (the
     extrema of ``N - v D`` for each of ``marks``): per sub-piece its pre-integrated opacity,
-    the bands' shares of it and its middle, and the middle of the most opaque one with its
-    opacity."""
+    the bands' shares of it and where along it half of its opacity is made
+    (:func:`~mi_amr.kernels.band.segment_alpha_and_point`; there it takes its colour), and
+    that place in the most opaque one with its opacity (there the piece is lit, so a shadow
+    ray leaves from where the band's light comes from, not from anywhere in a cell)."""
     m = dev.m
     cuts = []
     for v in marks:
@@ -98,10 +109,11 @@ def _band_pieces(dev, cfg, num, den, L, dnorm, have, marks, centres):
     s_best = m.Float(0.0)
     for i in range(len(s_pts) - 1):
         dx = (s_pts[i + 1] - s_pts[i]) * dnorm
-        a, share = combine([segment_alpha(m, cfg.band, k, values[i], values[i + 1], dx, c)
-                            for k, c in enumerate(centres)])
+        per_band = [segment_alpha_and_point(m, cfg.band, k, values[i], values[i + 1], dx, c)
+                    for k, c in enumerate(centres)]
+        a, share = combine([ab[0] for ab in per_band])
         a = dr.select(have & (dx > 0.0), a, 0.0)
-        mid = 0.5 * (s_pts[i] + s_pts[i + 1])
+        mid = dr.lerp(s_pts[i], s_pts[i + 1], _dominant([ab[1] for ab in per_band], share))
         alphas.append(a)
         shares.append(share)
         mids.append(mid)
@@ -222,8 +234,8 @@ def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centres):
     sub-interval (adaptive, ExaBricks) or the distance from the previous sample (bisect, course
     report). Pre-integrated: the value runs from the previous sample to this one, integrated
     over that distance (steps tile the ray from one sample to the next; the first, from where
-    the ray or the leaf starts, at the first sample's value). Returns the opacity and the
-    bands' shares of it."""
+    the ray or the leaf starts, at the first sample's value). Returns the opacity, the
+    bands' shares of it and where the step is lit (:func:`_light_point`)."""
     band = cfg.band
     if cfg.method == "uniform":
         dx = dt * dnorm
@@ -231,30 +243,29 @@ def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centres):
         dx = (smp.b - t) * dnorm
     else:
         dx = (smp.t_s - t_prev) * dnorm
-    alphas = []
+    alphas, points = [], []
     for k, centre in enumerate(centres):
         if cfg.preintegrated:
             span = (smp.t_s - t_prev) * dnorm
-            a = dr.select(dr.isfinite(v_prev),
-                          segment_alpha(m, band, k, v_prev, smp.v, span, centre),
+            a_ramp, u = segment_alpha_and_point(m, band, k, v_prev, smp.v, span, centre)
+            a = dr.select(dr.isfinite(v_prev), a_ramp,
                           corrected(band, alpha(m, band, k, smp.v, centre), span))
+            points.append(u)
         else:
             a = corrected(band, alpha(m, band, k, smp.v, centre), dx)
         alphas.append(dr.select(smp.take & dr.isfinite(smp.v), a, 0.0))
-    return combine(alphas)
+    a, shares = combine(alphas)
+    return a, shares, _light_point(cfg, smp, t_prev, v_prev, points, shares)
 
 
-def _light_point(cfg, smp: Sample, t_prev, v_prev, centres, shares):
-    """Where a sample is lit: the sample, or for a pre-integrated step where the value ramp
-    passes the centre of the band holding most of its opacity (where that opacity sits)."""
+def _light_point(cfg, smp: Sample, t_prev, v_prev, points, shares):
+    """Where a sample is lit: the sample, or for a pre-integrated step from the previous sample
+    where the band holding most of its opacity has made half of it (``points``: that place per
+    band, a fraction of the step)."""
     if not cfg.preintegrated:
         return smp.t_s
-    centre, best = centres[0], shares[0]
-    for c, share in zip(centres[1:], shares[1:]):
-        centre = dr.select(share > best, c, centre)
-        best = dr.maximum(best, share)
-    f = dr.clip((centre - v_prev) / (smp.v - v_prev), 0.0, 1.0)
-    return dr.select(dr.isfinite(f), dr.lerp(t_prev, smp.t_s, f), smp.t_s)
+    t = dr.lerp(t_prev, smp.t_s, _dominant(points, shares))
+    return dr.select(dr.isfinite(v_prev) & dr.isfinite(t), t, smp.t_s)
 
 
 @dr.syntax
@@ -294,10 +305,10 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
         samples += dr.select(smp.take, 1, 0)
         if dr.hint(cfg.method == "bisect", mode="scalar"):
             smp = _into_band(dev, cfg, o, d, smp, t_prev, v_prev, bands, arrays)
-        a, shares = _sample_alpha(m, cfg, smp, w.t, t_prev, v_prev, dt, dnorm, centres)
+        a, shares, t_light = _sample_alpha(m, cfg, smp, w.t, t_prev, v_prev, dt, dnorm,
+                                           centres)
         if dr.hint(shade, mode="scalar"):
             lit = smp.take & (a > tol.ALPHA_LIT)
-            t_light = _light_point(cfg, smp, t_prev, v_prev, centres, shares)
             A, S = lighting(dr.fma(d, t_light, o), smp.grad, lit)
             C += dr.select(lit, T * a * (color_of(shares, smp.cval) * A + S), 0.0)
         T *= 1.0 - a
