@@ -116,6 +116,9 @@ def _add_bench(sub) -> None:
     s.add_argument("--limit", action="store_true",
                    help="only the frame against a mesh of the same surface (4 sizes) and the "
                         "load against a raw read of the file, writes limit.md")
+    s.add_argument("--volume", action="store_true",
+                   help="only volume mode: each method and step against exact at 64 spp, "
+                        "writes volume.md and volume_chart.png (--quick: 32^2, a smoke test)")
     s.add_argument("--movie", action="store_true",
                    help="only the movie frame rates (1 and 2 workers) and one time step's "
                         "cost, writes movie.md")
@@ -259,6 +262,10 @@ def _bench(args) -> None:
         from mi_amr.evaluation.limit_bench import run_limit_bench
 
         run_limit_bench(args.out, variant=args.variant)
+    elif args.volume:
+        from mi_amr.evaluation.volume_bench import volume_sweep
+
+        volume_sweep(args.out, quick=args.quick, variant=args.variant)
     elif args.movie:
         from mi_amr.evaluation.movie_bench import run_movie_bench
 
