@@ -257,6 +257,7 @@ def _bench(args) -> None:
     from mi_amr.evaluation.bench import run_frames, scaling, sweep
     from mi_amr.workflows import project
 
+    _bench_folder(Path(args.out))
     project.ensure_scene_data()
     if args.limit:
         from mi_amr.evaluation.limit_bench import run_limit_bench
@@ -297,6 +298,16 @@ def _bench(args) -> None:
         print(f"wrote {out / 'stability.md'}")
     else:
         sweep(args.out, quick=args.quick, scenes=args.scene, variant=args.variant)
+
+
+def _bench_folder(out: Path) -> None:
+    """Make the benchmark's results folder before any work, or say why it cannot be."""
+    if out.exists() and not out.is_dir():
+        raise AMRError(f"bench: --out {out} is a file, not a folder")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise AMRError(f"bench: cannot make the results folder --out {out}: {e.strerror}")
 
 
 def _reference(args) -> None:

@@ -47,3 +47,13 @@ def test03_the_table_chart_and_csv_are_written_whole(quick):
     assert table.count("| analytic_sphere |") == len(rows) // 2
     lines = (out / "volume.csv").read_text().splitlines()
     assert lines[0] == ",".join(vb.COLUMNS) and len(lines) == len(rows) + 1
+
+
+def test04_a_results_folder_that_is_a_file_is_refused_before_any_work(tmp_path, capsys):
+    from mi_amr.cli import main
+
+    afile = tmp_path / "notes.txt"
+    afile.write_text("mine")
+    assert main(["bench", "--volume", "--quick", "--out", str(afile)]) == 2
+    assert f"--out {afile} is a file, not a folder" in capsys.readouterr().err
+    assert afile.read_text() == "mine"
