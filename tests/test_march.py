@@ -23,6 +23,8 @@ import pytest
 import mi_amr
 from mi_amr.synthetic import datasets
 from mi_amr.core.field64 import Field64, basis_point_reference
+from mi_amr.evaluation.stability import rays
+from mi_amr.evaluation.stability.rays import f32, unit
 
 DEPTH_TOL = 1e-4     # finest cells: exact vs the reference
 STEP = 0.2           # finest cells between reference samples (0.1 inside the spike's support)
@@ -30,25 +32,10 @@ STEP = 0.2           # finest cells between reference samples (0.1 inside the sp
 
 # ---------------------------------------------------------------------- the dense reference
 
-def f32(a):
-    """``a`` rounded to float32 (what the kernels see), as float64."""
-    return np.asarray(a, dtype=np.float32).astype(np.float64)
-
-
-def unit(v):
-    v = np.asarray(v, dtype=np.float64)
-    return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
 def box_interval(lo, hi, o, d):
     """``(t_in, t_out)`` of rays ``o + t d`` in the box ``[lo, hi]``, ``t_in`` clamped at 0."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_a = (lo - o) / d
-        t_b = (hi - o) / d
-    inside = (o >= lo) & (o <= hi)
-    near = np.where(d == 0, np.where(inside, -np.inf, np.inf), np.minimum(t_a, t_b))
-    far = np.where(d == 0, np.where(inside, np.inf, -np.inf), np.maximum(t_a, t_b))
-    return np.maximum(near.max(axis=1), 0.0), far.min(axis=1)
+    near, far = rays.box_interval(lo, hi, o, d)
+    return np.maximum(near, 0.0), far
 
 
 class Reference:

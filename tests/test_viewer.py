@@ -14,7 +14,6 @@ apt-get; Playwright itself is part of the test extra).
 import base64
 import json
 import re
-import shutil
 import subprocess
 import sys
 import textwrap
@@ -27,16 +26,14 @@ import pytest
 
 from test_references import RMSE
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync"]
+from mi_amr.evaluation.viewer_bench import CHROMIUM, ViewerProcess, chromium
+
 RES = (64, 64)
 SPP = 4
 WAIT_MS = 60_000
 
 pytestmark = pytest.mark.skipif(
-    not CHROMIUM.is_file(),
+    not Path(CHROMIUM).is_file(),
     reason=f"Debian's chromium is not installed ({CHROMIUM} is missing; .ci/setup installs it "
            f"with apt-get, which could not install it on this machine)")
 
@@ -89,32 +86,13 @@ def write_scene(folder: Path) -> Path:
     return path
 
 
-class Viewer:
-    """``python -m mi_amr view`` running in its own process."""
+class Viewer(ViewerProcess):
+    """``python -m mi_amr view`` running in its own process (the benchmark's launcher), at the
+    tests' resolution and samples per pixel."""
 
-    def __init__(self, scene: Path, out: Path, log: Path):
+    def __init__(self, scene: Path, out: Path):
+        super().__init__(scene, out, "--resolution", str(RES[0]), str(RES[1]), "--spp", str(SPP))
         self.scene, self.out = scene, out
-        self.log = open(log, "w+")
-        cmd = [sys.executable, "-u", "-m", "mi_amr", "view", str(scene), "--no-browser",
-               "--port", "0", "--out", str(out), "--resolution", str(RES[0]), str(RES[1]),
-               "--spp", str(SPP)]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True)
-        self.url = None
-        for line in self.proc.stdout:
-            self.log.write(line)
-            m = re.search(r"serving (http://\S+/)", line)
-            if m:
-                self.url = m.group(1)
-                break
-        if self.url is None:
-            self.log.flush()
-            raise AssertionError(f"the viewer did not start: {Path(log).read_text()}")
-        # Keep reading its output (so it never blocks on a full pipe), into the log.
-        import threading
-
-        threading.Thread(target=lambda: shutil.copyfileobj(self.proc.stdout, self.log),
-                         daemon=True).start()
 
     def get(self, path: str):
         with urllib.request.urlopen(self.url + path, timeout=30) as r:
@@ -124,22 +102,14 @@ class Viewer:
         return self.get("api/state")
 
     def compiled(self) -> dict:
-        return self.get("api/status")["compiled"]
-
-    def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-        self.log.close()
+        return self.status()["compiled"]
 
 
 @pytest.fixture(scope="module")
 def viewer(tmp_path_factory, variant):
     folder = tmp_path_factory.mktemp("viewer")
     scene = write_scene(folder / "scene")
-    v = Viewer(scene, folder / "out", folder / "viewer.log")
+    v = Viewer(scene, folder / "out")
     yield v
     v.stop()
 
@@ -149,9 +119,7 @@ def browser(tmp_path_factory):
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        context = p.chromium.launch_persistent_context(
-            str(tmp_path_factory.mktemp("chromium-profile")), executable_path=str(CHROMIUM),
-            headless=True, args=CHROMIUM_ARGS, viewport={"width": 1100, "height": 1000})
+        context = chromium(p, tmp_path_factory.mktemp("chromium-profile"))
         yield context
         context.close()
 

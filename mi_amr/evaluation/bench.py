@@ -37,7 +37,7 @@ def _frame(mi, dr, scene, seed):
     return seconds, compiled, img
 
 
-def _key(params, name):
+def param_key(params, name):
     """The scene-parameter key ending in ``.name``."""
     for k in params.keys():
         if k.split(".")[-1] == name:
@@ -67,7 +67,7 @@ def frame_timings(scene_path=None, *, resolution=(1024, 1024), defines=None,
     first, first_compiled, _ = _frame(mi, dr, scene, 0)
     warm = [_frame(mi, dr, scene, i + 1) for i in range(frames)]
     p = mi.traverse(scene)
-    iso_key = _key(p, "isovalue")
+    iso_key = param_key(p, "isovalue")
     iso = p[iso_key]
     p[iso_key] = iso * 1.1
     p.update()
@@ -134,6 +134,8 @@ def run_frames(out_dir=None, resolution=(1024, 1024), variant="llvm_ad_rgb") -> 
 # ---------------------------------------------------------------------- speed against accuracy
 
 STEP_SCALES = (2.0, 1.0, 0.5, 0.25, 0.1, 0.05, 0.01)
+METHOD_COLORS = {"exact": "black", "bisect": "tab:green", "adaptive": "tab:blue",
+                 "uniform": "tab:orange"}      # one colour per method in every chart
 SWEEP_SCENES = ("sphere_wake", "plt_eb_3d", "analytic_spike", "analytic_torus")
 QUICK = {"scenes": ("analytic_spike", "sphere_wake"), "step_scales": (1.0, 0.25),
          "reconstructions": ("basis",), "frames": 2}
@@ -203,7 +205,7 @@ def _sweep_scene(name, recons, methods, steps, frames, bar) -> list:
             scene = load_scene(ref.scene_path(name), resx=w, resy=h, spp=1, method=method,
                                reconstruction=recon)
             params = mi.traverse(scene)
-            step_key = _key(params, "step_scale")
+            step_key = param_key(params, "step_scale")
             t0 = time.perf_counter()
             ref.render(scene, 1)
             first = time.perf_counter() - t0
@@ -341,8 +343,7 @@ def chart(rows, path):
     import matplotlib.pyplot as plt
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    colors = {"exact": "black", "bisect": "tab:green", "adaptive": "tab:blue",
-              "uniform": "tab:orange"}
+    colors = METHOD_COLORS
     metrics = (("missed", "missed hits (% of pixels)", 100.0),
                ("depth_p99", "depth error p99 (finest cells)", 1.0))
     fig, axes = plt.subplots(len(scenes), 2, figsize=(11, 3.6 * len(scenes)), squeeze=False)

@@ -91,6 +91,7 @@ def _scene_rows(name, overrides, res, ref_spp, steps, frames, bar) -> list:
     import mitsuba as mi
 
     from mi_amr.evaluation import references as ref
+    from mi_amr.evaluation.bench import param_key
 
     reference = None
     same = None
@@ -100,7 +101,7 @@ def _scene_rows(name, overrides, res, ref_spp, steps, frames, bar) -> list:
         if reference is None:
             reference = ref.render(scene, ref_spp, seed=1000)
         params = mi.traverse(scene)
-        key = next(k for k in params.keys() if k.endswith("step_scale"))
+        key = param_key(params, "step_scale")
         ref.render(scene, 1, seed=0)                      # compile
         for step in ((None,) if method == "exact" else steps):
             if step is not None:
@@ -171,8 +172,8 @@ def volume_chart(rows, path, res, ref_spp) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colors = {"exact": "black", "bisect": "tab:green", "adaptive": "tab:blue",
-              "uniform": "tab:orange"}
+    from mi_amr.evaluation.bench import METHOD_COLORS as colors
+
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     panels = (("rel_rmse_ref", f"relative RMSE vs exact at {ref_spp} spp"),
               ("rel_rmse_same", "relative RMSE vs exact at 1 spp (same pixels)"))
