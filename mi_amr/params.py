@@ -93,6 +93,9 @@ TABLE = (
           traversable=True),
     Param("preintegrated", "boolean", False,
           "volume mode: pre-integrated opacity per step (sampling methods)"),
+    Param("shading_extrema", "boolean", True,
+          "volume mode, exact: also cut each cell's piece of the ray where the diffuse term "
+          "turns (Marchesin et al. 2009, section 3.2)"),
     Param("aovs", "boolean", False,
           "report the isosurface's depth, normal, position, values, level and grid as AOVs "
           "(:mod:`mi_amr.plugin.aovs`)"),

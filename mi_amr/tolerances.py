@@ -74,6 +74,12 @@ OPACITY_CAP = 1.0 - 1e-4
 # relative to the band width: a value ramp whose ends are closer than this is taken as
 # constant (its pre-integrated opacity is the point opacity).
 RAMP_FLAT_REL = 1e-6
-# optical depth below which a step is thin: half its opacity lies at half its depth (the
-# exact ratio's float32 rounding error would exceed its distance from 1/2).
-HALF_DEPTH_THIN = 1e-4
+# optical depth below which a step is thin: where its opacity is made is taken from the
+# series in the depth (the closed form's float32 rounding error would exceed the series').
+THIN_DEPTH = 0.05
+# relative to the band width: a value ramp shorter than this has its extinction taken as
+# linear along it for the centroid (shorter than ~3 cells of the inverse table).
+SHORT_RAMP_REL = 0.05
+# fraction of a step: how far a step's centroid (band.segment_alpha_and_centroid, Gauss-Legendre
+# in the opacity) may lie from float64 quadrature (tests; the capped band's kink limits it).
+CENTROID_ABS = 1e-2

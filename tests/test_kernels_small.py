@@ -153,15 +153,17 @@ def test06b_several_bands_keep_their_own_shapes_and_add_optical_depths():
     (-0.03, 0.05, 4.0),      # wider than the support, opaque: near the front
     (0.004, 0.006, 0.5),     # inside one flank
     (0.005, 0.005, 0.5)])    # flat
-def test06c_where_a_step_makes_half_its_opacity_matches_quadrature(a, b, dx):
-    """The point a pre-integrated step is lit and coloured at (a fraction of the step) against
-    float64 quadrature of the same band; the opacity is segment_alpha's."""
+def test06c_a_steps_centroid_matches_quadrature(a, b, dx):
+    """Where a pre-integrated step is lit and coloured (its centroid, a fraction of the step)
+    against float64 quadrature of the same band; the opacity is segment_alpha's."""
     shape = band.OpacityBand(width=0.01, support=(-0.02, 0.03), peak=1.2, dx0=0.5)
     inputs = shape.inputs(m)
     args = (m, inputs, 0, Float(a), Float(b), Float(dx), Float(0.0))
-    alpha, u = band.segment_alpha_and_point(*args)
+    alpha, u = band.segment_alpha_and_centroid(*args)
+    ref_alpha, ref_u = shape.centroid_numpy(a, b, dx)
     assert alpha.numpy()[0] == pytest.approx(band.segment_alpha(*args).numpy()[0], abs=1e-7)
-    assert u.numpy()[0] == pytest.approx(shape.half_point_numpy(a, b, dx), abs=5e-4)
+    assert alpha.numpy()[0] == pytest.approx(ref_alpha, abs=1e-3)
+    assert u.numpy()[0] == pytest.approx(ref_u, abs=tolerances.CENTROID_ABS)
 
 
 def test07_bad_band_shapes_are_refused():

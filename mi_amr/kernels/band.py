@@ -7,7 +7,15 @@ units; the finest cell width). A step of length ``dx`` has the corrected opacity
 ``1 - (1 - alpha)^(dx / dx0)``. Pre-integrated: along a step where the value runs linearly from
 ``a`` to ``b`` the optical depth is ``dx * (T(b) - T(a)) / (b - a)``, with ``T`` the integral of
 the extinction ``tau(x) = -ln(1 - alpha) / dx0`` over value offsets, tabulated once per band
-shape (:data:`TABLE_SIZE` + 1 points over the support).
+shape (:data:`TABLE_SIZE` + 1 points over the support), with its inverse.
+
+Pre-integrated colour (Marchesin et al. 2009, sections 3.1-3.2): where the shaded colour runs
+linearly from ``E_front`` to ``E_back`` along the step, the step's light is
+``alpha * lerp(E_front, E_back, u_bar)``, ``u_bar`` the step's *centroid*: the opacity-weighted
+mean position along it, ``u_bar = (1 / alpha) int_0^1 u dF(u)`` with ``F(u) = 1 - exp(-depth in
+front of u)``. :func:`segment_alpha_and_centroid` takes it by Gauss-Legendre quadrature in
+``F`` (:data:`COLOR_NODES` nodes; each node's position from the inverse table), which is smooth
+where the integrand in ``u`` is not (the cap at ``alpha = 1`` and the support's ends).
 
 :class:`OpacityBand` holds one band's shape on the host; :func:`band_inputs` makes
 :class:`BandInputs` of one band per isovalue, the opaque device values the kernels read, so a new
@@ -28,14 +36,21 @@ from mi_amr import tolerances as tol
 from mi_amr.errors import AMRError
 from mi_amr.kernels.device import opaque_floats
 
-TABLE_SIZE = 1024
+TABLE_SIZE = 1024     # cells of each band's integral table over its support
+TABLE_SUB = 16        # quadrature steps per table cell when the integral table is built
+INVERSE_SIZE = 4096   # cells of each band's inverse table (over the integral's range)
+COLOR_NODES = 4       # Gauss-Legendre nodes of the centroid quadrature
+_NODES, _WEIGHTS = np.polynomial.legendre.leggauss(COLOR_NODES)
+GL_NODES = tuple(float(0.5 * (1.0 + x)) for x in _NODES)      # on [0, 1]
+GL_WEIGHTS = tuple(float(0.5 * w) for w in _WEIGHTS)
 
 
 @dataclass
 class BandInputs:
     """The bands on the device: ``width``, ``lo``, ``hi``, ``peak`` one value per band, ``dx0``
     one value, the bands' integral tables one after another (``TABLE_SIZE + 1`` each) and their
-    inverses (the offset at which the integral reaches ``j / TABLE_SIZE`` of its total)."""
+    inverses (``INVERSE_SIZE + 1`` each: the offset at which the integral reaches
+    ``j / INVERSE_SIZE`` of its total)."""
 
     width: Any
     lo: Any
@@ -78,14 +93,23 @@ class OpacityBand:
                            f"(offsets {lo:g}, {hi:g})")
         self.width, self.lo, self.hi, self.peak = float(width), float(lo), float(hi), float(peak)
         self.dx0 = float(dx0)
-        self.table_x = np.linspace(self.lo, self.hi, TABLE_SIZE + 1)
-        tau = -np.log1p(-np.minimum(self.alpha_numpy(self.table_x, 0.0), tol.OPACITY_CAP)) / \
-            self.dx0
-        self.table_T = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) *
-                                                        np.diff(self.table_x))])
-        # tau > 0 over the open support, so T rises strictly and has an inverse
-        self.table_inv = np.interp(np.linspace(0.0, self.table_T[-1], TABLE_SIZE + 1),
-                                   self.table_T, self.table_x)
+        self.table_x, self.table_T, self.table_inv = self._tables()
+
+    def _tables(self):
+        """The integral table at :data:`TABLE_SIZE` + 1 offsets (trapezoids of
+        :data:`TABLE_SUB` steps per cell, the extinction taken up to the support's ends) and
+        its inverse at :data:`INVERSE_SIZE` + 1 equally spaced integrals."""
+        x = np.linspace(self.lo, self.hi, TABLE_SIZE * TABLE_SUB + 1)
+        tau = self.extinction_numpy(x)
+        T = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(x))])
+        # tau > 0 over the support, so T rises strictly and has an inverse
+        inverse = np.interp(np.linspace(0.0, T[-1], INVERSE_SIZE + 1), T, x)
+        return x[::TABLE_SUB], T[::TABLE_SUB], inverse
+
+    def extinction_numpy(self, x):
+        """``tau`` (per world unit) of the band's shape at offsets ``x``, support ignored."""
+        a = np.minimum(1.0, self.peak * np.exp(-0.5 * (np.asarray(x) / self.width) ** 2))
+        return -np.log1p(-np.minimum(a, tol.OPACITY_CAP)) / self.dx0
 
     def alpha_numpy(self, v, centre):
         """Slow twin of :func:`alpha`."""
@@ -93,16 +117,30 @@ class OpacityBand:
         a = np.minimum(1.0, self.peak * np.exp(-0.5 * (x / self.width) ** 2))
         return np.where((x > self.lo) & (x < self.hi), a, 0.0)
 
-    def half_point_numpy(self, a, b, dx, centre=0.0, n: int = 200001) -> float:
-        """Slow twin of :func:`segment_alpha_and_point`'s point, by float64 quadrature: the
-        fraction of a step of length ``dx`` (world), its value running linearly from ``a`` to
-        ``b``, at which the step's opacity is half made."""
+    def centroid_numpy(self, a, b, dx, centre=0.0, n: int = 400001):
+        """Slow twin of :func:`segment_alpha_and_centroid`, by float64 quadrature in ``u``:
+        ``(alpha, u_bar)`` of a step of length ``dx`` (world), its value running linearly from
+        ``a`` to ``b``."""
         u = np.linspace(0.0, 1.0, n)
-        alpha = np.minimum(self.alpha_numpy(a + u * (b - a), centre), tol.OPACITY_CAP)
-        tau = -np.log1p(-alpha) / self.dx0 * dx
+        x = a + u * (b - a) - centre
+        tau = np.where((x > self.lo) & (x < self.hi), self.extinction_numpy(x), 0.0) * dx
         depth = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(u))])
         made = -np.expm1(-depth)
-        return float(np.interp(0.5 * made[-1], made, u))
+        if made[-1] <= 0.0:
+            return 0.0, 0.5
+        # int u dF = F(1) - int F du
+        return float(made[-1]), float(1.0 - np.sum(0.5 * (made[1:] + made[:-1]) * np.diff(u)) / made[-1])
+
+    def point_numpy(self, a, b, dx, r=0.5, centre=0.0, n: int = 400001) -> float:
+        """Slow twin of :func:`segment_alpha_and_point`'s point, by float64 quadrature: the
+        fraction of a step of length ``dx`` (world), its value running linearly from ``a`` to
+        ``b``, at which a fraction ``r`` of the step's opacity is made."""
+        u = np.linspace(0.0, 1.0, n)
+        x = a + u * (b - a) - centre
+        tau = np.where((x > self.lo) & (x < self.hi), self.extinction_numpy(x), 0.0) * dx
+        depth = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(u))])
+        made = -np.expm1(-depth)
+        return float(np.interp(r * made[-1], made, u))
 
     def inputs(self, m) -> BandInputs:
         """The device values of this band alone on backend ``m`` (opaque)."""
@@ -154,28 +192,105 @@ def segment_alpha(m, band: BandInputs, k, a, b, dx, centre):
 def _inverse(m, band: BandInputs, k, T):
     """The offset at which band ``k``'s integral reaches ``T`` (the inverse of
     :func:`integral`)."""
-    base = k * (TABLE_SIZE + 1)
-    total = dr.gather(m.Float, band.table, m.UInt32(base + TABLE_SIZE))
-    u = dr.clip(T / total, 0.0, 1.0) * TABLE_SIZE
-    i = dr.minimum(m.UInt32(dr.floor(u)), TABLE_SIZE - 1)
+    total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
+    base = k * (INVERSE_SIZE + 1)
+    u = dr.clip(T / total, 0.0, 1.0) * INVERSE_SIZE
+    i = dr.minimum(m.UInt32(dr.floor(u)), INVERSE_SIZE - 1)
     f = u - m.Float(i)
     return dr.lerp(dr.gather(m.Float, band.inverse, i + base),
                    dr.gather(m.Float, band.inverse, i + base + 1), f)
 
 
-def segment_alpha_and_point(m, band: BandInputs, k, a, b, dx, centre):
-    """:func:`segment_alpha`, and where along the step band ``k`` has made half of the step's
-    opacity (a fraction of the step, 0 at ``a``): the light a viewer at the ``a`` end receives
-    from the step comes from around there, so that is where the step is lit and coloured. A
-    thin transparent step gives the point where half its optical depth lies, an opaque one a
-    point near its front."""
-    tau, Ta, Tb, flat = _ramp_depth(m, band, k, a, b, dx, centre)
+def _depth_fraction(s, tau):
+    """The fraction of a step's optical depth ``tau`` in front of the place where a fraction
+    ``s`` of its opacity is made: ``-ln(1 - s (1 - e^-tau)) / tau``; for thin steps its series
+    (the closed form's float32 rounding would exceed the series' error)."""
+    alpha = 1.0 - dr.exp(-tau)
+    closed = -dr.log(1.0 - s * alpha) / tau
+    series = s + tau * (0.5 * (s * s - s) + tau * (s / 6.0 - 0.5 * s * s + s * s * s / 3.0))
+    return dr.select(tau > tol.THIN_DEPTH, closed, series)
+
+
+def _short_ramp_u(m, band, k, xa, xb, g):
+    """Where along a short ramp (value offsets ``xa`` to ``xb``) a fraction ``g`` of its
+    optical depth lies in front, with the extinction taken as linear along the part of it
+    inside the support (the inverse table is too coarse for ramps shorter than a few of its
+    cells)."""
+    lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
+    span = dr.select(xb != xa, xb - xa, 1.0)
+    u_lo, u_hi = (lo - xa) / span, (hi - xa) / span
+    u0 = dr.select(xb != xa, dr.clip(dr.minimum(u_lo, u_hi), 0.0, 1.0), 0.0)
+    u1 = dr.select(xb != xa, dr.clip(dr.maximum(u_lo, u_hi), 0.0, 1.0), 1.0)
+    ta = _shape_tau(m, band, k, dr.lerp(xa, xb, u0))
+    tb = _shape_tau(m, band, k, dr.lerp(xa, xb, u1))
+    tm, dt = 0.5 * (ta + tb), tb - ta
+    # root of (dt / 2) u^2 + ta u - g tm = 0 in [0, 1], in the form without cancellation
+    u = 2.0 * g * tm / (ta + dr.sqrt(dr.maximum(ta * ta + 2.0 * dt * g * tm, 0.0)))
+    return dr.lerp(u0, u1, dr.select(tm > 0.0, u, g))
+
+
+def _shape_tau(m, band, k, x):
+    """The extinction (per ``dx0``) of band ``k``'s shape at offset ``x``, support ignored."""
+    a = dr.minimum(1.0, band.get(m, "peak", k) *
+                   dr.exp(-0.5 * dr.square(x / band.get(m, "width", k))))
+    return -dr.log(1.0 - dr.minimum(a, tol.OPACITY_CAP))
+
+
+def _place(m, band: BandInputs, k, ramp, r):
+    """Where along a step (``ramp``: its value offsets, integrals, depth and shortness from
+    :func:`_ramp`) a fraction ``r`` of its opacity is made (a fraction of the step)."""
+    xa, xb, Ta, Tb, tau, short = ramp
+    g = _depth_fraction(r, tau)
+    u_long = (_inverse(m, band, k, dr.lerp(Ta, Tb, g)) - xa) / (xb - xa)
+    return dr.select(short, _short_ramp_u(m, band, k, xa, xb, g), u_long)
+
+
+def _ramp(m, band: BandInputs, k, a, b, dx, centre):
+    tau, Ta, Tb, _ = _ramp_depth(m, band, k, a, b, dx, centre)
     xa, xb = a - centre, b - centre
-    # the depth at which 1 - exp(-depth) is half of 1 - exp(-tau), as a fraction of tau
-    r = dr.select(tau > tol.HALF_DEPTH_THIN, -dr.log(0.5 * (1.0 + dr.exp(-tau))) / tau, 0.5)
-    x = _inverse(m, band, k, dr.lerp(Ta, Tb, r))
-    u = dr.select(flat, r, (x - xa) / (xb - xa))
-    return 1.0 - dr.exp(-tau), dr.clip(u, 0.0, 1.0)
+    short = dr.abs(xb - xa) < tol.SHORT_RAMP_REL * band.get(m, "width", k)
+    return xa, xb, Ta, Tb, tau, short
+
+
+def segment_alpha_and_point(m, band: BandInputs, k, a, b, dx, centre, r=0.5):
+    """:func:`segment_alpha`, and where along the step band ``k`` has made a fraction ``r`` of
+    the step's opacity (a fraction of the step, 0 at ``a``). With ``r = 1/2`` (the median of
+    its light) that is where a step is lit: for light arriving from the viewer's side it gives
+    the shadow of the band in front exactly. A thin step gives the point where half its
+    optical depth lies, an opaque one a point near its front."""
+    ramp = _ramp(m, band, k, a, b, dx, centre)
+    return 1.0 - dr.exp(-ramp[4]), dr.clip(_place(m, band, k, ramp, r), 0.0, 1.0)
+
+
+def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
+    """Pre-integrated opacity of band ``k`` over a step of length ``dx`` (world) along which
+    the value goes linearly from ``a`` to ``b``, and the step's centroid ``u_bar`` (a fraction
+    of the step, 0 at ``a``; see the module docstring): the light of the step is
+    ``alpha * lerp(E_front, E_back, u_bar)`` where the shaded colour runs linearly along it,
+    so it is shaded there."""
+    ramp = _ramp(m, band, k, a, b, dx, centre)
+    u_bar = m.Float(0.0)
+    for s, w in zip(GL_NODES, GL_WEIGHTS):
+        u_bar += w * _place(m, band, k, ramp, s)
+    return 1.0 - dr.exp(-ramp[4]), dr.clip(u_bar, 0.0, 1.0)
+
+
+def in_order(m, alphas, lights, centres, rising):
+    """One step crossed by bands of disjoint supports: each band's opacity ``alphas[k]`` and
+    light ``lights[k]`` (premultiplied), composited front to back in the order the ramp meets
+    them (ascending centres where the value ``rising``, else descending). Returns the step's
+    light and transmittance."""
+    light = 0.0 * lights[0]
+    trans = m.Float(1.0)
+    for k, (a, c) in enumerate(zip(alphas, lights)):
+        seen = m.Float(1.0)
+        for j in range(len(alphas)):
+            if j != k:
+                before = dr.select(rising, centres[j] < centres[k], centres[j] > centres[k])
+                seen *= dr.select(before, 1.0 - alphas[j], 1.0)
+        light += seen * c
+        trans *= 1.0 - a
+    return light, trans
 
 
 def combine(alphas):

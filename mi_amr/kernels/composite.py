@@ -14,7 +14,8 @@ import drjit as dr
 from mi_amr import tolerances as tol
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
-from mi_amr.kernels.band import alpha, combine, corrected, segment_alpha_and_point
+from mi_amr.kernels.band import (alpha, combine, corrected, in_order,
+                                 segment_alpha_and_centroid, segment_alpha_and_point)
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.traverse import Walk, clip_to_volume, epsilon, next_dual_plane, seek
@@ -37,17 +38,23 @@ def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lig
 
     ``color_of(shares, value)`` gives the colour (``m.Array3f``) of a stretch where the bands
     hold ``shares`` of the optical depth (a list, one per band) and the colour field is
-    ``value``;
-    ``lighting(p, gradient, active)`` gives ``(A, S)`` such that the shaded colour of a sample of
-    colour ``c`` is ``c * A + S`` (the Phong terms). With ``lighting=None`` only the
-    transmittance is computed (shadow rays).
+    ``value``; an attribute ``same_for_all_bands`` says it ignores ``shares``.
+    ``lighting`` (None for shadow rays: only the transmittance is computed) has
+    ``sample(p, lit, visible)``, the light samples at volume point ``p`` (with shadow rays
+    where ``visible``), ``terms(ctx, gradient, lit)``, ``(A, S)`` such that the shaded colour
+    of a point of colour ``c`` and gradient ``gradient`` lit by those samples is ``c * A + S``
+    (the Phong terms), and ``lambert(ctx, gradient)``, the first light's unnormalised diffuse
+    term (linear in the gradient).
 
     ``exact``: each cubic piece is cut where the reconstructed value can turn relative to a
-    band (at the extrema of ``N - v D`` for each band's low end, centre and high end), and each
-    resulting piece contributes the pre-integrated opacity of a linear ramp between its end
-    values: the band is never stepped over. The sampling methods take one sample per step with
-    opacity correction (or pre-integration between consecutive samples); ``bisect`` moves a
-    sample into the band when two samples straddle it (the course report's method).
+    band (at the extrema of ``N - v D`` for each band's low end, centre and high end) and
+    where the diffuse term turns; on each resulting piece the value is taken as a linear ramp
+    and the shaded colour as linear between the piece's ends, and the piece's light is the
+    exact integral of that model (Marchesin et al. 2009, sections 3.1-3.2): each band's
+    pre-integrated opacity and centroid, the bands met in the ramp's order. The band is never
+    stepped over and no step size or jitter enters. The sampling methods take one sample per
+    step with opacity correction (or pre-integration between consecutive samples); ``bisect``
+    moves a sample into the band when two samples straddle it (the course report's method).
     """
     m = dev.m
     o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active)
@@ -90,37 +97,161 @@ def _dominant(points, shares):
     return point
 
 
-def _band_pieces(dev, cfg, num, den, L, dnorm, have, marks, centres):
-    """A cubic piece of length ``L`` cut where the value can turn relative to a band (the
-    extrema of ``N - v D`` for each of ``marks``): per sub-piece its pre-integrated opacity,
-    the bands' shares of it and where along it half of its opacity is made
-    (:func:`~mi_amr.kernels.band.segment_alpha_and_point`; there it takes its colour), and
-    that place in the most opaque one with its opacity (there the piece is lit, so a shadow
-    ray leaves from where the band's light comes from, not from anywhere in a cell)."""
-    m = dev.m
-    cuts = []
+def _quadratic(q, x):
+    """The quadratic through ``q = (q0, q_mid, q1)`` at fractions 0, 1/2, 1, at fraction
+    ``x``."""
+    q0, qm, q1 = q
+    return q0 + x * ((4.0 * qm - 3.0 * q0 - q1) + x * (2.0 * (q0 + q1) - 4.0 * qm))
+
+
+def _quadratic_extremum(q, L):
+    """Where in ``[0, L]`` the quadratic through ``q`` (at 0, L/2, L) turns; ``L`` if it does
+    not inside."""
+    q0, qm, q1 = q
+    curv = 2.0 * (q0 + q1) - 4.0 * qm
+    x = -(4.0 * qm - 3.0 * q0 - q1) / (2.0 * curv)
+    inside = (dr.abs(curv) > tol.QUADRATIC_EPS) & (x > 0.0) & (x < 1.0)
+    return dr.select(inside, x, 1.0) * L
+
+
+@dataclass
+class Piece:
+    """A cubic piece ``[0, L]`` split at ``s_pts`` (sorted, from 0 to ``L``) and the field's
+    values there; where it is shaded, the colour field's cubic numerator ``cnum``, the shared
+    denominator ``den`` and the gradient at its front, middle and back, ``grads_q``."""
+
+    L: Any
+    s_pts: list
+    values: list
+    cnum: Any = None
+    den: Any = None
+    grads_q: Any = None
+
+    def shading_inputs(self, s):
+        """The colour-field value and the gradient at piece parameter ``s``."""
+        cval = roots.cubic(self.cnum, s) / roots.cubic(self.den, s)
+        return cval, _quadratic(self.grads_q, s / self.L)
+
+
+def _split(dev, cfg, num, den, L, marks, extra):
+    """Cut a cubic piece where the value can turn relative to a band (the extrema of
+    ``N - v D`` for each of ``marks``) and at ``extra``."""
+    cuts = list(extra)
     for v in marks:
-        r1, r2 = roots.extrema([num[i] - v * den[i] for i in range(4)], L)
-        cuts += [r1, r2]
-    s_pts = [0.0 * L] + _sort(cuts) + [L]
-    values = [roots.cubic(num, s) / roots.cubic(den, s) for s in s_pts]
-    alphas, shares, mids = [], [], []
-    best_alpha = m.Float(0.0)
-    s_best = m.Float(0.0)
-    for i in range(len(s_pts) - 1):
-        dx = (s_pts[i + 1] - s_pts[i]) * dnorm
-        per_band = [segment_alpha_and_point(m, cfg.band, k, values[i], values[i + 1], dx, c)
-                    for k, c in enumerate(centres)]
-        a, share = combine([ab[0] for ab in per_band])
-        a = dr.select(have & (dx > 0.0), a, 0.0)
-        mid = dr.lerp(s_pts[i], s_pts[i + 1], _dominant([ab[1] for ab in per_band], share))
-        alphas.append(a)
-        shares.append(share)
-        mids.append(mid)
-        better = a > best_alpha
-        best_alpha = dr.select(better, a, best_alpha)
-        s_best = dr.select(better, mid, s_best)
-    return alphas, shares, mids, s_best, best_alpha
+        cuts += list(roots.extrema([num[i] - v * den[i] for i in range(4)], L))
+    return [0.0 * L] + _sort(cuts) + [L]
+
+
+def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
+    """Per sub-piece: each band's pre-integrated opacity and the fraction along the sub-piece
+    of its centroid (:func:`~mi_amr.kernels.band.segment_alpha_and_centroid`)."""
+    m = dev.m
+    out = []
+    for i in range(len(piece.s_pts) - 1):
+        dx = (piece.s_pts[i + 1] - piece.s_pts[i]) * dnorm
+        per_band = []
+        for k, c in enumerate(centres):
+            a, u = segment_alpha_and_centroid(m, cfg.band, k, piece.values[i],
+                                              piece.values[i + 1], dx, c)
+            per_band.append((dr.select(have & (dx > 0.0), a, 0.0), u))
+        out.append(per_band)
+    return out
+
+
+def _light_place(m, cfg, piece: Piece, subs, dnorm, centres):
+    """Where the piece is lit (a piece parameter): where it has made half its opacity (the
+    median of its light), found on the sub-piece where that happens, in its most opaque band
+    (:func:`~mi_amr.kernels.band.segment_alpha_and_point`). A shadow ray from there gets the
+    band's shadow on itself right for light from the viewer's side; from the band's middle,
+    or anywhere in a cell, the band would shadow itself at random. Also the piece's opacity."""
+    trans = [m.Float(1.0)]
+    for per_band in subs:
+        t_i = trans[-1]
+        for a, _ in per_band:
+            t_i = t_i * (1.0 - a)
+        trans.append(t_i)
+    target = 0.5 * (1.0 - trans[-1])
+    zero = m.Float(0.0)
+    sel = [zero, zero, zero, zero, m.UInt32(0), zero, zero, zero]   # a, b, dx, r, k, c, s0, s1
+    for i, per_band in enumerate(subs):
+        made_before, made_after = 1.0 - trans[i], 1.0 - trans[i + 1]
+        here = (made_before < target) & (target <= made_after)
+        r = (target - made_before) / dr.maximum(made_after - made_before, tol.NO_WEIGHT)
+        k_best, a_best, c_best = m.UInt32(0), per_band[0][0], centres[0]
+        for k in range(1, len(per_band)):
+            better = per_band[k][0] > a_best
+            k_best = dr.select(better, k, k_best)
+            c_best = dr.select(better, centres[k], c_best)
+            a_best = dr.maximum(a_best, per_band[k][0])
+        s0, s1 = piece.s_pts[i], piece.s_pts[i + 1]
+        now = [piece.values[i], piece.values[i + 1], (s1 - s0) * dnorm, r, k_best, c_best,
+               s0, s1]
+        sel = [dr.select(here, x, y) for x, y in zip(now, sel)]
+    a, b, dx, r, k, c, s0, s1 = sel
+    _, u = segment_alpha_and_point(m, cfg.band, k, a, b, dx, c, r)
+    return dr.lerp(s0, s1, u), 1.0 - trans[-1]
+
+
+def _piece_light(m, piece: Piece, subs, ctx, lighting, lit, centres, color_of):
+    """The light and transmittance of a piece. Each sub-piece is shaded once, at the centroid
+    of its most opaque band (the one-point rule of its light: exact where the shaded colour
+    runs linearly along it, and close where it curves, as a highlight does), with the light
+    samples ``ctx``; each band there takes its own colour, and the bands are met in the order
+    of the value ramp."""
+    nb = len(centres)
+    same = getattr(color_of, "same_for_all_bands", nb == 1)
+    C = m.Array3f(0.0)
+    T = m.Float(1.0)
+    for i, per_band in enumerate(subs):
+        alphas = [a for a, _ in per_band]
+        best, u = alphas[0], per_band[0][1]
+        for a_k, u_k in per_band[1:]:
+            u = dr.select(a_k > best, u_k, u)
+            best = dr.maximum(best, a_k)
+        cval, grad = piece.shading_inputs(dr.lerp(piece.s_pts[i], piece.s_pts[i + 1], u))
+        A, S = lighting.terms(ctx, grad, lit & (best > tol.ALPHA_LIT))
+        colors = [color_of(_one_hot(nb, 0 if same else k), cval) for k in range(nb)]
+        # (no light where a band is not met: the colour of a piece without weight is NaN)
+        lights = [dr.select(a > 0.0, a * (c * A + S), 0.0) for a, c in zip(alphas, colors)]
+        rising = piece.values[i + 1] > piece.values[i]
+        light, trans = in_order(m, alphas, lights, centres, rising)
+        C += T * light
+        T *= trans
+    return C, T
+
+
+def _one_hot(n, k):
+    return [1.0 if j == k else 0.0 for j in range(n)]
+
+
+def _piece(dev, cfg, o, d, w: Walk, L, nums, den, marks, lighting, arrays, have):
+    """The cubic piece ``[w.t, w.t + L]`` split for compositing: where the value can turn
+    relative to a band and, where it is shaded with ``cfg.shading_extrema``, where the first
+    light's diffuse term turns (Marchesin et al. 2009, section 3.2; that term is a quadratic
+    in ``t`` inside a trilinear cell, and so is the gradient, which is taken at the piece's
+    front, middle and back and interpolated)."""
+    extra, grads_q = [], None
+    if lighting is not None:
+        grads_q = [rec.reconstruct(dev, cfg.basis, dr.fma(d, w.t + f * L, o), arrays[:1], have,
+                                   leaf=w.leaf)[1] for f in (0.0, 0.5, 1.0)]
+        if cfg.shading_extrema:
+            ctx = lighting.sample(dr.fma(d, w.t + 0.5 * L, o), have, False)
+            extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], L)]
+    s_pts = _split(dev, cfg, nums[0], den, L, marks, extra)
+    values = [roots.cubic(nums[0], s) / roots.cubic(den, s) for s in s_pts]
+    if lighting is None:
+        return Piece(L=L, s_pts=s_pts, values=values)
+    return Piece(L=L, s_pts=s_pts, values=values, cnum=nums[1], den=den, grads_q=grads_q)
+
+
+def _leaf_piece_end(dev, o, d, inv_d, w: Walk, t1, dnorm, level_masks, work):
+    """The end of the cubic piece from ``w.t``: the next dual-cell plane, the leaf's end or
+    ``t1``."""
+    eps = epsilon(dev, w.t, dnorm)
+    mask = dr.gather(dev.m.UInt32, level_masks, w.leaf, work)
+    t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, inv_d, w.t + eps), w.t_exit),
+                     t1)
+    return dr.maximum(t_b, w.t + eps)
 
 
 @dr.syntax
@@ -144,32 +275,28 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
         active &= lnot(new) | st.found
 
         # --- The cubic piece [t, t_b] up to the next dual-cell plane (or the leaf's end).
-        eps = epsilon(dev, w.t, dnorm)
         work = m.Bool(active)
-        mask = dr.gather(m.UInt32, level_masks, w.leaf, work)
-        t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, inv_d, w.t + eps),
-                                    w.t_exit), t1)
-        t_b = dr.maximum(t_b, w.t + eps)
+        t_b = _leaf_piece_end(dev, o, d, inv_d, w, t1, dnorm, level_masks, work)
         L = t_b - w.t
         nums, den = rec.segment_cubic(dev, cfg.basis, w.leaf, dr.fma(d, w.t, o), d, 0.5 * L,
                                       arrays, work)
         samples += dr.select(work, 1, 0)
         have = work & (roots.cubic(den, 0.5 * L) > tol.NO_WEIGHT)
-        alphas, shares, mids, s_best, best_alpha = _band_pieces(dev, cfg, nums[0], den, L,
-                                                                dnorm, have, marks, centres)
+        piece = _piece(dev, cfg, o, d, w, L, nums, den, marks, lighting, arrays, have)
+        subs = _sub_pieces(dev, cfg, piece, dnorm, have, centres)
 
-        # --- Light once per piece of the ray, where it is most opaque.
-        lit = have & (best_alpha > tol.ALPHA_LIT)
+        # --- Light once per piece of the ray, where it is most opaque; shade at every cut.
         if dr.hint(shade, mode="scalar"):
-            p_best = dr.fma(d, w.t + s_best, o)
-            _, grad = rec.reconstruct(dev, cfg.basis, p_best, arrays[:1], lit, leaf=w.leaf)
-            A, S = lighting(p_best, grad, lit)
-        for i in range(len(alphas)):
-            a = alphas[i]
-            if dr.hint(shade, mode="scalar"):
-                cval = roots.cubic(nums[1], mids[i]) / roots.cubic(den, mids[i])
-                C += dr.select(a > 0.0, T * a * (color_of(shares[i], cval) * A + S), 0.0)
-            T *= 1.0 - a
+            s_best, best_alpha = _light_place(m, cfg, piece, subs, dnorm, centres)
+            lit = have & (best_alpha > tol.ALPHA_LIT)
+            ctx = lighting.sample(dr.fma(d, w.t + s_best, o), lit, True)
+            C_p, T_p = _piece_light(m, piece, subs, ctx, lighting, lit, centres, color_of)
+            C += T * C_p
+            T *= T_p
+        else:
+            for per_band in subs:
+                for a, _ in per_band:
+                    T *= 1.0 - a
 
         w.t = dr.select(active, t_b, w.t)
         active &= (w.t < t1) & (T > tol.T_MIN)
@@ -260,8 +387,8 @@ def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centres):
 
 def _light_point(cfg, smp: Sample, t_prev, v_prev, points, shares):
     """Where a sample is lit: the sample, or for a pre-integrated step from the previous sample
-    where the band holding most of its opacity has made half of it (``points``: that place per
-    band, a fraction of the step)."""
+    the centroid of the band holding most of its opacity (``points``: that place per band, a
+    fraction of the step)."""
     if not cfg.preintegrated:
         return smp.t_s
     t = dr.lerp(t_prev, smp.t_s, _dominant(points, shares))
@@ -309,7 +436,8 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
                                            centres)
         if dr.hint(shade, mode="scalar"):
             lit = smp.take & (a > tol.ALPHA_LIT)
-            A, S = lighting(dr.fma(d, t_light, o), smp.grad, lit)
+            ctx = lighting.sample(dr.fma(d, t_light, o), lit, True)
+            A, S = lighting.terms(ctx, smp.grad, lit)
             C += dr.select(lit, T * a * (color_of(shares, smp.cval) * A + S), 0.0)
         T *= 1.0 - a
         t_prev = dr.select(smp.take, smp.t_s, t_prev)

@@ -1,7 +1,7 @@
 """What a march looks for, and the value tests that decide which kd nodes it may skip.
 
 A :class:`MarchConfig` holds two kinds of things. The *structure* (``method``, ``basis``,
-``num_iso``, whether there is a band, ``preintegrated``) shapes the traced program: changing it
+``num_iso``, whether there is a band, ``preintegrated``, ``shading_extrema``) shapes the traced program: changing it
 compiles other kernels. Everything else (the isovalues, the step scale, the band's shape) is
 an opaque device value that may change between frames without compiling anything.
 """
@@ -30,6 +30,7 @@ class MarchConfig:
     num_iso: int
     band: Any = None
     preintegrated: bool = False
+    shading_extrema: bool = True
 
     def iso(self, dev, k):
         """Isovalue ``k`` (a Python int, or a per-lane index array)."""

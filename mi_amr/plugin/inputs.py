@@ -141,3 +141,17 @@ def _check(host: dict) -> None:
             bad("band_offsets", "must be (low < 0 < high) offsets from each isovalue")
         if not np.all(host["band_peak"] > 0):
             bad("band_peak", "must be > 0")
+        _check_disjoint(host["isovalue"], offsets)
+
+
+def _check_disjoint(isovalues, offsets) -> None:
+    """Volume mode's bands may not overlap: each value holds the opacity of one band at most,
+    so the exact method composites the bands a ramp meets in the order it meets them."""
+    spans = sorted((iso + lo, iso + hi, k) for k, (iso, (lo, hi)) in
+                   enumerate(zip(isovalues, offsets)))
+    for (lo_a, hi_a, a), (lo_b, hi_b, b) in zip(spans, spans[1:]):
+        if lo_b < hi_a:
+            raise AMRError(f"amr_iso: the opacity bands of isovalues {isovalues[a]:g} "
+                           f"([{lo_a:g}, {hi_a:g}]) and {isovalues[b]:g} ([{lo_b:g}, {hi_b:g}]) "
+                           f"overlap; narrow 'band_width' or 'band_support' so that no value "
+                           f"lies in two bands")

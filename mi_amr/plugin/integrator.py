@@ -122,7 +122,8 @@ class _AMRIso:
         return MarchConfig(method=self.opt.method, basis=self.opt.reconstruction == "basis",
                            isovalues=self.inputs["isovalue"], step_scale=self.inputs["step_scale"],
                            num_iso=len(self.opt.isovalues), band=self.inputs.band,
-                           preintegrated=self.opt.preintegrated)
+                           preintegrated=self.opt.preintegrated,
+                           shading_extrema=self.opt.shading_extrema)
 
     def phong(self) -> shading.Phong:
         return shading.Phong(*(bridge.to_mi(self.inputs[n], mi.Float) for n in PHONG))

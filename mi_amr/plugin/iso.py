@@ -35,7 +35,11 @@ class IsoShader:
         shares of the opacity."""
         m, k = self.m, len(self.integ.opt.isovalues)
         if self.integ.inputs.has_colormap or k == 1:
-            return lambda shares, value: self.color(0, value)
+            def one(shares, value):
+                return self.color(0, value)
+
+            one.same_for_all_bands = True
+            return one
 
         def mix(shares, value):
             out = m.Array3f(0.0)
@@ -66,15 +70,42 @@ class IsoShader:
         return color * A + S
 
     def lighting(self, scene, light_u, ray, o, d):
-        """The ``lighting(p, grad, lit)`` callback of the volume compositing: ``(A, S)`` as
-        kernel arrays at volume point ``p``."""
-        m = self.m
-        ray_len = dr.norm(mi.Vector3f(d.x, d.y, d.z))
+        """The ``lighting`` object of the volume compositing
+        (:func:`~mi_amr.kernels.composite.composite`) for the ray ``ray`` (scene) that is
+        ``o + t d`` in the volume."""
+        return VolumeLighting(self, scene, light_u, ray, o, d)
 
-        def lighting(p, grad, lit):
-            # Back from the volume point to the ray parameter: p = o + t d.
-            t = mi.Float(dr.dot(p - o, d)) / (ray_len * ray_len)
-            A, S = self.light(scene, light_u, ray, t, grad, mi.Bool(lit))
-            return m.Array3f(A.x, A.y, A.z), m.Array3f(S.x, S.y, S.z)
 
-        return lighting
+class VolumeLighting:
+    """Light samples, Phong terms and the diffuse term for the volume compositing, at volume
+    points ``o + t d`` of one scene ray (kernel types in and out)."""
+
+    def __init__(self, shader: IsoShader, scene, light_u, ray, o, d):
+        self.shader, self.scene, self.light_u, self.ray = shader, scene, light_u, ray
+        self.o, self.d = o, d
+        self.m = shader.m
+
+    def sample(self, p, lit, visible: bool):
+        """The light samples at volume point ``p``, shadowed where ``visible``."""
+        integ = self.shader.integ
+        ray_len2 = dr.squared_norm(self.d)
+        t = bridge.to_mi(dr.dot(p - self.o, self.d) / ray_len2, mi.Float)
+        shadows = integ.shadows() if visible else False
+        return shading.light_samples(self.scene, self.light_u, self.ray, self.ray(t),
+                                     mi.Bool(lit), shadows, integ.iso_transmittance)
+
+    def terms(self, samples, grad, lit):
+        """``(A, S)`` (kernel ``Array3f``) of a point with volume-space gradient ``grad``."""
+        integ = self.shader.integ
+        n = shading.facing_normal(integ.frame.to_scene, bridge.to_mi3(grad, mi.Normal3f),
+                                  self.ray.d)
+        A, S = shading.volume_terms(samples, integ.phong(), n, -self.ray.d, mi.Bool(lit))
+        return self.m.Array3f(A.x, A.y, A.z), self.m.Array3f(S.x, S.y, S.z)
+
+    def lambert(self, samples, grad):
+        """The first light's unnormalised diffuse term: the gradient taken to the scene (as a
+        normal) dotted with the direction to the light; linear in ``grad``."""
+        if not samples:
+            return self.m.Float(0.0) * grad[0]
+        n = self.shader.integ.frame.to_scene @ bridge.to_mi3(grad, mi.Normal3f)
+        return bridge.to_kernel(self.m, dr.dot(n, samples[0].to_light))

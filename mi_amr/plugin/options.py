@@ -44,6 +44,7 @@ class Options:
     band_support: Optional[list]
     band_peak: list
     preintegrated: bool
+    shading_extrema: bool
     aovs: bool
     leaf_cells: int
     max_layers: int

@@ -88,6 +88,47 @@ def iso_light(scene, light_u, ray, P, n, phong: Phong, active, shadows, iso_tran
     return A, S
 
 
+@dataclass
+class LightSample:
+    """One emitter's light at a point: the unit direction to it (scene space), the radiance
+    arriving (shadowed where asked) and where the sample is valid."""
+
+    to_light: Any
+    radiance: Any
+    valid: Any
+
+
+def light_samples(scene, light_u, ray, P, active, shadows, iso_transmittance):
+    """One :class:`LightSample` per emitter at the scene point ``P`` (a point inside the
+    volume band, lit from every side); shadowed by meshes and isosurfaces where ``shadows``
+    (a Mitsuba Bool, or False for no shadow rays at all)."""
+    out = []
+    for emitter, u in zip(scene.emitters(), light_u):
+        it = dr.zeros(mi.Interaction3f)
+        it.p = P
+        it.time = ray.time
+        it.wavelengths = ray.wavelengths
+        ds, w = emitter.sample_direction(it, u, active)
+        valid = active & (ds.pdf > 0.0)
+        if shadows is not False:
+            w = w * visibility(scene, P, ds, valid, shadows, iso_transmittance, from_iso=True)
+        out.append(LightSample(to_light=ds.d, radiance=w, valid=valid))
+    return out
+
+
+def volume_terms(samples, phong: Phong, n, to_eye, active):
+    """``(A, S)`` (see the module docstring) of a point with shading normal ``n`` lit by
+    ``samples`` (:func:`light_samples`)."""
+    A = mi.Spectrum(phong.ka * phong.ambient)
+    S = mi.Spectrum(0.0)
+    for smp in samples:
+        diffuse, specular = phong_terms(phong, n, smp.to_light, to_eye, smp.radiance)
+        lit = active & smp.valid & (dr.dot(n, smp.to_light) > 0.0)
+        A += dr.select(lit, diffuse, 0.0)
+        S += dr.select(lit, specular, 0.0)
+    return A, S
+
+
 def mesh_light(scene, sampler, ray, si, phong: Phong, active, shadows, iso_transmittance):
     """Emission plus ambient and direct light through the BSDF at a mesh point ``si``,
     shadowed by meshes and isosurfaces; the environment where the ray escaped."""
