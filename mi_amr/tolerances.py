@@ -71,15 +71,15 @@ ALPHA_LIT = 1e-3
 # opacity: alpha is capped here, since alpha = 1 means infinite extinction in the
 # pre-integrated table.
 OPACITY_CAP = 1.0 - 1e-4
-# relative to the band width: a value ramp whose ends are closer than this is taken as
-# constant (its pre-integrated opacity is the point opacity).
-RAMP_FLAT_REL = 1e-6
 # optical depth below which a step is thin: where its opacity is made is taken from the
 # series in the depth (the closed form's float32 rounding error would exceed the series').
 THIN_DEPTH = 0.05
-# relative to the band width: a value ramp shorter than this has its extinction taken as
-# linear along it for the centroid (shorter than ~3 cells of the inverse table).
-SHORT_RAMP_REL = 0.05
-# fraction of a step: how far a step's centroid (band.segment_alpha_and_centroid, Gauss-Legendre
-# in the opacity) may lie from float64 quadrature (tests; the capped band's kink limits it).
-CENTROID_ABS = 1e-2
+# relative to a band's whole integral: a value ramp holding less than this of it is short:
+# its depth is Simpson's rule of the extinction and its centroid takes the extinction as
+# linear (a float32 difference of integrals keeps ~1e-4 of its digits here, and the ramp
+# spans ~4 cells of the inverse table).
+SHORT_RAMP_DEPTH = 1e-3
+# fraction of a step, times its opacity: how far a step's centroid
+# (band.segment_alpha_and_centroid) may lie from float64 quadrature, in tests; reached next to
+# a capped band's plateau, where the extinction rises like a logarithm.
+CENTROID_ABS = 5e-3

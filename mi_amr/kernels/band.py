@@ -36,9 +36,9 @@ from mi_amr import tolerances as tol
 from mi_amr.errors import AMRError
 from mi_amr.kernels.device import opaque_floats
 
-TABLE_SIZE = 1024     # cells of each band's integral table over its support
-TABLE_SUB = 16        # quadrature steps per table cell when the integral table is built
-INVERSE_SIZE = 4096   # cells of each band's inverse table (over the integral's range)
+TABLE_SIZE = 8192     # cells of each band's integral table over its support
+TABLE_SUB = 4         # quadrature steps per table cell when the integral table is built
+INVERSE_SIZE = 8192   # cells of each band's inverse table (over the integral's range)
 COLOR_NODES = 4       # Gauss-Legendre nodes of the centroid quadrature
 _NODES, _WEIGHTS = np.polynomial.legendre.leggauss(COLOR_NODES)
 GL_NODES = tuple(float(0.5 * (1.0 + x)) for x in _NODES)      # on [0, 1]
@@ -56,6 +56,7 @@ class BandInputs:
     lo: Any
     hi: Any
     peak: Any
+    cap: Any
     dx0: Any
     table: Any
     inverse: Any
@@ -72,6 +73,7 @@ def band_inputs(m, bands) -> BandInputs:
                       lo=opaque_floats(m, [b.lo for b in bands]),
                       hi=opaque_floats(m, [b.hi for b in bands]),
                       peak=opaque_floats(m, [b.peak for b in bands]),
+                      cap=opaque_floats(m, [b.cap_offset() for b in bands]),
                       dx0=opaque_floats(m, [bands[0].dx0]),
                       table=opaque_floats(m, np.concatenate([b.table_T for b in bands])),
                       inverse=opaque_floats(m, np.concatenate([b.table_inv for b in bands])),
@@ -105,6 +107,14 @@ class OpacityBand:
         # tau > 0 over the support, so T rises strictly and has an inverse
         inverse = np.interp(np.linspace(0.0, T[-1], INVERSE_SIZE + 1), T, x)
         return x[::TABLE_SUB], T[::TABLE_SUB], inverse
+
+    def cap_offset(self) -> float:
+        """The offset from the centre within which the opacity is capped (the plateau; 0 if it
+        has none): the extinction has a kink there."""
+        if self.peak <= tol.OPACITY_CAP:
+            return 0.0
+        return float(min(self.width * np.sqrt(2.0 * np.log(self.peak / tol.OPACITY_CAP)),
+                         -self.lo, self.hi))
 
     def extinction_numpy(self, x):
         """``tau`` (per world unit) of the band's shape at offsets ``x``, support ignored."""
@@ -173,14 +183,32 @@ def integral(m, band: BandInputs, k, x):
 def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre):
     """Band ``k``'s optical depth over a step of length ``dx`` (world) along which the value
     goes linearly from ``a`` to ``b``; with the integral at both ends and whether the ramp is
-    flat (then the depth is the point value's)."""
+    short (it holds less than :data:`~mi_amr.tolerances.SHORT_RAMP_DEPTH` of the band's
+    integral). A short ramp's depth is Simpson's rule of the extinction over its part inside
+    the support (the difference of two float32 integrals would lose its digits)."""
     xa, xb = a - centre, b - centre
     Ta, Tb = integral(m, band, k, xa), integral(m, band, k, xb)
-    flat = dr.abs(xb - xa) < tol.RAMP_FLAT_REL * band.get(m, "width", k)
-    tau_point = -dr.log(1.0 - dr.minimum(alpha(m, band, k, 0.5 * (a + b), centre),
-                                         tol.OPACITY_CAP)) / band.dx0
-    tau_mean = dr.select(flat, tau_point, (Tb - Ta) / (xb - xa))
-    return dr.maximum(tau_mean, 0.0) * dx, Ta, Tb, flat
+    total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
+    short = dr.abs(Tb - Ta) < tol.SHORT_RAMP_DEPTH * total
+    u0, u1 = _inside(m, band, k, xa, xb)
+    ta, tm, tb = (_shape_tau(m, band, k, dr.lerp(xa, xb, u))
+                  for u in (u0, 0.5 * (u0 + u1), u1))
+    simpson = (u1 - u0) * (ta + 4.0 * tm + tb) / (6.0 * band.dx0)
+    tau_mean = dr.select(short, simpson, (Tb - Ta) / dr.select(short, 1.0, xb - xa))
+    return dr.maximum(tau_mean, 0.0) * dx, Ta, Tb, short
+
+
+def _inside(m, band: BandInputs, k, xa, xb):
+    """The fractions ``(u0, u1)`` of a ramp of value offsets ``xa`` to ``xb`` between which
+    it lies inside band ``k``'s support (``u0 = u1`` where it misses it)."""
+    lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
+    moving = xb != xa
+    span = dr.select(moving, xb - xa, 1.0)
+    u_lo, u_hi = (lo - xa) / span, (hi - xa) / span
+    inside = (xa > lo) & (xa < hi)
+    u0 = dr.select(moving, dr.clip(dr.minimum(u_lo, u_hi), 0.0, 1.0), 0.0)
+    u1 = dr.select(moving, dr.clip(dr.maximum(u_lo, u_hi), 0.0, 1.0), dr.select(inside, 1.0, 0.0))
+    return u0, u1
 
 
 def segment_alpha(m, band: BandInputs, k, a, b, dx, centre):
@@ -206,7 +234,7 @@ def _depth_fraction(s, tau):
     ``s`` of its opacity is made: ``-ln(1 - s (1 - e^-tau)) / tau``; for thin steps its series
     (the closed form's float32 rounding would exceed the series' error)."""
     alpha = 1.0 - dr.exp(-tau)
-    closed = -dr.log(1.0 - s * alpha) / tau
+    closed = -dr.log(dr.maximum(1.0 - s * alpha, tol.NO_WEIGHT)) / tau
     series = s + tau * (0.5 * (s * s - s) + tau * (s / 6.0 - 0.5 * s * s + s * s * s / 3.0))
     return dr.select(tau > tol.THIN_DEPTH, closed, series)
 
@@ -216,11 +244,7 @@ def _short_ramp_u(m, band, k, xa, xb, g):
     optical depth lies in front, with the extinction taken as linear along the part of it
     inside the support (the inverse table is too coarse for ramps shorter than a few of its
     cells)."""
-    lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
-    span = dr.select(xb != xa, xb - xa, 1.0)
-    u_lo, u_hi = (lo - xa) / span, (hi - xa) / span
-    u0 = dr.select(xb != xa, dr.clip(dr.minimum(u_lo, u_hi), 0.0, 1.0), 0.0)
-    u1 = dr.select(xb != xa, dr.clip(dr.maximum(u_lo, u_hi), 0.0, 1.0), 1.0)
+    u0, u1 = _inside(m, band, k, xa, xb)
     ta = _shape_tau(m, band, k, dr.lerp(xa, xb, u0))
     tb = _shape_tau(m, band, k, dr.lerp(xa, xb, u1))
     tm, dt = 0.5 * (ta + tb), tb - ta
@@ -246,10 +270,8 @@ def _place(m, band: BandInputs, k, ramp, r):
 
 
 def _ramp(m, band: BandInputs, k, a, b, dx, centre):
-    tau, Ta, Tb, _ = _ramp_depth(m, band, k, a, b, dx, centre)
-    xa, xb = a - centre, b - centre
-    short = dr.abs(xb - xa) < tol.SHORT_RAMP_REL * band.get(m, "width", k)
-    return xa, xb, Ta, Tb, tau, short
+    tau, Ta, Tb, short = _ramp_depth(m, band, k, a, b, dx, centre)
+    return a - centre, b - centre, Ta, Tb, tau, short
 
 
 def segment_alpha_and_point(m, band: BandInputs, k, a, b, dx, centre, r=0.5):
@@ -262,17 +284,66 @@ def segment_alpha_and_point(m, band: BandInputs, k, a, b, dx, centre, r=0.5):
     return 1.0 - dr.exp(-ramp[4]), dr.clip(_place(m, band, k, ramp, r), 0.0, 1.0)
 
 
+def _stretch(m, band: BandInputs, k, xa, xb, dx):
+    """A ramp of value offsets ``xa`` to ``xb`` over length ``dx`` (world) as :func:`_ramp`
+    gives it."""
+    tau, Ta, Tb, short = _ramp_depth(m, band, k, xa, xb, dx, 0.0)
+    return xa, xb, Ta, Tb, tau, short
+
+
+def _flank_centroid(m, band: BandInputs, k, ramp):
+    """The centroid of a stretch on which the extinction is smooth: Gauss-Legendre in the
+    fraction of its opacity, each node placed through the inverse table."""
+    u_bar = 0.0
+    for s, w in zip(GL_NODES, GL_WEIGHTS):
+        u_bar += w * _place(m, band, k, ramp, s)
+    return u_bar
+
+
+def _flat_centroid(tau):
+    """The centroid of a stretch of constant extinction and depth ``tau``."""
+    alpha = 1.0 - dr.exp(-tau)
+    closed = 1.0 / tau - dr.exp(-tau) / dr.maximum(alpha, tol.NO_WEIGHT)
+    return dr.select(tau > tol.THIN_DEPTH, closed, 0.5 - tau / 12.0)
+
+
 def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
     """Pre-integrated opacity of band ``k`` over a step of length ``dx`` (world) along which
     the value goes linearly from ``a`` to ``b``, and the step's centroid ``u_bar`` (a fraction
     of the step, 0 at ``a``; see the module docstring): the light of the step is
     ``alpha * lerp(E_front, E_back, u_bar)`` where the shaded colour runs linearly along it,
-    so it is shaded there."""
-    ramp = _ramp(m, band, k, a, b, dx, centre)
-    u_bar = m.Float(0.0)
-    for s, w in zip(GL_NODES, GL_WEIGHTS):
-        u_bar += w * _place(m, band, k, ramp, s)
-    return 1.0 - dr.exp(-ramp[4]), dr.clip(u_bar, 0.0, 1.0)
+    so it is shaded there. The step is split where it enters and leaves the band's plateau
+    (where the opacity is capped): there the extinction is constant and the centroid has a
+    closed form; on the flanks it is smooth, and its kink at the cap would spoil the
+    quadrature."""
+    xa, xb = a - centre, b - centre
+    cap = band.get(m, "cap", k)
+    p0, p1 = _within(xa, xb, -cap, cap)
+    ends = [0.0 * dx, p0, p1, 1.0 + 0.0 * dx]
+    alpha = m.Float(0.0)
+    moment = m.Float(0.0)      # int u dF, F the opacity made from the front
+    for j in range(3):
+        u0, u1 = ends[j], ends[j + 1]
+        ramp = _stretch(m, band, k, dr.lerp(xa, xb, u0), dr.lerp(xa, xb, u1), dx * (u1 - u0))
+        a_j = 1.0 - dr.exp(-ramp[4])
+        c_j = _flat_centroid(ramp[4]) if j == 1 else _flank_centroid(m, band, k, ramp)
+        moment += (1.0 - alpha) * a_j * dr.lerp(u0, u1, c_j)
+        alpha += (1.0 - alpha) * a_j
+    u_bar = dr.select(alpha > 0.0, moment / dr.maximum(alpha, tol.NO_WEIGHT), 0.5)
+    return alpha, dr.clip(u_bar, 0.0, 1.0)
+
+
+def _within(xa, xb, lo, hi):
+    """The fractions ``(p0, p1)`` of a ramp of offsets ``xa`` to ``xb`` between which it lies
+    in ``[lo, hi]`` (both at the same place where it misses it, before or after)."""
+    moving = xb != xa
+    span = dr.select(moving, xb - xa, 1.0)
+    u_lo, u_hi = (lo - xa) / span, (hi - xa) / span
+    p0 = dr.clip(dr.minimum(u_lo, u_hi), 0.0, 1.0)
+    p1 = dr.maximum(dr.clip(dr.maximum(u_lo, u_hi), 0.0, 1.0), p0)
+    inside = (xa >= lo) & (xa <= hi)
+    return (dr.select(moving, p0, dr.select(inside, 0.0, 1.0)),
+            dr.select(moving, p1, 1.0))
 
 
 def in_order(m, alphas, lights, centres, rising):

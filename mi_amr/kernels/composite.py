@@ -14,7 +14,7 @@ import drjit as dr
 from mi_amr import tolerances as tol
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
-from mi_amr.kernels.band import (alpha, combine, corrected, in_order,
+from mi_amr.kernels.band import (alpha, combine, corrected, in_order, segment_alpha,
                                  segment_alpha_and_centroid, segment_alpha_and_point)
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
@@ -142,19 +142,39 @@ def _split(dev, cfg, num, den, L, marks, extra):
     return [0.0 * L] + _sort(cuts) + [L]
 
 
-def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
-    """Per sub-piece: each band's pre-integrated opacity and the fraction along the sub-piece
-    of its centroid (:func:`~mi_amr.kernels.band.segment_alpha_and_centroid`)."""
+@dataclass
+class SubPiece:
+    """One sub-piece of a cubic piece: each band's pre-integrated opacity ``alphas``, the most
+    opaque band ``k`` (a lane index) with its isovalue ``centre``, and that band's centroid
+    ``u`` (a fraction of the sub-piece)."""
+
+    alphas: list
+    k: Any
+    centre: Any
+    u: Any
+
+
+def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres, shade):
+    """Per sub-piece its :class:`SubPiece`; the centroid (where it is shaded,
+    :func:`~mi_amr.kernels.band.segment_alpha_and_centroid`) only where ``shade``, and only of
+    its most opaque band: bands are disjoint, so a sub-piece seldom meets two."""
     m = dev.m
     out = []
     for i in range(len(piece.s_pts) - 1):
         dx = (piece.s_pts[i + 1] - piece.s_pts[i]) * dnorm
-        per_band = []
-        for k, c in enumerate(centres):
-            a, u = segment_alpha_and_centroid(m, cfg.band, k, piece.values[i],
-                                              piece.values[i + 1], dx, c)
-            per_band.append((dr.select(have & (dx > 0.0), a, 0.0), u))
-        out.append(per_band)
+        a_i, b_i = piece.values[i], piece.values[i + 1]
+        alphas = [dr.select(have & (dx > 0.0), segment_alpha(m, cfg.band, k, a_i, b_i, dx, c), 0.0)
+                  for k, c in enumerate(centres)]
+        k_best, c_best, best = m.UInt32(0), centres[0], alphas[0]
+        for k in range(1, len(alphas)):
+            better = alphas[k] > best
+            k_best = dr.select(better, k, k_best)
+            c_best = dr.select(better, centres[k], c_best)
+            best = dr.maximum(best, alphas[k])
+        u = None
+        if shade:
+            u = segment_alpha_and_centroid(m, cfg.band, k_best, a_i, b_i, dx, c_best)[1]
+        out.append(SubPiece(alphas=alphas, k=k_best, centre=c_best, u=u))
     return out
 
 
@@ -165,26 +185,20 @@ def _light_place(m, cfg, piece: Piece, subs, dnorm, centres):
     band's shadow on itself right for light from the viewer's side; from the band's middle,
     or anywhere in a cell, the band would shadow itself at random. Also the piece's opacity."""
     trans = [m.Float(1.0)]
-    for per_band in subs:
+    for sub in subs:
         t_i = trans[-1]
-        for a, _ in per_band:
+        for a in sub.alphas:
             t_i = t_i * (1.0 - a)
         trans.append(t_i)
     target = 0.5 * (1.0 - trans[-1])
     zero = m.Float(0.0)
     sel = [zero, zero, zero, zero, m.UInt32(0), zero, zero, zero]   # a, b, dx, r, k, c, s0, s1
-    for i, per_band in enumerate(subs):
+    for i, sub in enumerate(subs):
         made_before, made_after = 1.0 - trans[i], 1.0 - trans[i + 1]
         here = (made_before < target) & (target <= made_after)
         r = (target - made_before) / dr.maximum(made_after - made_before, tol.NO_WEIGHT)
-        k_best, a_best, c_best = m.UInt32(0), per_band[0][0], centres[0]
-        for k in range(1, len(per_band)):
-            better = per_band[k][0] > a_best
-            k_best = dr.select(better, k, k_best)
-            c_best = dr.select(better, centres[k], c_best)
-            a_best = dr.maximum(a_best, per_band[k][0])
         s0, s1 = piece.s_pts[i], piece.s_pts[i + 1]
-        now = [piece.values[i], piece.values[i + 1], (s1 - s0) * dnorm, r, k_best, c_best,
+        now = [piece.values[i], piece.values[i + 1], (s1 - s0) * dnorm, r, sub.k, sub.centre,
                s0, s1]
         sel = [dr.select(here, x, y) for x, y in zip(now, sel)]
     a, b, dx, r, k, c, s0, s1 = sel
@@ -202,11 +216,10 @@ def _piece_light(m, piece: Piece, subs, ctx, lighting, lit, centres, color_of):
     same = getattr(color_of, "same_for_all_bands", nb == 1)
     C = m.Array3f(0.0)
     T = m.Float(1.0)
-    for i, per_band in enumerate(subs):
-        alphas = [a for a, _ in per_band]
-        best, u = alphas[0], per_band[0][1]
-        for a_k, u_k in per_band[1:]:
-            u = dr.select(a_k > best, u_k, u)
+    for i, sub in enumerate(subs):
+        alphas, u = sub.alphas, sub.u
+        best = alphas[0]
+        for a_k in alphas[1:]:
             best = dr.maximum(best, a_k)
         cval, grad = piece.shading_inputs(dr.lerp(piece.s_pts[i], piece.s_pts[i + 1], u))
         A, S = lighting.terms(ctx, grad, lit & (best > tol.ALPHA_LIT))
@@ -283,7 +296,7 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
         samples += dr.select(work, 1, 0)
         have = work & (roots.cubic(den, 0.5 * L) > tol.NO_WEIGHT)
         piece = _piece(dev, cfg, o, d, w, L, nums, den, marks, lighting, arrays, have)
-        subs = _sub_pieces(dev, cfg, piece, dnorm, have, centres)
+        subs = _sub_pieces(dev, cfg, piece, dnorm, have, centres, shade)
 
         # --- Light once per piece of the ray, where it is most opaque; shade at every cut.
         if dr.hint(shade, mode="scalar"):
@@ -294,8 +307,8 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
             C += T * C_p
             T *= T_p
         else:
-            for per_band in subs:
-                for a, _ in per_band:
+            for sub in subs:
+                for a in sub.alphas:
                     T *= 1.0 - a
 
         w.t = dr.select(active, t_b, w.t)
