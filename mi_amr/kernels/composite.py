@@ -12,12 +12,15 @@ from typing import Any
 import drjit as dr
 
 from mi_amr import tolerances as tol
+from mi_amr.errors import AMRError
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
 from mi_amr.kernels.band import (alpha, combine, corrected, in_order, segment_alpha,
                                  segment_alpha_and_centroid, segment_alpha_and_point)
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
+from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
+from mi_amr.kernels.transfer2d import alpha as alpha2d
 from mi_amr.kernels.traverse import Walk, clip_to_volume, epsilon, next_dual_plane, seek
 
 
@@ -58,6 +61,10 @@ def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lig
     """
     m = dev.m
     o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active)
+    if cfg.method == "exact" and cfg.transfer2d is not None:
+        raise AMRError("amr_iso: the exact method does not take a 2D transfer function yet "
+                       "('transfer2d', 'transfer2d_blobs'); use method uniform, adaptive or "
+                       "bisect")
     if cfg.method == "exact":
         return _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active)
     return _composite_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), color_of, lighting, active)
@@ -383,6 +390,10 @@ def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centres):
         dx = (smp.b - t) * dnorm
     else:
         dx = (smp.t_s - t_prev) * dnorm
+    if cfg.transfer2d is not None:
+        # The 2D transfer function is the one band: opacity by value and |grad f|.
+        a = corrected(cfg.transfer2d, alpha2d(m, cfg.transfer2d, smp.v, dr.norm(smp.grad)), dx)
+        return dr.select(smp.take & dr.isfinite(smp.v), a, 0.0), [1.0], smp.t_s
     alphas, points = [], []
     for k, centre in enumerate(centres):
         if cfg.preintegrated:
@@ -408,6 +419,15 @@ def _light_point(cfg, smp: Sample, t_prev, v_prev, points, shares):
     return dr.select(dr.isfinite(v_prev) & dr.isfinite(t), t, smp.t_s)
 
 
+def _sampled_bands(dev, cfg):
+    """:func:`_bands`, or with a 2D transfer function no centres and its value support as the
+    one band (``bisect`` moves a sample into it)."""
+    tf = cfg.transfer2d
+    if tf is None:
+        return _bands(dev, cfg)
+    return [], [(tf.get(dev.m, SUPPORT_LO), tf.get(dev.m, SUPPORT_HI))]
+
+
 @dr.syntax
 def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, active):
     m = dev.m
@@ -415,7 +435,7 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
     shade = lighting is not None
     uniform = cfg.method == "uniform"
     arrays = dev.arrays(cfg.basis, color=True)
-    centres, bands = _bands(dev, cfg)
+    centres, bands = _sampled_bands(dev, cfg)
     # A shadow ray starts inside the band: uniform steps then sample the middle of each step,
     # so its first half step (the most opaque stretch) is not stepped over.
     rho = m.Float(-0.5 if not shade else 0.0) if uniform else jitter

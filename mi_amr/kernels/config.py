@@ -1,9 +1,10 @@
 """What a march looks for, and the value tests that decide which kd nodes it may skip.
 
 A :class:`MarchConfig` holds two kinds of things. The *structure* (``method``, ``basis``,
-``num_iso``, whether there is a band, ``preintegrated``, ``shading_extrema``) shapes the traced program: changing it
-compiles other kernels. Everything else (the isovalues, the step scale, the band's shape) is
-an opaque device value that may change between frames without compiling anything.
+``num_iso``, whether there is a band or a 2D transfer function, ``preintegrated``,
+``shading_extrema``) shapes the traced program: changing it compiles other kernels. Everything
+else (the isovalues, the step scale, the band's shape, the 2D transfer function's table) is an
+opaque device value that may change between frames without compiling anything.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Any
 
 import drjit as dr
 
+from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.params import METHODS, RECONSTRUCTIONS  # noqa: F401  (re-exported)
 
 
@@ -21,7 +23,9 @@ class MarchConfig:
     """``isovalues``: a device array of ``num_iso`` values; ``step_scale``: a one-element
     device array (finest cells per step of the sampling methods); ``band``: volume mode's
     :class:`~mi_amr.kernels.band.BandInputs`, one band around each isovalue, or None for
-    surfaces."""
+    surfaces; ``transfer2d``: volume mode's
+    :class:`~mi_amr.kernels.transfer2d.Transfer2DInputs`, which then replaces the bands
+    (sampling methods only)."""
 
     method: str
     basis: bool
@@ -31,6 +35,7 @@ class MarchConfig:
     band: Any = None
     preintegrated: bool = False
     shading_extrema: bool = True
+    transfer2d: Any = None
 
     def iso(self, dev, k):
         """Isovalue ``k`` (a Python int, or a per-lane index array)."""
@@ -42,6 +47,9 @@ def holds(dev, cfg: MarchConfig, r_lo, r_hi):
     """Can a value range ``[r_lo, r_hi]`` hold a crossing (or band opacity)?"""
     m = dev.m
     out = m.Bool(False)
+    if cfg.transfer2d is not None:
+        lo, hi = (cfg.transfer2d.get(m, k) for k in (SUPPORT_LO, SUPPORT_HI))
+        return (r_lo <= hi) & (r_hi >= lo) & (lo < hi)
     if cfg.band is not None:
         for k in range(cfg.num_iso):
             centre = cfg.iso(dev, k)

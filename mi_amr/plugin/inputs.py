@@ -35,6 +35,7 @@ from mi_amr.errors import AMRError
 from mi_amr.kernels.band import OpacityBand, band_inputs
 from mi_amr.kernels.colormap import ColorMap, check_range
 from mi_amr.kernels.device import opaque_bools, opaque_floats
+from mi_amr.kernels.transfer2d import transfer2d_inputs
 
 PHONG = ("ka", "kd", "ks", "shininess", "ambient")
 FLAGS = mi.ParamFlags.NonDifferentiable
@@ -58,8 +59,9 @@ class FrameInputs:
     :meth:`refresh` makes from host memory after every change, opaque and never literals, so
     the traced program is the same whatever the values and however they were assigned."""
 
-    def __init__(self, opt, m, color_data_range, min_h: float):
+    def __init__(self, opt, m, color_data_range, min_h: float, transfer2d=None):
         self.m, self.k, self.min_h = m, len(opt.isovalues), float(min_h)
+        self.transfer2d_host = transfer2d
         self.values = {
             "isovalue": m.Float(opt.isovalues),
             "iso_color": m.Float(np.ravel(opt.iso_colors)),
@@ -96,7 +98,8 @@ class FrameInputs:
 
     def refresh(self) -> None:
         """Check the values (after a change through ``mi.traverse``), rebuild what depends on
-        them (the band's table) and make them all opaque."""
+        them (the band's table; the 2D transfer function's inputs, for the finest cell width of
+        this volume) and make them all opaque."""
         for name, value in self.values.items():
             if dr.width(value) != self._sizes[name]:
                 raise AMRError(f"amr_iso: '{name}' must keep {self._sizes[name]} value(s); load "
@@ -107,6 +110,8 @@ class FrameInputs:
         self._kernel = {name: opaque_floats(m, v) for name, v in host.items() if name != "shadows"}
         self._kernel["shadows"] = opaque_bools(m, host["shadows"] != 0)
         self.band = None
+        self.transfer2d = None if self.transfer2d_host is None else \
+            transfer2d_inputs(m, self.transfer2d_host, self.min_h)
         if "band_width" in host:
             offsets = host["band_offsets"].reshape(-1, 2)
             self.band = band_inputs(m, [OpacityBand(float(w), tuple(o), float(p), dx0=self.min_h)

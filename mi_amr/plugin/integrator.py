@@ -43,6 +43,7 @@ from mi_amr.plugin.frame import VolumeFrame
 from mi_amr.plugin.inputs import FLAGS, PHONG, FrameInputs
 from mi_amr.plugin.layers import front_to_back
 from mi_amr.plugin.scene import resolve_data_file
+from mi_amr.plugin.transfer2d import host_transfer2d
 from mi_amr.plugin.iso import IsoShader
 
 __doc__ = __doc__.replace("{table}", params.docstring_table())
@@ -90,7 +91,8 @@ class _AMRIso:
         self._prepare(resolve_data_file(opt.filename))
         self.frame = VolumeFrame(to_world)
         data_range = self.prep.volume.value_range(self.prep.color_field)
-        self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host)
+        self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host,
+                                  host_transfer2d(opt))
         self.shader = IsoShader(self)
         _warn_outside(self.prep, opt.isovalues)
 
@@ -123,7 +125,8 @@ class _AMRIso:
                            isovalues=self.inputs["isovalue"], step_scale=self.inputs["step_scale"],
                            num_iso=len(self.opt.isovalues), band=self.inputs.band,
                            preintegrated=self.opt.preintegrated,
-                           shading_extrema=self.opt.shading_extrema)
+                           shading_extrema=self.opt.shading_extrema,
+                           transfer2d=self.inputs.transfer2d)
 
     def phong(self) -> shading.Phong:
         return shading.Phong(*(bridge.to_mi(self.inputs[n], mi.Float) for n in PHONG))

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from mi_amr import params
+from mi_amr.core.transfer2d import parse_blobs, parse_range
 from mi_amr.errors import AMRError
 
 FLOAT32_MAX = 3.4028234663852886e38
@@ -45,6 +46,9 @@ class Options:
     band_peak: list
     preintegrated: bool
     shading_extrema: bool
+    transfer2d: Optional[str]
+    transfer2d_range: Optional[tuple]
+    transfer2d_blobs: Optional[list]
     aovs: bool
     leaf_cells: int
     max_layers: int
@@ -72,11 +76,50 @@ def parse(values: dict) -> Options:
     opt = Options(isovalues=isovalues, iso_colors=_colors(values, k),
                   iso_opacity=_opacities(values, k), band_width=_per_iso(values, "band_width", k),
                   band_peak=_per_iso(values, "band_peak", k),
-                  band_support=_supports(values, isovalues), **read)
+                  band_support=_supports(values, isovalues),
+                  transfer2d_range=_range4(values), **read)
+    _check_transfer2d(opt, values)
     if (opt.color_field is None) != (opt.colormap is None):
         raise AMRError("amr_iso: 'color_field' and 'colormap' go together; give both or neither")
     opt.leaf_cells, opt.max_layers = int(opt.leaf_cells), int(opt.max_layers)
     return opt
+
+
+def _range4(values):
+    v = values.get("transfer2d_range")
+    return None if v is None else parse_range(v)
+
+
+def _check_transfer2d(opt: Options, values) -> None:
+    """A 2D transfer function (a table file with its range, or blobs) goes with volume mode,
+    a sampling method, one isovalue and no band parameters; the blobs are parsed here."""
+    table, blobs = opt.transfer2d is not None, opt.transfer2d_blobs is not None
+    if table and blobs:
+        raise AMRError("amr_iso: parameters 'transfer2d' and 'transfer2d_blobs' exclude each "
+                       "other; give a table file or blobs")
+    if table != (opt.transfer2d_range is not None):
+        raise AMRError("amr_iso: parameter 'transfer2d_range' (\"v0 v1 g0 g1\") goes with "
+                       "'transfer2d' (blobs set their own range); give both or neither")
+    if not (table or blobs):
+        return
+    name = "transfer2d" if table else "transfer2d_blobs"
+    if opt.mode != "volume":
+        raise AMRError(f"amr_iso: parameter '{name}' needs mode 'volume', got {opt.mode!r}")
+    if opt.method == "exact":
+        raise AMRError(f"amr_iso: parameter '{name}': the exact method does not take a 2D "
+                       f"transfer function yet; use method uniform, adaptive or bisect")
+    if opt.preintegrated:
+        raise AMRError(f"amr_iso: parameter '{name}': pre-integration ('preintegrated') is not "
+                       f"supported with a 2D transfer function")
+    if len(opt.isovalues) != 1:
+        raise AMRError(f"amr_iso: parameter '{name}' replaces the bands: give one isovalue "
+                       f"(its crossings are the AOVs), got {len(opt.isovalues)}")
+    given = [b for b in ("band_width", "band_support", "band_peak") if b in values]
+    if given:
+        raise AMRError(f"amr_iso: parameter(s) {', '.join(repr(b) for b in given)} do not "
+                       f"apply with '{name}' (the 2D transfer function sets the opacity)")
+    if blobs:
+        opt.transfer2d_blobs = parse_blobs(opt.transfer2d_blobs)
 
 
 def _per_iso(values, name, k):

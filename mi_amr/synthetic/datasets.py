@@ -9,6 +9,8 @@ lists them for ``python -m mi_amr dataset NAME -o PATH``.
 * :func:`sphere`, :func:`torus`, :func:`ramp`, :func:`spike` -- a field ``f`` whose isosurface
   at :data:`ISOVALUES` ``[name]`` is known, on two levels whose boundary (the plane x = 0.5) cuts
   through the surface.
+* :func:`boundary_and_blob` -- the value 0.5 crossed both at a sharp boundary and across a broad
+  smooth region (the case a 2D transfer function tells apart).
 """
 
 from __future__ import annotations
@@ -228,8 +230,30 @@ def spike(base: int = 16) -> AMRVolume:
     return two_levels(f, base)
 
 
+# boundary_and_blob: the sharp ball (centre, radius, tanh width; on the fine level x >= 0.5) and
+# the smooth Gaussian blob (centre, sigma, peak; on the coarse level).
+BALL = ((0.73, 0.5, 0.5), 0.15, 0.01)
+BLOB = ((0.27, 0.5, 0.5), 0.15, 0.8)
+
+
+def boundary_and_blob(base: int = 24) -> AMRVolume:
+    """``f = ball + blob`` on :func:`two_levels`: a ball of value 1 whose edge (a tanh of width
+    0.01, under one fine cell) crosses 0.5 at ``|p - c1| = 0.15`` with ``|grad f|`` about 50,
+    and a Gaussian blob ``0.8 exp(-|p - c2|^2 / (2 0.15^2))`` that crosses 0.5 at
+    ``|p - c2| = 0.146`` with ``|grad f| = 3.2`` (:data:`BALL`, :data:`BLOB`; world units of
+    the unit cube). A 1D band around 0.5 draws both; a material boundary is only the ball."""
+    (c1, r1, w1), (c2, s2, peak2) = BALL, BLOB
+
+    def f(p, level):
+        ball = 0.5 * (1.0 + np.tanh((r1 - np.linalg.norm(p - np.asarray(c1), axis=-1)) / w1))
+        d2 = np.sum((p - np.asarray(c2)) ** 2, axis=-1)
+        return ball + peak2 * np.exp(-0.5 * d2 / s2 ** 2)
+
+    return two_levels(f, base)
+
+
 ANALYTIC = {"sphere": sphere, "torus": torus, "ramp": ramp, "spike": spike}
-DATASETS = {"sphere_wake": sphere_wake, **ANALYTIC}
+DATASETS = {"sphere_wake": sphere_wake, **ANALYTIC, "boundary_and_blob": boundary_and_blob}
 
 
 def make(name: str, path, *, size: str = "default", seed: int = 0, overwrite: bool = False,

@@ -1,0 +1,69 @@
+"""The 2D transfer function on the device: a bilinear lookup of opacity by the field's value and
+gradient magnitude (the table of :class:`mi_amr.core.transfer2d.Transfer2D`).
+
+Everything about the table -- its entries, its shape, its ranges -- is an opaque kernel input,
+so a new table (of any shape) or new ranges compile no kernel. Opacities are per step of length
+``dx0`` (world units, the finest cell width), as the 1D band's, so
+:func:`mi_amr.kernels.band.corrected` applies to them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+
+from mi_amr.kernels.device import opaque_floats
+
+# Entries of :attr:`Transfer2DInputs.header`.
+V0, V1, G0, G1, ROWS, COLS, SUPPORT_LO, SUPPORT_HI = range(8)
+
+
+@dataclass
+class Transfer2DInputs:
+    """``table``: the opacities row after row (row ``j`` = gradient magnitude, ascending);
+    ``header``: ``v0 v1 g0 g1 rows cols lo hi`` (``lo, hi``: the value support, see
+    :meth:`~mi_amr.core.transfer2d.Transfer2D.value_support`); ``dx0``: the step length the
+    opacities are for (world). All opaque."""
+
+    table: Any
+    header: Any
+    dx0: Any
+
+    def get(self, m, k: int):
+        return dr.gather(m.Float, self.header, m.UInt32(k))
+
+
+def transfer2d_inputs(m, tf, dx0: float) -> Transfer2DInputs:
+    """The device values of the host table ``tf`` (a ``Transfer2D``) for steps of ``dx0``."""
+    rows, cols = tf.shape
+    lo, hi = tf.value_support()
+    return Transfer2DInputs(table=opaque_floats(m, tf.table.ravel()),
+                            header=opaque_floats(m, [tf.v0, tf.v1, tf.g0, tf.g1, rows, cols,
+                                                     lo, hi]),
+                            dx0=opaque_floats(m, [dx0]))
+
+
+def alpha(m, tf: Transfer2DInputs, v, gmag):
+    """Opacity for one step of length ``dx0`` at value ``v`` (field units) and gradient
+    magnitude ``gmag`` (field units per volume-world unit): bilinear in the table, 0 outside
+    ``[v0, v1]`` (and where ``v`` is NaN), ``gmag`` clamped to ``[g0, g1]``."""
+    v0, v1, g0, g1 = (tf.get(m, k) for k in (V0, V1, G0, G1))
+    rows, cols = tf.get(m, ROWS), tf.get(m, COLS)
+    inside = (v >= v0) & (v <= v1)
+    u = dr.select(inside, (v - v0) / (v1 - v0), 0.0) * (cols - 1.0)
+    w = (gmag - g0) / (g1 - g0)
+    w = dr.clip(dr.select(dr.isnan(w), 0.0, w), 0.0, 1.0) * (rows - 1.0)
+    i = dr.clip(dr.floor(u), 0.0, cols - 2.0)
+    j = dr.clip(dr.floor(w), 0.0, rows - 2.0)
+    fu, fw = u - i, w - j
+    base = m.UInt32(j) * m.UInt32(cols) + m.UInt32(i)
+    up = base + m.UInt32(cols)
+
+    def at(index):
+        return dr.gather(m.Float, tf.table, index, inside)
+
+    low = dr.lerp(at(base), at(base + 1), fu)
+    high = dr.lerp(at(up), at(up + 1), fu)
+    return dr.select(inside, dr.lerp(low, high, fw), 0.0)
