@@ -125,19 +125,18 @@ def _quadratic_extremum(q, L):
 class Piece:
     """A cubic piece ``[0, L]`` split at ``s_pts`` (sorted, from 0 to ``L``) and the field's
     values there; where it is shaded, the colour field's cubic numerator ``cnum``, the shared
-    denominator ``den`` and the gradient at its front, middle and back, ``grads_q``."""
+    denominator ``den`` and ``gradient(s)``, the gradient at piece parameter ``s``."""
 
     L: Any
     s_pts: list
     values: list
     cnum: Any = None
     den: Any = None
-    grads_q: Any = None
+    gradient: Any = None
 
     def shading_inputs(self, s):
         """The colour-field value and the gradient at piece parameter ``s``."""
-        cval = roots.cubic(self.cnum, s) / roots.cubic(self.den, s)
-        return cval, _quadratic(self.grads_q, s / self.L)
+        return roots.cubic(self.cnum, s) / roots.cubic(self.den, s), self.gradient(s)
 
 
 def _split(dev, cfg, num, den, L, marks, extra):
@@ -151,20 +150,18 @@ def _split(dev, cfg, num, den, L, marks, extra):
 
 @dataclass
 class SubPiece:
-    """One sub-piece of a cubic piece: each band's pre-integrated opacity ``alphas``, the most
-    opaque band ``k`` (a lane index) with its isovalue ``centre``, and that band's centroid
-    ``u`` (a fraction of the sub-piece)."""
+    """One sub-piece of a cubic piece: each band's pre-integrated opacity ``alphas``, their
+    total ``alpha``, and the most opaque band ``k`` (a lane index) with its isovalue
+    ``centre``."""
 
     alphas: list
+    alpha: Any
     k: Any
     centre: Any
-    u: Any
 
 
-def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres, shade):
-    """Per sub-piece its :class:`SubPiece`; the centroid (where it is shaded,
-    :func:`~mi_amr.kernels.band.segment_alpha_and_centroid`) only where ``shade``, and only of
-    its most opaque band: bands are disjoint, so a sub-piece seldom meets two."""
+def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
+    """Per sub-piece its :class:`SubPiece`."""
     m = dev.m
     out = []
     for i in range(len(piece.s_pts) - 1):
@@ -173,15 +170,41 @@ def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres, shade):
         alphas = [dr.select(have & (dx > 0.0), segment_alpha(m, cfg.band, k, a_i, b_i, dx, c), 0.0)
                   for k, c in enumerate(centres)]
         k_best, c_best, best = m.UInt32(0), centres[0], alphas[0]
+        trans = 1.0 - alphas[0]
         for k in range(1, len(alphas)):
             better = alphas[k] > best
             k_best = dr.select(better, k, k_best)
             c_best = dr.select(better, centres[k], c_best)
             best = dr.maximum(best, alphas[k])
-        u = None
-        if shade:
-            u = segment_alpha_and_centroid(m, cfg.band, k_best, a_i, b_i, dx, c_best)[1]
-        out.append(SubPiece(alphas=alphas, k=k_best, centre=c_best, u=u))
+            trans *= 1.0 - alphas[k]
+        out.append(SubPiece(alphas=alphas, alpha=1.0 - trans, k=k_best, centre=c_best))
+    return out
+
+
+def _two_most_opaque(m, subs):
+    """The indices of the most and the second most opaque sub-pieces (lane values)."""
+    i1, i2 = m.UInt32(0), m.UInt32(0)
+    a1, a2 = m.Float(-1.0), m.Float(-1.0)
+    for i, sub in enumerate(subs):
+        first = sub.alpha > a1
+        second = lnot(first) & (sub.alpha > a2)
+        i2 = dr.select(first, i1, dr.select(second, i, i2))
+        a2 = dr.select(first, a1, dr.select(second, sub.alpha, a2))
+        i1 = dr.select(first, i, i1)
+        a1 = dr.select(first, sub.alpha, a1)
+    return i1, i2
+
+
+def _pick(piece: Piece, subs, dnorm, i):
+    """Sub-piece ``i`` (a lane index): its end values, length (world), most opaque band and
+    isovalue, and its ends (piece parameter)."""
+    zero = 0.0 * piece.s_pts[0]
+    out = [zero, zero, zero, dr.zeros(type(subs[0].k), dr.width(zero)), zero, zero, zero]
+    for j, sub in enumerate(subs):
+        s0, s1 = piece.s_pts[j], piece.s_pts[j + 1]
+        now = [piece.values[j], piece.values[j + 1], (s1 - s0) * dnorm, sub.k, sub.centre,
+               s0, s1]
+        out = [dr.select(i == j, x, y) for x, y in zip(now, out)]
     return out
 
 
@@ -193,48 +216,53 @@ def _light_place(m, cfg, piece: Piece, subs, dnorm, centres):
     or anywhere in a cell, the band would shadow itself at random. Also the piece's opacity."""
     trans = [m.Float(1.0)]
     for sub in subs:
-        t_i = trans[-1]
-        for a in sub.alphas:
-            t_i = t_i * (1.0 - a)
-        trans.append(t_i)
+        trans.append(trans[-1] * (1.0 - sub.alpha))
     target = 0.5 * (1.0 - trans[-1])
-    zero = m.Float(0.0)
-    sel = [zero, zero, zero, zero, m.UInt32(0), zero, zero, zero]   # a, b, dx, r, k, c, s0, s1
-    for i, sub in enumerate(subs):
+    i_half = m.UInt32(0)
+    r = m.Float(0.0)
+    for i in range(len(subs)):
         made_before, made_after = 1.0 - trans[i], 1.0 - trans[i + 1]
         here = (made_before < target) & (target <= made_after)
-        r = (target - made_before) / dr.maximum(made_after - made_before, tol.NO_WEIGHT)
-        s0, s1 = piece.s_pts[i], piece.s_pts[i + 1]
-        now = [piece.values[i], piece.values[i + 1], (s1 - s0) * dnorm, r, sub.k, sub.centre,
-               s0, s1]
-        sel = [dr.select(here, x, y) for x, y in zip(now, sel)]
-    a, b, dx, r, k, c, s0, s1 = sel
+        i_half = dr.select(here, i, i_half)
+        r = dr.select(here, (target - made_before) /
+                      dr.maximum(made_after - made_before, tol.NO_WEIGHT), r)
+    a, b, dx, k, c, s0, s1 = _pick(piece, subs, dnorm, i_half)
     _, u = segment_alpha_and_point(m, cfg.band, k, a, b, dx, c, r)
     return dr.lerp(s0, s1, u), 1.0 - trans[-1]
 
 
-def _piece_light(m, piece: Piece, subs, ctx, lighting, lit, centres, color_of):
-    """The light and transmittance of a piece. Each sub-piece is shaded once, at the centroid
-    of its most opaque band (the one-point rule of its light: exact where the shaded colour
-    runs linearly along it, and close where it curves, as a highlight does), with the light
-    samples ``ctx``; each band there takes its own colour, and the bands are met in the order
-    of the value ramp."""
+def _shaded_colors(m, cfg, piece: Piece, subs, dnorm, i, ctx, lighting, lit, centres,
+                   color_of):
+    """Each band's shaded colour ``c * A + S`` at the centroid of sub-piece ``i``'s most opaque
+    band (the one-point rule of the sub-piece's light: exact where the shaded colour runs
+    linearly along it, and close where it curves, as a highlight does)."""
     nb = len(centres)
     same = getattr(color_of, "same_for_all_bands", nb == 1)
+    a, b, dx, k, c, s0, s1 = _pick(piece, subs, dnorm, i)
+    _, u = segment_alpha_and_centroid(m, cfg.band, k, a, b, dx, c)
+    cval, grad = piece.shading_inputs(dr.lerp(s0, s1, u))
+    A, S = lighting.terms(ctx, grad, lit)
+    return [color_of(_one_hot(nb, 0 if same else j), cval) * A + S for j in range(nb)]
+
+
+def _piece_light(m, cfg, piece: Piece, subs, dnorm, ctx, lighting, lit, centres, color_of):
+    """The light and transmittance of a piece, lit by the light samples ``ctx``: the two most
+    opaque sub-pieces are each shaded at their centroid (:func:`_shaded_colors`), the others
+    (a band seldom reaches more than two) take the most opaque one's colours; on each the
+    bands are met in the order of the value ramp."""
+    i1, i2 = _two_most_opaque(m, subs)
+    first = _shaded_colors(m, cfg, piece, subs, dnorm, i1, ctx, lighting, lit, centres,
+                           color_of)
+    second = _shaded_colors(m, cfg, piece, subs, dnorm, i2, ctx, lighting, lit, centres,
+                            color_of)
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     for i, sub in enumerate(subs):
-        alphas, u = sub.alphas, sub.u
-        best = alphas[0]
-        for a_k in alphas[1:]:
-            best = dr.maximum(best, a_k)
-        cval, grad = piece.shading_inputs(dr.lerp(piece.s_pts[i], piece.s_pts[i + 1], u))
-        A, S = lighting.terms(ctx, grad, lit & (best > tol.ALPHA_LIT))
-        colors = [color_of(_one_hot(nb, 0 if same else k), cval) for k in range(nb)]
+        colors = [dr.select(i2 == i, e2, e1) for e1, e2 in zip(first, second)]
         # (no light where a band is not met: the colour of a piece without weight is NaN)
-        lights = [dr.select(a > 0.0, a * (c * A + S), 0.0) for a, c in zip(alphas, colors)]
+        lights = [dr.select(a > 0.0, a * e, 0.0) for a, e in zip(sub.alphas, colors)]
         rising = piece.values[i + 1] > piece.values[i]
-        light, trans = in_order(m, alphas, lights, centres, rising)
+        light, trans = in_order(m, sub.alphas, lights, centres, rising)
         C += T * light
         T *= trans
     return C, T
@@ -248,20 +276,27 @@ def _piece(dev, cfg, o, d, w: Walk, L, nums, den, marks, lighting, arrays, have)
     """The cubic piece ``[w.t, w.t + L]`` split for compositing: where the value can turn
     relative to a band and, where it is shaded with ``cfg.shading_extrema``, where the first
     light's diffuse term turns (Marchesin et al. 2009, section 3.2; that term is a quadratic
-    in ``t`` inside a trilinear cell, and so is the gradient, which is taken at the piece's
-    front, middle and back and interpolated)."""
-    extra, grads_q = [], None
-    if lighting is not None:
-        grads_q = [rec.reconstruct(dev, cfg.basis, dr.fma(d, w.t + f * L, o), arrays[:1], have,
-                                   leaf=w.leaf)[1] for f in (0.0, 0.5, 1.0)]
-        if cfg.shading_extrema:
-            ctx = lighting.sample(dr.fma(d, w.t + 0.5 * L, o), have, False)
-            extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], L)]
+    in ``t`` inside a trilinear cell, and so is the gradient, which is then taken at the
+    piece's front, middle and back and interpolated; without the cut it is reconstructed
+    where it is needed)."""
+    def reconstructed(s):
+        return rec.reconstruct(dev, cfg.basis, dr.fma(d, w.t + s, o), arrays[:1], have,
+                               leaf=w.leaf)[1]
+
+    extra, gradient = [], reconstructed
+    if lighting is not None and cfg.shading_extrema:
+        grads_q = [reconstructed(f * L) for f in (0.0, 0.5, 1.0)]
+        ctx = lighting.sample(dr.fma(d, w.t + 0.5 * L, o), have, False)
+        extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], L)]
+
+        def gradient(s):
+            return _quadratic(grads_q, s / L)
+
     s_pts = _split(dev, cfg, nums[0], den, L, marks, extra)
     values = [roots.cubic(nums[0], s) / roots.cubic(den, s) for s in s_pts]
     if lighting is None:
         return Piece(L=L, s_pts=s_pts, values=values)
-    return Piece(L=L, s_pts=s_pts, values=values, cnum=nums[1], den=den, grads_q=grads_q)
+    return Piece(L=L, s_pts=s_pts, values=values, cnum=nums[1], den=den, gradient=gradient)
 
 
 def _leaf_piece_end(dev, o, d, inv_d, w: Walk, t1, dnorm, level_masks, work):
@@ -303,14 +338,15 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
         samples += dr.select(work, 1, 0)
         have = work & (roots.cubic(den, 0.5 * L) > tol.NO_WEIGHT)
         piece = _piece(dev, cfg, o, d, w, L, nums, den, marks, lighting, arrays, have)
-        subs = _sub_pieces(dev, cfg, piece, dnorm, have, centres, shade)
+        subs = _sub_pieces(dev, cfg, piece, dnorm, have, centres)
 
         # --- Light once per piece of the ray, where it is most opaque; shade at every cut.
         if dr.hint(shade, mode="scalar"):
             s_best, best_alpha = _light_place(m, cfg, piece, subs, dnorm, centres)
             lit = have & (best_alpha > tol.ALPHA_LIT)
             ctx = lighting.sample(dr.fma(d, w.t + s_best, o), lit, True)
-            C_p, T_p = _piece_light(m, piece, subs, ctx, lighting, lit, centres, color_of)
+            C_p, T_p = _piece_light(m, cfg, piece, subs, dnorm, ctx, lighting, lit, centres,
+                                    color_of)
             C += T * C_p
             T *= T_p
         else:
