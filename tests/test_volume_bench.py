@@ -44,7 +44,10 @@ def test03_the_table_chart_and_csv_are_written_whole(quick):
                                                      "volume_chart.png"]
     assert (out / "volume_chart.png").stat().st_size > 10_000
     table = (out / "volume.md").read_text()
-    assert table.count("| analytic_sphere |") == len(rows) // 2
+    # the sweep's rows, then the shading cut's two (exact with and without it)
+    assert table.count("| analytic_sphere |") == len(rows) // 2 + 2
+    cut = table[table.index("The shading cut"):]
+    assert cut.count("| yes |") == cut.count("| no |") == len(vb.SCENES)
     lines = (out / "volume.csv").read_text().splitlines()
     assert lines[0] == ",".join(vb.COLUMNS) and len(lines) == len(rows) + 1
 
