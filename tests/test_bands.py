@@ -84,3 +84,20 @@ def test03_band_lists_of_the_wrong_length_or_sign_are_refused(variant, folder, w
     path = scene(folder, "0.12, 0.22, 0.32", "1 0 0", widths=widths, peaks=peaks)
     with pytest.raises(AMRError, match=message):
         load_scene(path)
+
+
+def test04_overlapping_bands_are_refused_at_load_and_through_traverse(variant, folder):
+    """Two bands whose supports share values: one error naming both isovalues and what to
+    change, when the scene loads and when mi.traverse moves an isovalue into another band."""
+    mi = variant
+    from mi_amr.plugin.scene import load_scene
+
+    with pytest.raises(AMRError, match=r"isovalues 0.12 .* and 0.13 .* overlap; narrow "
+                                       r"'band_width' or 'band_support'"):
+        load_scene(scene(folder, "0.12, 0.13, 0.32", "1 0 0; 0 1 0; 0 0 1"))
+    loaded = load_scene(scene(folder, "0.12, 0.22, 0.32", "1 0 0; 0 1 0; 0 0 1"))
+    params = mi.traverse(loaded)
+    key = next(k for k in params.keys() if k.endswith("isovalue"))
+    params[key] = mi.Float([0.12, 0.125, 0.32])
+    with pytest.raises(AMRError, match="overlap"):
+        params.update()
