@@ -97,7 +97,7 @@ TABLE = (
           "volume mode, exact: also cut each cell's piece of the ray where the diffuse term "
           "turns (Marchesin et al. 2009, section 3.2)"),
     Param("transfer2d", "string", None,
-          "volume mode, sampling methods: a 2D transfer function, opacity by value and "
+          "volume mode: a 2D transfer function, opacity by value and "
           "|grad f|: a ``.npy`` table (rows = |grad f| ascending, columns = value) or a "
           "``.png``/``.exr`` image (alpha, else first channel; top row = highest |grad f|); "
           "relative to the scene file; replaces the bands"),
@@ -105,7 +105,7 @@ TABLE = (
           "with ``transfer2d``: ``\"v0 v1 g0 g1\"``, the values across its columns (field) "
           "and the |grad f| across its rows (field per volume-world unit)"),
     Param("transfer2d_blobs", "string", None,
-          "volume mode, sampling methods: a 2D transfer function of Gaussian blobs in the "
+          "volume mode: a 2D transfer function of Gaussian blobs in the "
           "(value, |grad f|) plane, ``\"v g sigma_v sigma_g peak; ...\"``; opacity min(1, sum "
           "of the blobs), per finest-cell step; not with ``transfer2d``"),
     Param("aovs", "boolean", False,

@@ -117,8 +117,6 @@ def table_xml(name="tf.npy", rng=TABLE_RANGE):
     ({"transfer2d_blobs": "0.5 1 0 1 1"}, "'transfer2d_blobs': sigma_v and sigma_g must be > 0"),
     ({"transfer2d_blobs": "0.5 1 1 -1 1"}, "'transfer2d_blobs': sigma_v and sigma_g must be > 0"),
     ({"transfer2d_blobs": "0.5 1 1 1 0"}, "'transfer2d_blobs': peak must be > 0"),
-    ({"transfer2d_blobs": "0.5 1 1 1 1", "method": "exact"},
-     "'transfer2d_blobs': the exact method does not take a 2D transfer function yet"),
     ({"transfer2d_blobs": "0.5 1 1 1 1", "mode": "surface"}, "'transfer2d_blobs' needs mode"),
     ({"transfer2d_blobs": "0.5 1 1 1 1", "preintegrated": True}, "'preintegrated'.*not supported"),
     ({"transfer2d_blobs": "0.5 1 1 1 1", "isovalue": "0.4, 0.5"}, "give one isovalue"),
@@ -218,7 +216,8 @@ def test07_png_exr_and_npy_give_the_same_image(variant, folder):
                                    err_msg=name)
 
 
-def test08_a_new_table_compiles_nothing(variant, folder):
+@pytest.mark.parametrize("method", ["adaptive", "exact"])
+def test08_a_new_table_compiles_nothing(variant, folder, method):
     """After a first frame, scenes with another table of the same shape, one of another
     shape and blobs (another shape and range) compile 0 kernels, and draw other images."""
     mi = variant
@@ -226,11 +225,11 @@ def test08_a_new_table_compiles_nothing(variant, folder):
     np.save(folder / "t1.npy", threshold_table())
     np.save(folder / "t2.npy", threshold_table() * rng.uniform(0.2, 1.0, (9, 33)))
     np.save(folder / "t3.npy", threshold_table(rows=5, cols=17))
-    first = render(mi, scene(folder, table_xml("t1.npy")))
+    first = render(mi, scene(folder, table_xml("t1.npy"), method))
     gc.collect()
     for extra in (table_xml("t2.npy"), table_xml("t3.npy", "0.35 0.65 0 20"),
                   '<string name="transfer2d_blobs" value="0.5 30 0.05 10 1"/>'):
-        image, compiled = kernels_compiled(lambda: render(mi, scene(folder, extra)))
+        image, compiled = kernels_compiled(lambda: render(mi, scene(folder, extra, method)))
         gc.collect()
         assert compiled == 0, f"{extra}: {compiled} kernel(s) compiled"
         assert not np.allclose(image, first)
@@ -244,7 +243,7 @@ def _haze_and_boundary(one, two, far, boundary):
     return (one[far].mean(), two[far].mean()), (one[boundary].mean(), two[boundary].mean())
 
 
-@pytest.mark.parametrize("method", ["uniform", "adaptive", "bisect"])
+@pytest.mark.parametrize("method", ["exact", "uniform", "adaptive", "bisect"])
 def test09_the_2d_transfer_function_has_less_haze_than_a_1d_band(variant, folder, method):
     """``boundary_and_blob``: 0.5 is crossed at the ball's sharp edge (|grad f| about 30 as
     reconstructed) and across the smooth blob (|grad f| 3.2). The 1D band (width 0.1) lights
@@ -270,7 +269,8 @@ def test09_the_2d_transfer_function_has_less_haze_than_a_1d_band(variant, folder
 
 @pytest.mark.skipif(not (SHARED / "plt_eb_3d").is_dir(),
                     reason=f"AMReX sample plotfiles not found at {SHARED}")
-def test10_plt_eb_3d_wall_with_less_haze(variant, tmp_path):
+@pytest.mark.parametrize("method", ["adaptive", "exact"])
+def test10_plt_eb_3d_wall_with_less_haze(variant, tmp_path, method):
     """The real plotfile's wall, seen down the cylinder's axis (z). Its fluid density is
     constant (1.17985 nearly everywhere, |grad f| < 2.5) and drops to 0 at the wall (|grad f|
     about 1000): no value is crossed both at the wall and in a smooth stretch, so the smooth
@@ -287,7 +287,7 @@ def test10_plt_eb_3d_wall_with_less_haze(variant, tmp_path):
     np.save(tmp_path / "eb.npy", table)
     view = ("0.02, 0.02, 1", "0.02, 0.02, 0", "0, 1, 0", 0.04, 0.02)
     kw = dict(filename=str(SHARED / "plt_eb_3d"), field="density", iso=iso, view=view,
-              height=RES // 2)
+              height=RES // 2, method=method)
     one = render(mi, scene(tmp_path, f'<float name="band_width" value="{bw}"/>', **kw))
     two = render(mi, scene(tmp_path, table_xml("eb.npy", f"{iso - 2 * bw} {iso + 2 * bw} 0 100"),
                            **kw))

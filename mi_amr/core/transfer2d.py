@@ -69,6 +69,16 @@ class Transfer2D:
         high = t[j + 1, i] * (1 - fu) + t[j + 1, i + 1] * fu
         return np.where(inside, low * (1 - fw) + high * fw, 0.0)
 
+    def row_integrals(self, dx0: float, cap: float) -> np.ndarray:
+        """Per row (gradient magnitude), the extinction ``-ln(1 - min(alpha, cap)) / dx0``
+        (per world unit) integrated over the values from ``v0`` to each column (trapezoids;
+        field units per world unit): along a ramp of value at a fixed gradient the optical
+        depth is the difference of two entries over the ramp's value change."""
+        tau = -np.log1p(-np.minimum(self.table, cap)) / dx0
+        step = (self.v1 - self.v0) / (self.table.shape[1] - 1)
+        steps = 0.5 * (tau[:, 1:] + tau[:, :-1]) * step
+        return np.concatenate([np.zeros((tau.shape[0], 1)), np.cumsum(steps, axis=1)], axis=1)
+
     def value_support(self):
         """``(lo, hi)``: the values (field) outside which the opacity is 0 at every gradient --
         the columns holding some opacity and one column each side (the bilinear ramp). A kd

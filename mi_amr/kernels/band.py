@@ -229,7 +229,7 @@ def _inverse(m, band: BandInputs, k, T):
                    dr.gather(m.Float, band.inverse, i + base + 1), f)
 
 
-def _depth_fraction(s, tau):
+def depth_fraction(s, tau):
     """The fraction of a step's optical depth ``tau`` in front of the place where a fraction
     ``s`` of its opacity is made: ``-ln(1 - s (1 - e^-tau)) / tau``; for thin steps its series
     (the closed form's float32 rounding would exceed the series' error)."""
@@ -264,7 +264,7 @@ def _place(m, band: BandInputs, k, ramp, r):
     """Where along a step (``ramp``: its value offsets, integrals, depth and shortness from
     :func:`_ramp`) a fraction ``r`` of its opacity is made (a fraction of the step)."""
     xa, xb, Ta, Tb, tau, short = ramp
-    g = _depth_fraction(r, tau)
+    g = depth_fraction(r, tau)
     u_long = (_inverse(m, band, k, dr.lerp(Ta, Tb, g)) - xa) / (xb - xa)
     return dr.select(short, _short_ramp_u(m, band, k, xa, xb, g), u_long)
 
@@ -300,7 +300,7 @@ def _flank_centroid(m, band: BandInputs, k, ramp):
     return u_bar
 
 
-def _flat_centroid(tau):
+def flat_centroid(tau):
     """The centroid of a stretch of constant extinction and depth ``tau``."""
     alpha = 1.0 - dr.exp(-tau)
     closed = 1.0 / tau - dr.exp(-tau) / dr.maximum(alpha, tol.NO_WEIGHT)
@@ -326,7 +326,7 @@ def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
         u0, u1 = ends[j], ends[j + 1]
         ramp = _stretch(m, band, k, dr.lerp(xa, xb, u0), dr.lerp(xa, xb, u1), dx * (u1 - u0))
         a_j = 1.0 - dr.exp(-ramp[4])
-        c_j = _flat_centroid(ramp[4]) if j == 1 else _flank_centroid(m, band, k, ramp)
+        c_j = flat_centroid(ramp[4]) if j == 1 else _flank_centroid(m, band, k, ramp)
         moment += (1.0 - alpha) * a_j * dr.lerp(u0, u1, c_j)
         alpha += (1.0 - alpha) * a_j
     u_bar = dr.select(alpha > 0.0, moment / dr.maximum(alpha, tol.NO_WEIGHT), 0.5)

@@ -12,15 +12,16 @@ from typing import Any
 import drjit as dr
 
 from mi_amr import tolerances as tol
-from mi_amr.errors import AMRError
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
-from mi_amr.kernels.band import (alpha, combine, corrected, in_order, segment_alpha,
-                                 segment_alpha_and_centroid, segment_alpha_and_point)
+from mi_amr.kernels.band import (alpha, combine, corrected, depth_fraction, flat_centroid,
+                                 in_order, segment_alpha, segment_alpha_and_centroid,
+                                 segment_alpha_and_point)
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.kernels.transfer2d import alpha as alpha2d
+from mi_amr.kernels.transfer2d import segment_alpha as segment_alpha2d
 from mi_amr.kernels.traverse import Walk, clip_to_volume, epsilon, next_dual_plane, seek
 
 
@@ -61,10 +62,6 @@ def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lig
     """
     m = dev.m
     o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active)
-    if cfg.method == "exact" and cfg.transfer2d is not None:
-        raise AMRError("amr_iso: the exact method does not take a 2D transfer function yet "
-                       "('transfer2d', 'transfer2d_blobs'); use method uniform, adaptive or "
-                       "bisect")
     if cfg.method == "exact":
         return _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active)
     return _composite_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), color_of, lighting, active)
@@ -167,8 +164,8 @@ def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
     for i in range(len(piece.s_pts) - 1):
         dx = (piece.s_pts[i + 1] - piece.s_pts[i]) * dnorm
         a_i, b_i = piece.values[i], piece.values[i + 1]
-        alphas = [dr.select(have & (dx > 0.0), segment_alpha(m, cfg.band, k, a_i, b_i, dx, c), 0.0)
-                  for k, c in enumerate(centres)]
+        alphas = [dr.select(have & (dx > 0.0), a, 0.0)
+                  for a in _opacities(m, cfg, piece, i, a_i, b_i, dx, centres)]
         k_best, c_best, best = m.UInt32(0), centres[0], alphas[0]
         trans = 1.0 - alphas[0]
         for k in range(1, len(alphas)):
@@ -179,6 +176,16 @@ def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
             trans *= 1.0 - alphas[k]
         out.append(SubPiece(alphas=alphas, alpha=1.0 - trans, k=k_best, centre=c_best))
     return out
+
+
+def _opacities(m, cfg, piece: Piece, i, a, b, dx, centres):
+    """Each band's pre-integrated opacity on sub-piece ``i`` (value ``a`` to ``b``, length
+    ``dx``, world); with a 2D transfer function its one band, at the gradient magnitude of the
+    sub-piece's middle."""
+    if cfg.transfer2d is None:
+        return [segment_alpha(m, cfg.band, k, a, b, dx, c) for k, c in enumerate(centres)]
+    mid = 0.5 * (piece.s_pts[i] + piece.s_pts[i + 1])
+    return [segment_alpha2d(m, cfg.transfer2d, a, b, dx, dr.norm(piece.gradient(mid)))]
 
 
 def _two_most_opaque(m, subs):
@@ -227,8 +234,19 @@ def _light_place(m, cfg, piece: Piece, subs, dnorm, centres):
         r = dr.select(here, (target - made_before) /
                       dr.maximum(made_after - made_before, tol.NO_WEIGHT), r)
     a, b, dx, k, c, s0, s1 = _pick(piece, subs, dnorm, i_half)
-    _, u = segment_alpha_and_point(m, cfg.band, k, a, b, dx, c, r)
+    if cfg.transfer2d is None:
+        _, u = segment_alpha_and_point(m, cfg.band, k, a, b, dx, c, r)
+    else:   # (its extinction taken as even along the sub-piece)
+        u = depth_fraction(r, -dr.log(1.0 - dr.minimum(_picked_alpha(subs, i_half),
+                                                        tol.OPACITY_CAP)))
     return dr.lerp(s0, s1, u), 1.0 - trans[-1]
+
+
+def _picked_alpha(subs, i):
+    out = 0.0 * subs[0].alpha
+    for j, sub in enumerate(subs):
+        out = dr.select(i == j, sub.alpha, out)
+    return out
 
 
 def _shaded_colors(m, cfg, piece: Piece, subs, dnorm, i, ctx, lighting, lit, centres,
@@ -239,7 +257,10 @@ def _shaded_colors(m, cfg, piece: Piece, subs, dnorm, i, ctx, lighting, lit, cen
     nb = len(centres)
     same = getattr(color_of, "same_for_all_bands", nb == 1)
     a, b, dx, k, c, s0, s1 = _pick(piece, subs, dnorm, i)
-    _, u = segment_alpha_and_centroid(m, cfg.band, k, a, b, dx, c)
+    if cfg.transfer2d is None:
+        _, u = segment_alpha_and_centroid(m, cfg.band, k, a, b, dx, c)
+    else:   # (its extinction taken as even along the sub-piece)
+        u = flat_centroid(-dr.log(1.0 - dr.minimum(_picked_alpha(subs, i), tol.OPACITY_CAP)))
     cval, grad = piece.shading_inputs(dr.lerp(s0, s1, u))
     A, S = lighting.terms(ctx, grad, lit)
     return [color_of(_one_hot(nb, 0 if same else j), cval) * A + S for j in range(nb)]
@@ -277,25 +298,28 @@ def _piece(dev, cfg, o, d, w: Walk, L, nums, den, marks, lighting, arrays, have)
     relative to a band and, where it is shaded with ``cfg.shading_extrema``, where the first
     light's diffuse term turns (Marchesin et al. 2009, section 3.2; that term is a quadratic
     in ``t`` inside a trilinear cell, and so is the gradient, which is then taken at the
-    piece's front, middle and back and interpolated; without the cut it is reconstructed
-    where it is needed)."""
+    piece's front, middle and back and interpolated, as it is for a 2D transfer function;
+    otherwise it is reconstructed where it is needed)."""
     def reconstructed(s):
         return rec.reconstruct(dev, cfg.basis, dr.fma(d, w.t + s, o), arrays[:1], have,
                                leaf=w.leaf)[1]
 
     extra, gradient = [], reconstructed
-    if lighting is not None and cfg.shading_extrema:
+    shade_cut = lighting is not None and cfg.shading_extrema
+    if shade_cut or cfg.transfer2d is not None:
         grads_q = [reconstructed(f * L) for f in (0.0, 0.5, 1.0)]
-        ctx = lighting.sample(dr.fma(d, w.t + 0.5 * L, o), have, False)
-        extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], L)]
 
         def gradient(s):
             return _quadratic(grads_q, s / L)
 
+    if shade_cut:
+        ctx = lighting.sample(dr.fma(d, w.t + 0.5 * L, o), have, False)
+        extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], L)]
+
     s_pts = _split(dev, cfg, nums[0], den, L, marks, extra)
     values = [roots.cubic(nums[0], s) / roots.cubic(den, s) for s in s_pts]
     if lighting is None:
-        return Piece(L=L, s_pts=s_pts, values=values)
+        return Piece(L=L, s_pts=s_pts, values=values, gradient=gradient)
     return Piece(L=L, s_pts=s_pts, values=values, cnum=nums[1], den=den, gradient=gradient)
 
 
@@ -309,6 +333,17 @@ def _leaf_piece_end(dev, o, d, inv_d, w: Walk, t1, dnorm, level_masks, work):
     return dr.maximum(t_b, w.t + eps)
 
 
+def _exact_marks(dev, cfg):
+    """The bands' centres and the values a piece is cut at the extrema relative to: each
+    band's ends and centre; for a 2D transfer function its value support's ends and middle."""
+    tf = cfg.transfer2d
+    if tf is None:
+        centres, bands = _bands(dev, cfg)
+        return centres, _marks(centres, bands)
+    lo, hi = tf.get(dev.m, SUPPORT_LO), tf.get(dev.m, SUPPORT_HI)
+    return [0.5 * (lo + hi)], [lo, 0.5 * (lo + hi), hi]
+
+
 @dr.syntax
 def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     m = dev.m
@@ -317,8 +352,7 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     shade = lighting is not None
     arrays = dev.arrays(cfg.basis, color=True)
     level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
-    centres, bands = _bands(dev, cfg)
-    marks = _marks(centres, bands)
+    centres, marks = _exact_marks(dev, cfg)
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     w = Walk.start(m, t0)
@@ -447,8 +481,8 @@ def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centres):
 
 def _light_point(cfg, smp: Sample, t_prev, v_prev, points, shares):
     """Where a sample is lit: the sample, or for a pre-integrated step from the previous sample
-    the centroid of the band holding most of its opacity (``points``: that place per band, a
-    fraction of the step)."""
+    where the band holding most of its opacity has made half of it (``points``: that place per
+    band, a fraction of the step)."""
     if not cfg.preintegrated:
         return smp.t_s
     t = dr.lerp(t_prev, smp.t_s, _dominant(points, shares))

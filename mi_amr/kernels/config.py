@@ -25,7 +25,7 @@ class MarchConfig:
     :class:`~mi_amr.kernels.band.BandInputs`, one band around each isovalue, or None for
     surfaces; ``transfer2d``: volume mode's
     :class:`~mi_amr.kernels.transfer2d.Transfer2DInputs`, which then replaces the bands
-    (sampling methods only)."""
+    (every method)."""
 
     method: str
     basis: bool

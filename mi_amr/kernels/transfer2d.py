@@ -14,6 +14,7 @@ from typing import Any
 
 import drjit as dr
 
+from mi_amr import tolerances as tol
 from mi_amr.kernels.device import opaque_floats
 
 # Entries of :attr:`Transfer2DInputs.header`.
@@ -23,6 +24,8 @@ V0, V1, G0, G1, ROWS, COLS, SUPPORT_LO, SUPPORT_HI = range(8)
 @dataclass
 class Transfer2DInputs:
     """``table``: the opacities row after row (row ``j`` = gradient magnitude, ascending);
+    ``integral``: the same layout, each row's extinction integrated over the values
+    (:meth:`~mi_amr.core.transfer2d.Transfer2D.row_integrals`, for the exact method);
     ``header``: ``v0 v1 g0 g1 rows cols lo hi`` (``lo, hi``: the value support, see
     :meth:`~mi_amr.core.transfer2d.Transfer2D.value_support`); ``dx0``: the step length the
     opacities are for (world). All opaque."""
@@ -30,6 +33,7 @@ class Transfer2DInputs:
     table: Any
     header: Any
     dx0: Any
+    integral: Any = None
 
     def get(self, m, k: int):
         return dr.gather(m.Float, self.header, m.UInt32(k))
@@ -42,17 +46,18 @@ def transfer2d_inputs(m, tf, dx0: float) -> Transfer2DInputs:
     return Transfer2DInputs(table=opaque_floats(m, tf.table.ravel()),
                             header=opaque_floats(m, [tf.v0, tf.v1, tf.g0, tf.g1, rows, cols,
                                                      lo, hi]),
-                            dx0=opaque_floats(m, [dx0]))
+                            dx0=opaque_floats(m, [dx0]),
+                            integral=opaque_floats(m, tf.row_integrals(dx0, tol.OPACITY_CAP)
+                                                   .ravel()))
 
 
-def alpha(m, tf: Transfer2DInputs, v, gmag):
-    """Opacity for one step of length ``dx0`` at value ``v`` (field units) and gradient
-    magnitude ``gmag`` (field units per volume-world unit): bilinear in the table, 0 outside
-    ``[v0, v1]`` (and where ``v`` is NaN), ``gmag`` clamped to ``[g0, g1]``."""
+def _bilinear(m, tf: Transfer2DInputs, values, v, gmag, active):
+    """Bilinear lookup of ``values`` (a table of :attr:`Transfer2DInputs.table`'s layout) at
+    value ``v`` (clamped to ``[v0, v1]``) and gradient magnitude ``gmag`` (clamped to
+    ``[g0, g1]``)."""
     v0, v1, g0, g1 = (tf.get(m, k) for k in (V0, V1, G0, G1))
     rows, cols = tf.get(m, ROWS), tf.get(m, COLS)
-    inside = (v >= v0) & (v <= v1)
-    u = dr.select(inside, (v - v0) / (v1 - v0), 0.0) * (cols - 1.0)
+    u = dr.clip(dr.select(dr.isnan(v), 0.0, (v - v0) / (v1 - v0)), 0.0, 1.0) * (cols - 1.0)
     w = (gmag - g0) / (g1 - g0)
     w = dr.clip(dr.select(dr.isnan(w), 0.0, w), 0.0, 1.0) * (rows - 1.0)
     i = dr.clip(dr.floor(u), 0.0, cols - 2.0)
@@ -62,8 +67,31 @@ def alpha(m, tf: Transfer2DInputs, v, gmag):
     up = base + m.UInt32(cols)
 
     def at(index):
-        return dr.gather(m.Float, tf.table, index, inside)
+        return dr.gather(m.Float, values, index, active)
 
     low = dr.lerp(at(base), at(base + 1), fu)
     high = dr.lerp(at(up), at(up + 1), fu)
-    return dr.select(inside, dr.lerp(low, high, fw), 0.0)
+    return dr.lerp(low, high, fw)
+
+
+def alpha(m, tf: Transfer2DInputs, v, gmag):
+    """Opacity for one step of length ``dx0`` at value ``v`` (field units) and gradient
+    magnitude ``gmag`` (field units per volume-world unit): bilinear in the table, 0 outside
+    ``[v0, v1]`` (and where ``v`` is NaN), ``gmag`` clamped to ``[g0, g1]``."""
+    inside = (v >= tf.get(m, V0)) & (v <= tf.get(m, V1))
+    return dr.select(inside, _bilinear(m, tf, tf.table, v, gmag, inside), 0.0)
+
+
+def segment_alpha(m, tf: Transfer2DInputs, a, b, dx, gmag):
+    """Pre-integrated opacity over a step of length ``dx`` (world) along which the value runs
+    linearly from ``a`` to ``b`` at gradient magnitude ``gmag``: the row integrals' difference
+    over the value change; a ramp shorter than a column takes the opacity at its middle."""
+    cols = tf.get(m, COLS)
+    short = dr.abs(b - a) * (cols - 1.0) < tf.get(m, V1) - tf.get(m, V0)
+    mid = -dr.log(1.0 - dr.minimum(alpha(m, tf, 0.5 * (a + b), gmag), tol.OPACITY_CAP)) / \
+        tf.dx0
+    active = m.Bool(True)
+    Ta = _bilinear(m, tf, tf.integral, a, gmag, active)
+    Tb = _bilinear(m, tf, tf.integral, b, gmag, active)
+    tau = dr.select(short, mid, (Tb - Ta) / dr.select(short, 1.0, b - a))
+    return 1.0 - dr.exp(-dr.maximum(tau, 0.0) * dx)

@@ -105,9 +105,6 @@ def _check_transfer2d(opt: Options, values) -> None:
     name = "transfer2d" if table else "transfer2d_blobs"
     if opt.mode != "volume":
         raise AMRError(f"amr_iso: parameter '{name}' needs mode 'volume', got {opt.mode!r}")
-    if opt.method == "exact":
-        raise AMRError(f"amr_iso: parameter '{name}': the exact method does not take a 2D "
-                       f"transfer function yet; use method uniform, adaptive or bisect")
     if opt.preintegrated:
         raise AMRError(f"amr_iso: parameter '{name}': pre-integration ('preintegrated') is not "
                        f"supported with a 2D transfer function")
