@@ -75,17 +75,22 @@ def iso_light(scene, light_u, ray, P, n, phong: Phong, active, shadows, iso_tran
     A = mi.Spectrum(phong.ka * phong.ambient)
     S = mi.Spectrum(0.0)
     for emitter, u in zip(scene.emitters(), light_u):
-        it = dr.zeros(mi.Interaction3f)
-        it.p = P
-        it.time = ray.time
-        it.wavelengths = ray.wavelengths
-        ds, w = emitter.sample_direction(it, u, active)
+        ds, w = _sample_emitter(emitter, u, ray, P, active)
         lit = active & (ds.pdf > 0.0) & (dr.dot(n, ds.d) > 0.0)
         vis = visibility(scene, P, ds, lit, shadows, iso_transmittance, from_iso=True)
         diffuse, specular = phong_terms(phong, n, ds.d, -ray.d, w * vis)
         A += dr.select(lit, diffuse, 0.0)
         S += dr.select(lit, specular, 0.0)
     return A, S
+
+
+def _sample_emitter(emitter, u, ray, P, active):
+    """``emitter``'s direction sample and weight at the point ``P`` of the ray ``ray``."""
+    it = dr.zeros(mi.Interaction3f)
+    it.p = P
+    it.time = ray.time
+    it.wavelengths = ray.wavelengths
+    return emitter.sample_direction(it, u, active)
 
 
 @dataclass
@@ -104,11 +109,7 @@ def light_samples(scene, light_u, ray, P, active, shadows, iso_transmittance):
     (a Mitsuba Bool, or False for no shadow rays at all)."""
     out = []
     for emitter, u in zip(scene.emitters(), light_u):
-        it = dr.zeros(mi.Interaction3f)
-        it.p = P
-        it.time = ray.time
-        it.wavelengths = ray.wavelengths
-        ds, w = emitter.sample_direction(it, u, active)
+        ds, w = _sample_emitter(emitter, u, ray, P, active)
         valid = active & (ds.pdf > 0.0)
         if shadows is not False:
             w = w * visibility(scene, P, ds, valid, shadows, iso_transmittance, from_iso=True)
