@@ -180,14 +180,15 @@ def integral(m, band: BandInputs, k, x):
     return dr.lerp(dr.gather(m.Float, band.table, i), dr.gather(m.Float, band.table, i + 1), f)
 
 
-def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre):
+def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre, ends=None):
     """Band ``k``'s optical depth over a step of length ``dx`` (world) along which the value
     goes linearly from ``a`` to ``b``; with the integral at both ends and whether the ramp is
     short (it holds less than :data:`~mi_amr.tolerances.SHORT_RAMP_DEPTH` of the band's
     integral). A short ramp's depth is Simpson's rule of the extinction over its part inside
-    the support (the difference of two float32 integrals would lose its digits)."""
+    the support (the difference of two float32 integrals would lose its digits). ``ends``: the
+    integral at both ends where the caller has them."""
     xa, xb = a - centre, b - centre
-    Ta, Tb = integral(m, band, k, xa), integral(m, band, k, xb)
+    Ta, Tb = ends if ends is not None else (integral(m, band, k, xa), integral(m, band, k, xb))
     total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
     short = dr.abs(Tb - Ta) < tol.SHORT_RAMP_DEPTH * total
     u0, u1 = _inside(m, band, k, xa, xb)
@@ -211,10 +212,11 @@ def _inside(m, band: BandInputs, k, xa, xb):
     return u0, u1
 
 
-def segment_alpha(m, band: BandInputs, k, a, b, dx, centre):
+def segment_alpha(m, band: BandInputs, k, a, b, dx, centre, ends=None):
     """Pre-integrated opacity of band ``k`` for a step of length ``dx`` (world) along which the
-    value goes linearly from ``a`` to ``b``."""
-    return 1.0 - dr.exp(-_ramp_depth(m, band, k, a, b, dx, centre)[0])
+    value goes linearly from ``a`` to ``b`` (``ends``: :func:`integral` at ``a`` and ``b``, if
+    known)."""
+    return 1.0 - dr.exp(-_ramp_depth(m, band, k, a, b, dx, centre, ends)[0])
 
 
 def _inverse(m, band: BandInputs, k, T):

@@ -15,8 +15,8 @@ from mi_amr import tolerances as tol
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
 from mi_amr.kernels.band import (alpha, combine, corrected, depth_fraction, flat_centroid,
-                                 in_order, segment_alpha, segment_alpha_and_centroid,
-                                 segment_alpha_and_point)
+                                 in_order, integral, segment_alpha,
+                                 segment_alpha_and_centroid, segment_alpha_and_point)
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
@@ -161,11 +161,14 @@ def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
     """Per sub-piece its :class:`SubPiece`."""
     m = dev.m
     out = []
+    # each band's integral at each cut, shared by the sub-pieces on either side
+    ints = [] if cfg.transfer2d is not None else \
+        [[integral(m, cfg.band, k, v - c) for v in piece.values] for k, c in enumerate(centres)]
     for i in range(len(piece.s_pts) - 1):
         dx = (piece.s_pts[i + 1] - piece.s_pts[i]) * dnorm
         a_i, b_i = piece.values[i], piece.values[i + 1]
         alphas = [dr.select(have & (dx > 0.0), a, 0.0)
-                  for a in _opacities(m, cfg, piece, i, a_i, b_i, dx, centres)]
+                  for a in _opacities(m, cfg, piece, i, a_i, b_i, dx, centres, ints)]
         k_best, c_best, best = m.UInt32(0), centres[0], alphas[0]
         trans = 1.0 - alphas[0]
         for k in range(1, len(alphas)):
@@ -178,12 +181,13 @@ def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
     return out
 
 
-def _opacities(m, cfg, piece: Piece, i, a, b, dx, centres):
+def _opacities(m, cfg, piece: Piece, i, a, b, dx, centres, ints):
     """Each band's pre-integrated opacity on sub-piece ``i`` (value ``a`` to ``b``, length
-    ``dx``, world); with a 2D transfer function its one band, at the gradient magnitude of the
-    sub-piece's middle."""
+    ``dx``, world; ``ints[k][j]``: band ``k``'s integral at cut ``j``); with a 2D transfer
+    function its one band, at the gradient magnitude of the sub-piece's middle."""
     if cfg.transfer2d is None:
-        return [segment_alpha(m, cfg.band, k, a, b, dx, c) for k, c in enumerate(centres)]
+        return [segment_alpha(m, cfg.band, k, a, b, dx, c, (ints[k][i], ints[k][i + 1]))
+                for k, c in enumerate(centres)]
     mid = 0.5 * (piece.s_pts[i] + piece.s_pts[i + 1])
     return [segment_alpha2d(m, cfg.transfer2d, a, b, dx, dr.norm(piece.gradient(mid)))]
 
