@@ -13,9 +13,11 @@ Pre-integrated colour (Marchesin et al. 2009, sections 3.1-3.2): where the shade
 linearly from ``E_front`` to ``E_back`` along the step, the step's light is
 ``alpha * lerp(E_front, E_back, u_bar)``, ``u_bar`` the step's *centroid*: the opacity-weighted
 mean position along it, ``u_bar = (1 / alpha) int_0^1 u dF(u)`` with ``F(u) = 1 - exp(-depth in
-front of u)``. :func:`segment_alpha_and_centroid` takes it by Gauss-Legendre quadrature in
-``F`` (:data:`COLOR_NODES` nodes; each node's position from the inverse table), which is smooth
-where the integrand in ``u`` is not (the cap at ``alpha = 1`` and the support's ends).
+front of u)``. :func:`segment_alpha_and_centroid` splits the step where it enters and leaves
+the plateau (where the opacity is capped; there the centroid has a closed form) and takes it
+on the flanks by Gauss-Legendre quadrature in ``F`` (:data:`COLOR_NODES` nodes; each node's
+position from the inverse table), which is smooth where the integrand in ``u`` is not (the
+support's ends). Short ramps (see :func:`_ramp_depth`) take the extinction as linear.
 
 :class:`OpacityBand` holds one band's shape on the host; :func:`band_inputs` makes
 :class:`BandInputs` of one band per isovalue, the opaque device values the kernels read, so a new

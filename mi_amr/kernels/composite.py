@@ -37,7 +37,7 @@ class Composite:
 def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lighting,
               active) -> Composite:
     """Front-to-back compositing of the opacity bands ``cfg.band`` (one around each isovalue)
-    along the ray, with early termination when less than :data:`~mi_amr.tolerances.T_MIN` of
+    or of the 2D transfer function ``cfg.transfer2d`` along the ray, with early termination when less than :data:`~mi_amr.tolerances.T_MIN` of
     the light gets through.
 
     ``color_of(shares, value)`` gives the colour (``m.Array3f``) of a stretch where the bands
@@ -52,11 +52,15 @@ def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lig
 
     ``exact``: each cubic piece is cut where the reconstructed value can turn relative to a
     band (at the extrema of ``N - v D`` for each band's low end, centre and high end) and
-    where the diffuse term turns; on each resulting piece the value is taken as a linear ramp
-    and the shaded colour as linear between the piece's ends, and the piece's light is the
-    exact integral of that model (Marchesin et al. 2009, sections 3.1-3.2): each band's
-    pre-integrated opacity and centroid, the bands met in the ramp's order. The band is never
-    stepped over and no step size or jitter enters. The sampling methods take one sample per
+    where the diffuse term turns (Marchesin et al. 2009, sections 3.1-3.2); on each resulting
+    sub-piece the value is taken as a linear ramp, its opacity is each band's integral over
+    it, and its light the opacity times the shaded colour at the centroid of its most opaque
+    band (exact where the shaded colour runs linearly along it), the bands met in the ramp's
+    order. The two most opaque sub-pieces of a piece are shaded so, the others take the first
+    one's colours; the piece is lit (shadow rays) where it has made half its opacity. With a
+    2D transfer function a sub-piece's opacity is the table row of its gradient magnitude
+    integrated along the ramp. The band is never stepped over and no step size or jitter
+    enters. The sampling methods take one sample per
     step with opacity correction (or pre-integration between consecutive samples); ``bisect``
     moves a sample into the band when two samples straddle it (the course report's method).
     """
