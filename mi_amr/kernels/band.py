@@ -182,21 +182,34 @@ def integral(m, band: BandInputs, k, x):
     return dr.lerp(dr.gather(m.Float, band.table, i), dr.gather(m.Float, band.table, i + 1), f)
 
 
+def cut_point(m, band: BandInputs, k, x):
+    """What a ramp end at offset ``x`` contributes to :func:`_ramp_depth`, shared by the
+    steps on either side of it: band ``k``'s integral there, and its shape's extinction (per
+    ``dx0``) there clipped to the support."""
+    clipped = dr.clip(x, band.get(m, "lo", k), band.get(m, "hi", k))
+    return integral(m, band, k, x), _shape_tau(m, band, k, clipped)
+
+
 def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre, ends=None):
     """Band ``k``'s optical depth over a step of length ``dx`` (world) along which the value
     goes linearly from ``a`` to ``b``; with the integral at both ends and whether the ramp is
     short (it holds less than :data:`~mi_amr.tolerances.SHORT_RAMP_DEPTH` of the band's
     integral). A short ramp's depth is Simpson's rule of the extinction over its part inside
-    the support (the difference of two float32 integrals would lose its digits). ``ends``: the
-    integral at both ends where the caller has them."""
+    the support (the difference of two float32 integrals would lose its digits). ``ends``:
+    :func:`cut_point` of both ends where the caller has them."""
     xa, xb = a - centre, b - centre
-    Ta, Tb = ends if ends is not None else (integral(m, band, k, xa), integral(m, band, k, xb))
+    (Ta, ta), (Tb, tb) = ends if ends is not None else \
+        (cut_point(m, band, k, xa), cut_point(m, band, k, xb))
     total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
     short = dr.abs(Tb - Ta) < tol.SHORT_RAMP_DEPTH * total
-    u0, u1 = _inside(m, band, k, xa, xb)
-    ta, tm, tb = (_shape_tau(m, band, k, dr.lerp(xa, xb, u))
-                  for u in (u0, 0.5 * (u0 + u1), u1))
-    simpson = (u1 - u0) * (ta + 4.0 * tm + tb) / (6.0 * band.dx0)
+    lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
+    ca, cb = dr.clip(xa, lo, hi), dr.clip(xb, lo, hi)
+    moving = xb != xa
+    # the fraction of the ramp inside the support
+    inside = dr.select(moving, dr.abs(cb - ca) / dr.abs(dr.select(moving, xb - xa, 1.0)),
+                       dr.select((xa > lo) & (xa < hi), 1.0, 0.0))
+    tm = _shape_tau(m, band, k, 0.5 * (ca + cb))
+    simpson = inside * (ta + 4.0 * tm + tb) / (6.0 * band.dx0)
     tau_mean = dr.select(short, simpson, (Tb - Ta) / dr.select(short, 1.0, xb - xa))
     return dr.maximum(tau_mean, 0.0) * dx, Ta, Tb, short
 
@@ -216,8 +229,8 @@ def _inside(m, band: BandInputs, k, xa, xb):
 
 def segment_alpha(m, band: BandInputs, k, a, b, dx, centre, ends=None):
     """Pre-integrated opacity of band ``k`` for a step of length ``dx`` (world) along which the
-    value goes linearly from ``a`` to ``b`` (``ends``: :func:`integral` at ``a`` and ``b``, if
-    known)."""
+    value goes linearly from ``a`` to ``b`` (``ends``: :func:`cut_point` of ``a`` and ``b``,
+    if known)."""
     return 1.0 - dr.exp(-_ramp_depth(m, band, k, a, b, dx, centre, ends)[0])
 
 

@@ -14,8 +14,8 @@ import drjit as dr
 from mi_amr import tolerances as tol
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
-from mi_amr.kernels.band import (alpha, combine, corrected, depth_fraction, flat_centroid,
-                                 in_order, integral, segment_alpha,
+from mi_amr.kernels.band import (alpha, combine, corrected, cut_point, depth_fraction,
+                                 flat_centroid, in_order, segment_alpha,
                                  segment_alpha_and_centroid, segment_alpha_and_point)
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import lnot
@@ -165,9 +165,9 @@ def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
     """Per sub-piece its :class:`SubPiece`."""
     m = dev.m
     out = []
-    # each band's integral at each cut, shared by the sub-pieces on either side
+    # what each band needs of each cut, shared by the sub-pieces on either side
     ints = [] if cfg.transfer2d is not None else \
-        [[integral(m, cfg.band, k, v - c) for v in piece.values] for k, c in enumerate(centres)]
+        [[cut_point(m, cfg.band, k, v - c) for v in piece.values] for k, c in enumerate(centres)]
     for i in range(len(piece.s_pts) - 1):
         dx = (piece.s_pts[i + 1] - piece.s_pts[i]) * dnorm
         a_i, b_i = piece.values[i], piece.values[i + 1]
@@ -187,7 +187,8 @@ def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
 
 def _opacities(m, cfg, piece: Piece, i, a, b, dx, centres, ints):
     """Each band's pre-integrated opacity on sub-piece ``i`` (value ``a`` to ``b``, length
-    ``dx``, world; ``ints[k][j]``: band ``k``'s integral at cut ``j``); with a 2D transfer
+    ``dx``, world; ``ints[k][j]``: band ``k``'s :func:`~mi_amr.kernels.band.cut_point` at cut
+    ``j``); with a 2D transfer
     function its one band, at the gradient magnitude of the sub-piece's middle."""
     if cfg.transfer2d is None:
         return [segment_alpha(m, cfg.band, k, a, b, dx, c, (ints[k][i], ints[k][i + 1]))
