@@ -28,6 +28,7 @@ index ``k`` (a Python int: the number of bands is part of the scene's structure)
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -66,6 +67,14 @@ class BandInputs:
 
     def get(self, m, name, k):
         return dr.gather(m.Float, getattr(self, name), m.UInt32(k))
+
+
+@functools.lru_cache(maxsize=64)
+def band_shape(width: float, support: tuple, peak: float, dx0: float) -> "OpacityBand":
+    """The :class:`OpacityBand` of these parameters, its tables built once: a frame that
+    changes an isovalue, a colour or the step reuses them (the tables depend on the band's
+    shape alone)."""
+    return OpacityBand(width, support, peak, dx0)
 
 
 def band_inputs(m, bands) -> BandInputs:

@@ -32,7 +32,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_amr.errors import AMRError
-from mi_amr.kernels.band import OpacityBand, band_inputs
+from mi_amr.kernels.band import band_inputs, band_shape
 from mi_amr.kernels.colormap import ColorMap, check_range
 from mi_amr.kernels.device import opaque_bools, opaque_floats
 from mi_amr.kernels.transfer2d import transfer2d_inputs
@@ -114,7 +114,8 @@ class FrameInputs:
             transfer2d_inputs(m, self.transfer2d_host, self.min_h)
         if "band_width" in host:
             offsets = host["band_offsets"].reshape(-1, 2)
-            self.band = band_inputs(m, [OpacityBand(float(w), tuple(o), float(p), dx0=self.min_h)
+            self.band = band_inputs(m, [band_shape(float(w), tuple(map(float, o)), float(p),
+                                                   self.min_h)
                                         for w, o, p in zip(host["band_width"], offsets,
                                                            host["band_peak"])])
 
