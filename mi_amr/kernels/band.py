@@ -223,19 +223,6 @@ def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre, ends=None):
     return dr.maximum(tau_mean, 0.0) * dx, Ta, Tb, short
 
 
-def _inside(m, band: BandInputs, k, xa, xb):
-    """The fractions ``(u0, u1)`` of a ramp of value offsets ``xa`` to ``xb`` between which
-    it lies inside band ``k``'s support (``u0 = u1`` where it misses it)."""
-    lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
-    moving = xb != xa
-    span = dr.select(moving, xb - xa, 1.0)
-    u_lo, u_hi = (lo - xa) / span, (hi - xa) / span
-    inside = (xa > lo) & (xa < hi)
-    u0 = dr.select(moving, dr.clip(dr.minimum(u_lo, u_hi), 0.0, 1.0), 0.0)
-    u1 = dr.select(moving, dr.clip(dr.maximum(u_lo, u_hi), 0.0, 1.0), dr.select(inside, 1.0, 0.0))
-    return u0, u1
-
-
 def segment_alpha(m, band: BandInputs, k, a, b, dx, centre, ends=None):
     """Pre-integrated opacity of band ``k`` for a step of length ``dx`` (world) along which the
     value goes linearly from ``a`` to ``b`` (``ends``: :func:`cut_point` of ``a`` and ``b``,
@@ -270,7 +257,7 @@ def _short_ramp_u(m, band, k, xa, xb, g):
     optical depth lies in front, with the extinction taken as linear along the part of it
     inside the support (the inverse table is too coarse for ramps shorter than a few of its
     cells)."""
-    u0, u1 = _inside(m, band, k, xa, xb)
+    u0, u1 = _within(xa, xb, band.get(m, "lo", k), band.get(m, "hi", k))
     ta = _shape_tau(m, band, k, dr.lerp(xa, xb, u0))
     tb = _shape_tau(m, band, k, dr.lerp(xa, xb, u1))
     tm, dt = 0.5 * (ta + tb), tb - ta

@@ -128,7 +128,6 @@ class Piece:
     values there; where it is shaded, the colour field's cubic numerator ``cnum``, the shared
     denominator ``den`` and ``gradient(s)``, the gradient at piece parameter ``s``."""
 
-    L: Any
     s_pts: list
     values: list
     cnum: Any = None
@@ -213,15 +212,20 @@ def _two_most_opaque(m, subs):
 
 def _pick(piece: Piece, subs, dnorm, i):
     """Sub-piece ``i`` (a lane index): its end values, length (world), most opaque band and
-    isovalue, and its ends (piece parameter)."""
+    isovalue, its ends (piece parameter) and its opacity."""
     zero = 0.0 * piece.s_pts[0]
-    out = [zero, zero, zero, dr.zeros(type(subs[0].k), dr.width(zero)), zero, zero, zero]
+    out = [zero, zero, zero, dr.zeros(type(subs[0].k), dr.width(zero)), zero, zero, zero, zero]
     for j, sub in enumerate(subs):
         s0, s1 = piece.s_pts[j], piece.s_pts[j + 1]
         now = [piece.values[j], piece.values[j + 1], (s1 - s0) * dnorm, sub.k, sub.centre,
-               s0, s1]
+               s0, s1, sub.alpha]
         out = [dr.select(i == j, x, y) for x, y in zip(now, out)]
     return out
+
+
+def _depth(alpha):
+    """The optical depth of opacity ``alpha``."""
+    return -dr.log(1.0 - dr.minimum(alpha, tol.OPACITY_CAP))
 
 
 def _light_place(m, cfg, piece: Piece, subs, dnorm, centres):
@@ -242,20 +246,12 @@ def _light_place(m, cfg, piece: Piece, subs, dnorm, centres):
         i_half = dr.select(here, i, i_half)
         r = dr.select(here, (target - made_before) /
                       dr.maximum(made_after - made_before, tol.NO_WEIGHT), r)
-    a, b, dx, k, c, s0, s1 = _pick(piece, subs, dnorm, i_half)
+    a, b, dx, k, c, s0, s1, alpha = _pick(piece, subs, dnorm, i_half)
     if cfg.transfer2d is None:
         _, u = segment_alpha_and_point(m, cfg.band, k, a, b, dx, c, r)
     else:   # (its extinction taken as even along the sub-piece)
-        u = depth_fraction(r, -dr.log(1.0 - dr.minimum(_picked_alpha(subs, i_half),
-                                                        tol.OPACITY_CAP)))
+        u = depth_fraction(r, _depth(alpha))
     return dr.lerp(s0, s1, u), 1.0 - trans[-1]
-
-
-def _picked_alpha(subs, i):
-    out = 0.0 * subs[0].alpha
-    for j, sub in enumerate(subs):
-        out = dr.select(i == j, sub.alpha, out)
-    return out
 
 
 def _shaded_colors(m, cfg, piece: Piece, subs, dnorm, i, ctx, lighting, lit, centres,
@@ -265,11 +261,11 @@ def _shaded_colors(m, cfg, piece: Piece, subs, dnorm, i, ctx, lighting, lit, cen
     linearly along it, and close where it curves, as a highlight does)."""
     nb = len(centres)
     same = getattr(color_of, "same_for_all_bands", nb == 1)
-    a, b, dx, k, c, s0, s1 = _pick(piece, subs, dnorm, i)
+    a, b, dx, k, c, s0, s1, alpha = _pick(piece, subs, dnorm, i)
     if cfg.transfer2d is None:
         _, u = segment_alpha_and_centroid(m, cfg.band, k, a, b, dx, c)
     else:   # (its extinction taken as even along the sub-piece)
-        u = flat_centroid(-dr.log(1.0 - dr.minimum(_picked_alpha(subs, i), tol.OPACITY_CAP)))
+        u = flat_centroid(_depth(alpha))
     cval, grad = piece.shading_inputs(dr.lerp(s0, s1, u))
     A, S = lighting.terms(ctx, grad, lit)
     return [color_of(_one_hot(nb, 0 if same else j), cval) * A + S for j in range(nb)]
@@ -328,8 +324,8 @@ def _piece(dev, cfg, o, d, w: Walk, L, nums, den, marks, lighting, arrays, have)
     s_pts = _split(dev, cfg, nums[0], den, L, marks, extra)
     values = [roots.cubic(nums[0], s) / roots.cubic(den, s) for s in s_pts]
     if lighting is None:
-        return Piece(L=L, s_pts=s_pts, values=values, gradient=gradient)
-    return Piece(L=L, s_pts=s_pts, values=values, cnum=nums[1], den=den, gradient=gradient)
+        return Piece(s_pts=s_pts, values=values, gradient=gradient)
+    return Piece(s_pts=s_pts, values=values, cnum=nums[1], den=den, gradient=gradient)
 
 
 def _leaf_piece_end(dev, o, d, inv_d, w: Walk, t1, dnorm, level_masks, work):
