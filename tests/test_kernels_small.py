@@ -166,6 +166,17 @@ def test06c_a_steps_centroid_matches_quadrature(a, b, dx):
     assert u.numpy()[0] == pytest.approx(ref_u, abs=tolerances.CENTROID_ABS)
 
 
+@pytest.mark.parametrize("a, b, dx", [
+    (-0.015, 0.02, 0.3), (0.02, -0.015, 0.3), (-0.015, 0.02, 0.001), (-0.03, 0.05, 4.0),
+    (0.004, 0.006, 0.5)])
+def test06d_where_a_step_makes_half_its_opacity_matches_quadrature(a, b, dx):
+    """The place a piece is lit (where half its opacity is made) against its float64 twin."""
+    shape = band.OpacityBand(width=0.01, support=(-0.02, 0.03), peak=1.2, dx0=0.5)
+    args = (m, shape.inputs(m), 0, Float(a), Float(b), Float(dx), Float(0.0))
+    _, u = band.segment_alpha_and_point(*args)
+    assert u.numpy()[0] == pytest.approx(shape.point_numpy(a, b, dx), abs=5e-4)
+
+
 def test07_bad_band_shapes_are_refused():
     with pytest.raises(AMRError, match="band_width"):
         band.OpacityBand(width=-1.0)
@@ -212,3 +223,4 @@ def test10_every_tolerance_has_a_reason():
     assert len(names) >= 15
     for i in names:
         assert lines[i - 1].startswith("#"), f"no reason given for {lines[i]}"
+
