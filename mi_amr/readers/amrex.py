@@ -38,6 +38,7 @@ import numpy as np
 
 from mi_amr.errors import AMRError, shown
 from mi_amr.core.volume import AMRVolume
+from mi_amr.readers.fields import requested
 
 # "HyperCLaw-V1.1" is AMReX's default; codes may pass their own name to WriteMultiLevelPlotfile,
 # so any "<name>-V<number>" counts. Checkpoint headers ("Checkpoint version: 1") do not match.
@@ -375,17 +376,7 @@ def _reading(path, what: str):
 # ---------------------------------------------------------------------- checks and data
 
 def _wanted_fields(root: Path, names: tuple, fields) -> list:
-    if fields is None:
-        return list(names)
-    if isinstance(fields, str):
-        fields = [fields]
-    wanted = list(dict.fromkeys(fields))
-    if not wanted:
-        raise AMRError(f"{root}: no fields requested; the plotfile holds {list(names)}")
-    unknown = [n for n in wanted if n not in names]
-    if unknown:
-        raise AMRError(f"{root}: unknown field(s) {unknown}; the plotfile holds {list(names)}")
-    return wanted
+    return requested(root, fields, list(names), holder="plotfile")
 
 
 def _check_boxes(header_path: Path, cell_h: Path, header: PlotfileHeader, entry: LevelEntry,

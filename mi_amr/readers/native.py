@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_amr.errors import AMRError
+from mi_amr.readers.fields import requested
 from mi_amr.core.npz import MAGIC, VERSION
 from mi_amr.core.volume import AMRVolume
 
@@ -227,21 +228,7 @@ def _names(path: Path, names: np.ndarray) -> list:
 
 def _wanted(path: Path, fields, names: list) -> list:
     """The requested field names: all (``None``), one name, or a list of names."""
-    if fields is None:
-        return names
-    if isinstance(fields, str):
-        fields = [fields]
-    try:
-        wanted = list(dict.fromkeys(fields))
-    except TypeError:
-        raise AMRError(f"{path}: fields must be a field name or a list of names, got "
-                       f"{fields!r}") from None
-    if not wanted:
-        raise AMRError(f"{path}: no fields requested; the file holds {names}")
-    unknown = [n for n in wanted if n not in names]
-    if unknown:
-        raise AMRError(f"{path}: unknown field(s) {unknown}; the file holds {names}")
-    return wanted
+    return requested(path, fields, names)
 
 
 def _why(e: BaseException) -> str:

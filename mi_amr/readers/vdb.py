@@ -75,6 +75,7 @@ import numpy as np
 
 from mi_amr.errors import AMRError
 from mi_amr.core.volume import AMRVolume
+from mi_amr.readers.fields import requested
 
 MAGIC = 0x56444220
 # 222 (OpenVDB 3.0) moved the compression flags into each grid and mask-compressed internal
@@ -763,13 +764,7 @@ def _choose_grids(path: Path, header: VDBHeader, fields) -> list:
                                f"reads FloatGrid (Tree_float_5_4_3) and Vec3SGrid "
                                f"(Tree_vec3s_5_4_3) grids{hint}")
         return list(header.grids)
-    wanted = [fields] if isinstance(fields, str) else list(dict.fromkeys(fields))
-    if not wanted:
-        raise AMRError(f"{path}: no fields requested; the file holds {field_names_of(header)}")
-    unknown = [n for n in wanted if n not in producers]
-    if unknown:
-        raise AMRError(f"{path}: unknown field(s) {unknown}; the file holds "
-                       f"{field_names_of(header)}")
+    wanted = requested(path, fields, producers, field_names_of(header))
     return [d for d in header.grids if any(n in wanted for n in d.field_names)]
 
 
