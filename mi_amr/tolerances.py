@@ -56,6 +56,11 @@ COVER_NUDGE = 0.01
 # relative to the size of the terms: a cubic's extremum this close to zero touches it (a
 # tangent or grazing hit, an isovalue at a local extremum of the field).
 TANGENT_REL = 2e-6
+# relative to the size of the terms: counting crossings without finding them (shadow rays,
+# mi_amr.kernels.transmit), a value of N - iso D this close to zero has no sure side. Where two
+# cubic pieces meet, their values at the shared end differ by float32 rounding (1e-5 of the
+# terms seen), which must not make a crossing there count two or three times.
+SIGN_SURE_REL = 1e-4
 # a cubic's leading coefficient below this: its derivative is linear (float32 has no
 # meaningful quadratic term left).
 QUADRATIC_EPS = 1e-30

@@ -73,7 +73,7 @@ def test04_front_to_back_composites_made_up_layers(variant):
     def crossing(t, alive):
         k = mi.UInt32(mi.Float(t))          # layer k sits at t = k + 0.5
         hit = alive & (k < 3)
-        return hit, mi.Float(k), mi.Float(k) + 1.0, k
+        return hit, mi.Float(k), mi.Float(k) + 1.0, k     # the state: where to look next
 
     def opacity(k):
         return dr.select(k == 0, alphas[0], dr.select(k == 1, alphas[1], alphas[2]))
@@ -84,11 +84,11 @@ def test04_front_to_back_composites_made_up_layers(variant):
 
     import drjit as dr
 
-    L, T = front_to_back(crossing, opacity, shade, 8, mi.Bool(True))
+    L, T = front_to_back(mi.Float(0.0), crossing, opacity, shade, 8, mi.Bool(True))
     assert np.array(L)[0, 0] == pytest.approx(2.0)
     assert np.array(T)[0] == 0.0
-    L, T = front_to_back(crossing, opacity, shade, 2, mi.Bool(True))
+    L, T = front_to_back(mi.Float(0.0), crossing, opacity, shade, 2, mi.Bool(True))
     assert np.array(L)[0, 0] == pytest.approx(1.0)
     assert np.array(T)[0] == pytest.approx(0.25)
-    _, T = front_to_back(crossing, opacity, None, 8, mi.Bool(True))
+    _, T = front_to_back(mi.Float(0.0), crossing, opacity, None, 8, mi.Bool(True))
     assert np.array(T)[0] == 0.0

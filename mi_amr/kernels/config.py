@@ -73,10 +73,14 @@ def sides_differ(dev, cfg: MarchConfig, a, b):
 
 
 def first_between(dev, cfg: MarchConfig, a, b):
-    """Index of an isovalue strictly between values ``a`` and ``b`` (the first one listed)."""
+    """Index of the isovalue strictly between values ``a`` and ``b`` that lies nearest to
+    ``a`` (the first one met going from ``a`` to ``b``; the first listed among equals)."""
     m = dev.m
     out = m.UInt32(0)
-    for k in range(cfg.num_iso - 1, -1, -1):
+    best = m.Float(dr.inf)
+    for k in range(cfg.num_iso):
         iso = cfg.iso(dev, k)
-        out = dr.select((a - iso) * (b - iso) < 0.0, m.UInt32(k), out)
+        near = ((a - iso) * (b - iso) < 0.0) & (dr.abs(iso - a) < best)
+        out = dr.select(near, m.UInt32(k), out)
+        best = dr.select(near, dr.abs(iso - a), best)
     return out

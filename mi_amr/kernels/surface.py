@@ -53,17 +53,60 @@ class Crossing:
     samples: Any     # field evaluations (``exact``: cubic pieces) along the ray
 
 
-def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active) -> Crossing:
+def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active,
+                   v_before=None) -> Crossing:
     """First crossing of any isovalue by the reconstructed field on ``(t_start, t_end)``.
 
     ``o``, ``d``: ray origin and direction in volume world space (``m.Array3f``); ``jitter``:
     per-ray offset in ``[0, 1)`` for the adaptive methods (ignored by ``exact`` and ``uniform``).
+    ``v_before`` (``exact`` only): the field's value just before ``t_start`` (NaN or None:
+    unknown); a jump from it across an isovalue where the search starts is a crossing.
     """
     m = dev.m
     o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active)
     if cfg.method == "exact":
-        return _march_exact(dev, cfg, o, d, t0, t1, active)
+        v = m.Float(dr.nan) if v_before is None else m.Float(v_before)
+        c, _ = _march_exact(dev, cfg, o, d, Walk.start(m, t0), v, t1, active)
+        return c
     return _march_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), active)
+
+
+def crossings(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active, resume=True):
+    """The crossings on ``(t_start, t_end)`` one after the other (translucent layers): returns
+    ``(state, after)``, where ``after(state, alive) -> (Crossing, state)`` finds the next
+    crossing, at least ``dev.layer_offset`` (in finest-cell units of length) past the one
+    before.
+
+    ``exact`` goes on with the crossed isovalue as the value before, so that a jump of the
+    field across several isovalues (``finest`` at grid edges) is one layer per isovalue, and
+    resumes its kd-tree walk where the last crossing was: the same pieces, roots and leaves as
+    a new :func:`first_crossing` from just past it, which is what ``resume=False`` does (the
+    slow twin) and what the sampled methods always do (their step positions are anchored at
+    the march's start; they start again with no value before)."""
+    m = dev.m
+    step = dev.layer_offset / dr.norm(d)
+    no_value = m.Float(dr.nan)
+
+    def past(c, v):
+        return dr.select(c.hit, cfg.iso(dev, c.k), v)
+
+    if cfg.method == "exact" and resume:
+        o_in, t0, t1, inside = clip_to_volume(dev, o, d, t_start, t_end, active)
+
+        def resumed(state, alive):
+            w, v = state
+            c, w = _march_exact(dev, cfg, o_in, d, w, v, t1, inside & alive & (w.t < t1))
+            w.t = dr.select(c.hit, c.t + step, w.t)
+            return c, (w, past(c, v))
+
+        return (Walk.start(m, t0), no_value), resumed
+
+    def restarted(state, alive):
+        t, v = state
+        c = first_crossing(dev, cfg, o, d, t, t_end, jitter, alive, v_before=v)
+        return c, (dr.select(c.hit, c.t + step, t), past(c, v))
+
+    return (m.Float(t_start), no_value), restarted
 
 
 # ---------------------------------------------------------------------- exact
@@ -93,7 +136,7 @@ class PieceHit:
                         L=dr.select(got, L, self.L))
 
 
-def _piece(dev, cfg, o, d, inv_d, dnorm, w: Walk, t1, level_masks, values, active):
+def cubic_piece(dev, cfg, o, d, inv_d, dnorm, w: Walk, t1, level_masks, values, active):
     """The piece ``[t, t_b]`` from the walk's ``t`` to the next dual-cell plane of a level that
     contributes in the leaf (or the leaf's end): ``(t_b, L, nums, den)`` with the cubics of
     the reconstruction along it."""
@@ -112,7 +155,8 @@ def _piece_crossings(dev, cfg, num, den, L, v_prev, k_jump, active):
     """Crossings in a piece: ``(have, v_end, jumped, k_jump, found)``. ``have``: the field is
     defined on it (some cell has weight; next to missing values the weights can sum to much
     less than 1 and the field is still defined); ``jumped``: the value jumped across isovalue
-    ``k_jump`` from ``v_prev`` at its start; ``found``: a root of ``N - iso D`` in it."""
+    ``k_jump`` (the first met, when it jumped across several) from ``v_prev`` at its start;
+    ``found``: a root of ``N - iso D`` in it."""
     m = dev.m
     d_mid = roots.cubic(den, 0.5 * L)
     have = active & (den[0] > tol.NO_WEIGHT) & (roots.cubic(den, L) > tol.NO_WEIGHT) & \
@@ -120,14 +164,11 @@ def _piece_crossings(dev, cfg, num, den, L, v_prev, k_jump, active):
     v_start = num[0] / den[0]
     v_end = roots.cubic(num, L) / roots.cubic(den, L)
     n_mid = roots.cubic(num, 0.5 * L)
-    jumped = m.Bool(False)
+    jumped = have & sides_differ(dev, cfg, v_prev, v_start)
+    k_jump = dr.select(jumped, first_between(dev, cfg, v_prev, v_start), k_jump)
     found = m.Bool(False)
     for k in range(cfg.num_iso):
-        iso = cfg.iso(dev, k)
-        jump_k = have & lnot(jumped) & ((v_prev - iso) * (v_start - iso) < 0.0)
-        k_jump = dr.select(jump_k, k, k_jump)
-        jumped |= jump_k
-        found_k, _, _ = _bracket(num, den, iso, L, n_mid, d_mid)
+        found_k, _, _ = _bracket(num, den, cfg.iso(dev, k), L, n_mid, d_mid)
         found |= have & found_k
     return have, v_end, jumped, k_jump, found
 
@@ -153,14 +194,16 @@ def _bracket(num, den, iso, L, n_mid, d_mid):
 
 
 @dr.syntax
-def _march_exact(dev, cfg, o, d, t0, t1, active):
+def _march_exact(dev, cfg, o, d, w: Walk, v_before, t1, active):
+    """The first crossing from walk ``w`` on (``v_before``: the value before it, NaN if
+    unknown) up to ``t1``, and the walk where it stopped: ``(Crossing, Walk)``."""
     m = dev.m
     dnorm = dr.norm(d)
     inv_d = dr.select(d != 0.0, dr.rcp(d), dr.inf)
     values = dev.arrays(cfg.basis)
     level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
-    w = Walk.start(m, t0)
-    v_prev = m.Float(dr.nan)
+    w = Walk(w.node, w.leaf, w.face, w.t_exit, w.t)
+    v_prev = m.Float(v_before)
     samples = m.UInt32(0)
     hit = m.Bool(False)
     k_jump = m.UInt32(0)
@@ -179,7 +222,7 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         active &= lnot(turned) & (lnot(new) | st.found)
 
         # --- The piece [t, t_b] and its crossings: a jump at its start, or a root.
-        t_b, L, nums, den = _piece(dev, cfg, o, d, inv_d, dnorm, w, t1, level_masks, values,
+        t_b, L, nums, den = cubic_piece(dev, cfg, o, d, inv_d, dnorm, w, t1, level_masks, values,
                                    active)
         samples += dr.select(active, 1, 0)
         have, v_end, jumped, k_jump, found = _piece_crossings(dev, cfg, nums[0], den, L, v_prev,
@@ -192,7 +235,7 @@ def _march_exact(dev, cfg, o, d, t0, t1, active):
         v_prev = dr.select(active, dr.select(have, v_end, dr.nan), v_prev)
         w.t = dr.select(active, t_b, w.t)
         active &= lnot(got) & (w.t < t1)
-    return _refine_exact(dev, cfg, piece, hit, k_jump, samples)
+    return _refine_exact(dev, cfg, piece, hit, k_jump, samples), w
 
 
 def _refine_exact(dev, cfg, piece: PieceHit, hit, k_jump, samples) -> Crossing:

@@ -35,7 +35,8 @@ from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import prepare_file
-from mi_amr.kernels.surface import first_crossing
+from mi_amr.kernels.surface import crossings
+from mi_amr.kernels.transmit import transmittance_exact
 from mi_amr.plugin import bridge, options, shading
 from mi_amr.plugin.aovs import NAMES as AOV_NAMES
 from mi_amr.plugin.aovs import iso_aovs
@@ -94,6 +95,7 @@ class _AMRIso:
         self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host,
                                   host_transfer2d(opt))
         self.shader = IsoShader(self)
+        self.layer_fast_paths = True
         _warn_outside(self.prep, opt.isovalues)
 
     def _prepare(self, path):
@@ -174,30 +176,34 @@ class _AMRIso:
             return bridge.to_kernel(self.m, u)
         return stable_jitter(self.m, dr.arange(self.m.UInt32, dr.width(ray.o)))
 
-    def _layer_crossing(self, o, d, t_end, jitter):
-        """The ``crossing`` callback of :func:`front_to_back` for a ray in the volume."""
-        m, cfg = self.m, self.config()
-        step = self.dev.layer_offset / dr.norm(d)
+    def _layer_crossing(self, o, d, t_start, t_end, jitter):
+        """``(state, crossing)`` for :func:`front_to_back` along a ray in the volume (kernel
+        ``t_start``, ``t_end``). ``self.layer_fast_paths`` False restarts every layer's search
+        and composites shadow rays layer by layer (the slow twins, for tests)."""
+        m = self.m
+        state, after = crossings(self.dev, self.config(), o, d, t_start, t_end, jitter,
+                                 m.Bool(True), resume=self.layer_fast_paths)
 
-        def crossing(t, alive):
-            c = first_crossing(self.dev, cfg, o, d, bridge.to_kernel(m, t), t_end, jitter,
-                               m.Bool(alive))
+        def crossing(state, alive):
+            c, state = after(state, m.Bool(alive))
             hit = bridge.to_mi(c.hit, mi.Bool) & alive
-            return (hit, c, bridge.to_mi(c.t + step, mi.Float), bridge.to_mi(c.k, mi.UInt32))
+            return hit, c, state, bridge.to_mi(c.k, mi.UInt32)
 
-        return crossing
+        return state, crossing
 
     def _opacity(self, k):
         return bridge.to_mi(dr.gather(self.m.Float, self.inputs["iso_opacity"],
                                       self.m.UInt32(k)), mi.Float)
 
     def _surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
-        crossing = self._layer_crossing(o, d, bridge.to_kernel(self.m, t_mesh), jitter)
+        m = self.m
+        state, crossing = self._layer_crossing(o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh),
+                                               jitter)
 
         def shade(hit, c, k):
             return self.shader.shade(scene, light_u, ray, o, d, c, k, hit)
 
-        return front_to_back(crossing, self._opacity, shade, self.opt.max_layers, active)
+        return front_to_back(state, crossing, self._opacity, shade, self.opt.max_layers, active)
 
     def iso_transmittance(self, ray, from_iso, active):
         """Light passing the isosurfaces (or the band) along a scene ray up to ``ray.maxt``;
@@ -210,12 +216,13 @@ class _AMRIso:
             res = composite(self.dev, self.config(), o, d, t0, t1, m.Float(0.5), None, None,
                             m.Bool(active))
             return bridge.to_mi(res.T, mi.Float)
-        crossing = self._layer_crossing(o, d, t1, m.Float(0.5))
-
-        def starting_at(t, alive):
-            return crossing(dr.maximum(t, bridge.to_mi(t0, mi.Float)), alive)
-
-        _, T = front_to_back(starting_at, self._opacity, None, self.opt.max_layers, active)
+        cfg = self.config()
+        if cfg.method == "exact" and self.layer_fast_paths:
+            return bridge.to_mi(transmittance_exact(
+                self.dev, cfg, self.inputs["iso_opacity"], o, d, t0, t1, self.opt.max_layers,
+                m.Bool(active)), mi.Float)
+        state, crossing = self._layer_crossing(o, d, t0, t1, m.Float(0.5))
+        _, T = front_to_back(state, crossing, self._opacity, None, self.opt.max_layers, active)
         return T
 
     def _volume(self, scene, light_u, ray, o, d, t_mesh, jitter, active):

@@ -15,26 +15,24 @@ from mi_amr import tolerances as tol
 
 
 @dr.syntax
-def front_to_back(crossing, opacity, shade, max_layers: int, active):
+def front_to_back(state, crossing, opacity, shade, max_layers: int, active):
     """``(L, T)``: the radiance of the layers and the transmittance left behind them.
 
-    ``crossing(t, alive) -> (hit, where, t_next, k)``: the next layer at or after parameter
-    ``t`` (``where``: what ``shade`` needs to know of it; ``k``: which isovalue; ``t_next``:
-    where to look for the one after it); ``opacity(k)``: its opacity; ``shade(hit, where, k)``:
-    its radiance, or ``shade=None`` for the transmittance alone (shadow rays). Values are
-    Mitsuba types."""
+    ``crossing(state, alive) -> (hit, where, state, k)``: the next layer from where the search
+    ``state`` stands (``where``: what ``shade`` needs to know of it; ``k``: which isovalue;
+    ``state``: where to look for the one after it); ``opacity(k)``: its opacity;
+    ``shade(hit, where, k)``: its radiance, or ``shade=None`` for the transmittance alone
+    (shadow rays). Values are Mitsuba types; ``state`` is whatever ``crossing`` keeps."""
     L = mi.Spectrum(0.0)
     T = mi.Float(1.0)
-    t = mi.Float(0.0)
     layer = mi.UInt32(0)
     alive = mi.Bool(active)
     while alive:
-        hit, where, t_next, k = crossing(t, alive)
+        hit, where, state, k = crossing(state, alive)
         alpha = opacity(k)
         if dr.hint(shade is not None, mode="scalar"):
             L += dr.select(hit, T * alpha * shade(hit, where, k), 0.0)
         T = dr.select(hit, T * (1.0 - alpha), T)
-        t = t_next
         layer += 1
         alive = hit & (T > tol.T_MIN) & (layer < max_layers)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
