@@ -160,8 +160,8 @@ class DeviceVolume:
 
     def _constants(self, volume):
         """The per-volume numbers the kernels read, as opaque one-element arrays (world units):
-        ``bounds_lo``/``bounds_hi``, ``anchor`` (the lattice origin), ``level_h`` and
-        ``level_inv_h`` (per level, 3 floats each), ``min_h`` (the finest cell width), and from
+        ``bounds_lo``/``bounds_hi``, ``anchor`` (the lattice origin), ``level_geom`` (per
+        level the cell size and its inverse, 4 floats each: see :func:`level_h`), ``min_h`` (the finest cell width), and from
         it ``step_eps`` (the smallest step along a unit-speed ray) and ``layer_offset`` (how far
         past a crossing the next layer starts). ``min_h_host`` is ``min_h`` as a Python float."""
         h = np.array([volume.level_spacing(l) for l in range(volume.num_levels)], dtype=np.float64)
@@ -169,11 +169,33 @@ class DeviceVolume:
         lo, hi = volume.bounds
         self.bounds_lo, self.bounds_hi = self._point(lo), self._point(hi)
         self.anchor = self._point(volume.anchor)
-        self.level_h = self._floats(h.astype(np.float32).ravel())
-        self.level_inv_h = self._floats((1.0 / h).astype(np.float32).ravel())
+        # Per level 8 floats, h then 1 / h, each padded to 4: one packet load reads either.
+        geom = np.zeros((volume.num_levels, 2, 4), dtype=np.float32)
+        geom[:, 0, :3], geom[:, 1, :3] = h, 1.0 / h
+        self.level_geom = self._floats(geom.ravel())
         self.min_h = self._scalar(self.min_h_host)
         self.step_eps = self._scalar(tol.STEP_EPS_CELLS * self.min_h_host)
         self.layer_offset = self._scalar(tol.LAYER_OFFSET_CELLS * self.min_h_host)
+
+    def level_h(self, level, active=True):
+        """Cell size of level ``level`` (``Array3f``, world units; one packet load)."""
+        g = dr.gather(self.m.Array4f, self.level_geom, 2 * self.m.UInt32(level), active)
+        return self.m.Array3f(g.x, g.y, g.z)
+
+    def level_inv_h(self, level, active=True):
+        """Inverse cell size of level ``level`` (``Array3f``, per world unit)."""
+        g = dr.gather(self.m.Array4f, self.level_geom, 2 * self.m.UInt32(level) + 1, active)
+        return self.m.Array3f(g.x, g.y, g.z)
+
+    def level_bricks(self, level, active=True):
+        """``(lo, table_offset, dims)`` of level ``level``'s brick table (two packet loads):
+        its first cell (``Array3i``, level index space), where its dense table starts, and
+        the table's size in bricks (``Array3u``)."""
+        m = self.m
+        a = dr.gather(m.Array4u, self.level_table, 2 * m.UInt32(level), active)
+        b = dr.gather(m.Array4u, self.level_table, 2 * m.UInt32(level) + 1, active)
+        lo = m.Array3i(*(dr.reinterpret_array(m.Int32, c) for c in (a.x, a.y, a.z)))
+        return lo, a.w, m.Array3u(b.x, b.y, b.z)
 
     def _point(self, xyz):
         return opaque_point(self.m, xyz)
@@ -247,9 +269,12 @@ class DeviceVolume:
             table_at += table.size
             count += n
         self.brick_table = self._uints(np.concatenate(tables))
-        self.level_lo = device_array(self.m.Int32, level_lo, np.int32)
-        self.level_dims = self._uints(np.asarray(level_dims, dtype=np.uint32).ravel())
-        self.level_table_offset = self._uints(np.asarray(level_off, dtype=np.uint32))
+        # Per level 8 uints: lo (int32 bits) and the table offset, the table's dims and 0.
+        table = np.zeros((len(level_lo), 2, 4), dtype=np.uint32)
+        table[:, 0, :3] = np.asarray(level_lo, dtype=np.int32).reshape(-1, 3).view(np.uint32)
+        table[:, 0, 3] = level_off
+        table[:, 1, :3] = np.asarray(level_dims, dtype=np.uint32).reshape(-1, 3)
+        self.level_table = self._uints(table.ravel())
         self.brick_values = self._floats(np.concatenate(pools[0]))
         self.brick_colors = self.brick_values if len(names) == 1 else \
             self._floats(np.concatenate(pools[1]))

@@ -117,9 +117,7 @@ def brick_cell(dev, level, i0, active):
     space) and whether it exists; the other 7 corners of the dual cell starting at ``i0`` are at
     the offsets of :func:`corner_offset`."""
     m = dev.m
-    lo = dr.gather(m.Array3i, dev.level_lo, level, active)
-    dims = dr.gather(m.Array3u, dev.level_dims, level, active)
-    toff = dr.gather(m.UInt32, dev.level_table_offset, level, active)
+    lo, toff, dims = dev.level_bricks(level, active)
     rel = i0 - lo
     inside = dr.all(rel >= 0)
     r = m.Array3u(dr.maximum(rel, 0))
@@ -142,7 +140,7 @@ def _level_frame(dev, level, p, active):
     """Local coordinate of ``p`` in level ``level``'s cell-centre lattice and its inverse cell
     size: ``u = (p - anchor) / h - 0.5`` (cell ``i`` has its centre at ``u = i``)."""
     m = dev.m
-    ih = dr.gather(m.Array3f, dev.level_inv_h, level, active)
+    ih = dev.level_inv_h(level, active)
     return (p - dev.anchor) * ih - 0.5, ih
 
 

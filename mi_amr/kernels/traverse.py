@@ -216,8 +216,8 @@ def next_dual_plane(dev, levels_mask, o, d, inv_d, t_probe):
     while mask != 0:
         level = dr.tzcnt(mask)
         mask &= mask - 1
-        h = dr.gather(m.Array3f, dev.level_h, level)
-        inv_h = dr.gather(m.Array3f, dev.level_inv_h, level)
+        h = dev.level_h(level)
+        inv_h = dev.level_inv_h(level)
         cell = dr.floor(dr.fma(p - dev.anchor, inv_h, -0.5))
         plane = dr.select(up, cell + 1.5, cell + 0.5)
         t = dr.select(d != 0.0, dr.fma(plane, h, dev.anchor - o) * inv_d, dr.inf)
