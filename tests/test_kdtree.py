@@ -359,6 +359,18 @@ def test15c_ropes_equal_their_slow_twin(tree):
     np.testing.assert_array_equal(tree.node_ropes, tree._ropes_from_root())
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test15d_cell_windows_equal_their_world_space_twin(seed):
+    """The windows of the cells reaching each leaf, computed on the integer lattice, equal the
+    world-space computation on random hierarchies (whose faces do not fall on rounding
+    ties), for every (grid, leaf) pair with overlapping supports."""
+    tree = KDTree(AMRVolume.from_grids(random_grids(seed)), leaf_cells=4)
+    pg, pl = tree.overlapping_leaves(tree.support_lo, tree.support_hi)
+    assert len(pl) > 100
+    for fast, slow in zip(tree._windows(pl, pg), tree._windows_world(pl, pg)):
+        np.testing.assert_array_equal(fast, slow)
+
+
 def test16_bad_arguments_are_refused():
     vol = AMRVolume.from_grids(reference_grids())
     with pytest.raises(AMRError, match="leaf_cells must be >= 2, got 1"):
