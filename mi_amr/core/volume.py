@@ -368,14 +368,14 @@ def _float3(value, what: str, positive: bool) -> tuple:
         raise AMRError(f"{what} must be {'a number or ' if positive else ''}3 numbers, "
                        f"got the text {value!r}")
     try:
-        out = tuple(float(x) for x in value)
+        out = tuple(map(float, value))
     except (TypeError, ValueError):
         raise AMRError(f"{what} must be {'a number or ' if positive else ''}3 numbers, "
                        f"got {shown(value)}") from None
     if len(out) != 3:
         raise AMRError(f"{what} must be {'a number or ' if positive else ''}3 numbers, "
                        f"got {shown(value)}")
-    if not all(math.isfinite(x) and (x > 0 or not positive) for x in out):
+    if not all(map(math.isfinite, out)) or (positive and min(out) <= 0):
         raise AMRError(f"{what} must be finite{' and > 0' if positive else ''}, got "
                        f"{shown(value)}")
     return out

@@ -70,6 +70,42 @@ def frame_against_mesh(sizes=SIZES, frames=FRAMES) -> list:
     return rows
 
 
+TRANSLUCENT = {"isovalue": "0.02, 0.05, 0.1", "iso_opacity": "0.4, 0.5, 0.6"}
+TRANSLUCENT_SIZE, TRANSLUCENT_SPP = 256, 4
+
+
+def translucent_against_opaque(frames=3) -> dict:
+    """Three translucent isovalues against one opaque one (sphere_wake.xml, 256^2, 4 spp,
+    shadow rays): median warm frames, interleaved; and the translucent scene once more with
+    the slow twins of its fast paths (every layer's search restarted, shadow rays composited
+    layer by layer), which is what it cost before them."""
+    import drjit as dr
+    import mitsuba as mi
+
+    from mi_amr.plugin.scene import load_scene
+
+    def scene(**integrator):
+        return load_scene(project.scenes_dir() / "sphere_wake.xml", resx=TRANSLUCENT_SIZE,
+                          resy=TRANSLUCENT_SIZE, spp=TRANSLUCENT_SPP, integrator=integrator)
+
+    opaque, layered = scene(isovalue="0.05"), scene(**TRANSLUCENT)
+    times = {"opaque_s": [], "translucent_s": [], "translucent_slow_s": []}
+    for i in range(frames + 1):
+        for key, sc, fast in (("opaque_s", opaque, True), ("translucent_s", layered, True),
+                              ("translucent_slow_s", layered, False)):
+            sc.integrator().layer_fast_paths = fast
+            t = _frame(mi, dr, sc, i)
+            if i:                                    # the first round compiles
+                times[key].append(t)
+    layered.integrator().layer_fast_paths = True
+    row = {k: statistics.median(v) for k, v in times.items()}
+    row["ratio"] = row["translucent_s"] / row["opaque_s"]
+    row["ratio_slow"] = row["translucent_slow_s"] / row["opaque_s"]
+    print(f"translucent {row['translucent_s']:.3f} s (slow twins {row['translucent_slow_s']:.3f}"
+          f" s), opaque {row['opaque_s']:.3f} s: {row['ratio']:.1f}x", flush=True)
+    return row
+
+
 def load_against_read(paths) -> list:
     """Rows ``{file, cells, raw_s, load_s, ratio, steps}`` for each data file of the scene's
     field (q_criterion coloured by speed, from vx, vy, vz)."""
@@ -112,15 +148,33 @@ def run_limit_bench(out_dir="out/bench", variant: str = "llvm_ad_rgb") -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     frames = frame_against_mesh()
+    layers = translucent_against_opaque()
     data = project.data_dir()
     paths = [data / "sphere_wake.npz"] + sorted((data / "scaling").glob("cells_large*.npz"))
     loads = load_against_read(paths)
-    table = _table(frames, loads)
-    (out / "limit.md").write_text(table + "\n")
-    (out / "limit.json").write_text(json.dumps({"frames": frames, "loads": loads}, indent=2))
+    table = _table(frames, loads) + "\n\n" + _layers_table(layers)
+    write_text_atomic(out / "limit.md", table + "\n")
+    result = {"frames": frames, "loads": loads, "translucent": layers}
+    write_text_atomic(out / "limit.json", json.dumps(result, indent=2))
     print(table)
     print(f"wrote {out / 'limit.md'}")
-    return {"frames": frames, "loads": loads}
+    return result
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """``path`` replaced by ``text`` through a temporary file (the old one stays on failure)."""
+    from mi_amr.core.atomic import replacing
+
+    with replacing(path) as tmp:
+        tmp.write_text(text)
+
+
+def _layers_table(r) -> str:
+    return "\n".join([
+        f"| {TRANSLUCENT_SIZE}^2, {TRANSLUCENT_SPP} spp | one opaque isovalue (s) | three "
+        "translucent (s) | ratio | before the fast paths (s) | ratio |", "|---|---|---|---|---|---|",
+        f"| sphere_wake, shadow rays | {r['opaque_s']:.3f} | {r['translucent_s']:.3f} | "
+        f"{r['ratio']:.1f}x | {r['translucent_slow_s']:.3f} | {r['ratio_slow']:.1f}x |"])
 
 
 def _table(frames, loads) -> str:
