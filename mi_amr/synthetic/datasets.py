@@ -129,13 +129,15 @@ def _refine(tags, parent_boxes):
     padded[:tags.shape[0], :tags.shape[1], :tags.shape[2]] = tags
     blocks = padded.reshape(shape[0], b, shape[1], b, shape[2], b).any(axis=(1, 3, 5))
     clusters = berger_rigoutsos(blocks, efficiency=0.7, max_size=MAX_GRID // BLOCKING)
+    p_lo = np.array([lo for lo, _ in parent_boxes], dtype=np.int64).reshape(-1, 3)
+    p_hi = np.array([hi for _, hi in parent_boxes], dtype=np.int64).reshape(-1, 3)
     out = []
     for clo, chi in clusters:
-        clo, chi = np.array(clo) * b, np.array(chi) * b
-        for plo, phi in parent_boxes:
-            lo, hi = np.maximum(clo, plo), np.minimum(chi, phi)
-            if np.all(hi > lo):
-                out.append((tuple(lo * RATIO), tuple(hi * RATIO)))
+        # The cluster cut by every parent box at once (in the parents' order).
+        lo = np.maximum(np.array(clo) * b, p_lo)
+        hi = np.minimum(np.array(chi) * b, p_hi)
+        for i in np.flatnonzero(np.all(hi > lo, axis=1)):
+            out.append((tuple(lo[i] * RATIO), tuple(hi[i] * RATIO)))
     return _chop(out, MAX_GRID)
 
 
