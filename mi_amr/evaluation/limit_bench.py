@@ -55,18 +55,23 @@ def frame_against_mesh(sizes=SIZES, frames=FRAMES) -> list:
                           method="exact", reconstruction="basis")
         _, mesh_scene, triangles = peers._mesh_scene(mi, dataclasses.replace(rs, scene=ours),
                                                      pieces)
-        _frame(mi, dr, ours, 0), _frame(mi, dr, mesh_scene, 0)     # compile both first
-        a, b = [], []
+        # Where mi_amr's frame goes: the same scene without shadow rays.
+        unlit = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size,
+                           spp=1, method="exact", reconstruction="basis", shadows="false")
+        for sc in (ours, mesh_scene, unlit):                      # compile all first
+            _frame(mi, dr, sc, 0)
+        a, b, c = [], [], []
         for i in range(frames):
             a.append(_frame(mi, dr, ours, i + 1))
             b.append(_frame(mi, dr, mesh_scene, i + 1))
+            c.append(_frame(mi, dr, unlit, i + 1))
         row = {"size": size, "mi_amr_s": statistics.median(a), "mesh_s": statistics.median(b),
-               "triangles": triangles}
+               "no_shadows_s": statistics.median(c), "triangles": triangles}
         row["ratio"] = row["mi_amr_s"] / row["mesh_s"]
         print(f"{size}^2: mi_amr {row['mi_amr_s']:.3f} s, mesh {row['mesh_s']:.3f} s "
               f"({row['ratio']:.1f}x)", flush=True)
         rows.append(row)
-        del ours, mesh_scene
+        del ours, mesh_scene, unlit
     return rows
 
 
@@ -74,7 +79,7 @@ TRANSLUCENT = {"isovalue": "0.02, 0.05, 0.1", "iso_opacity": "0.4, 0.5, 0.6"}
 TRANSLUCENT_SIZE, TRANSLUCENT_SPP = 256, 4
 
 
-def translucent_against_opaque(frames=3) -> dict:
+def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_SPP) -> dict:
     """Three translucent isovalues against one opaque one (sphere_wake.xml, 256^2, 4 spp,
     shadow rays): median warm frames, interleaved; and the translucent scene once more with
     the slow twins of its fast paths (every layer's search restarted, shadow rays composited
@@ -85,8 +90,8 @@ def translucent_against_opaque(frames=3) -> dict:
     from mi_amr.plugin.scene import load_scene
 
     def scene(**integrator):
-        return load_scene(project.scenes_dir() / "sphere_wake.xml", resx=TRANSLUCENT_SIZE,
-                          resy=TRANSLUCENT_SIZE, spp=TRANSLUCENT_SPP, integrator=integrator)
+        return load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size,
+                          spp=spp, integrator=integrator)
 
     opaque, layered = scene(isovalue="0.05"), scene(**TRANSLUCENT)
     times = {"opaque_s": [], "translucent_s": [], "translucent_slow_s": []}
@@ -178,10 +183,10 @@ def _layers_table(r) -> str:
 
 
 def _table(frames, loads) -> str:
-    lines = ["| image | mi_amr warm frame (s) | mesh in Mitsuba (s) | ratio |",
-             "|---|---|---|---|"]
+    lines = ["| image | mi_amr warm frame (s) | mesh in Mitsuba (s) | ratio | mi_amr without "
+             "shadow rays (s) |", "|---|---|---|---|---|"]
     lines += [f"| {r['size']}x{r['size']} | {r['mi_amr_s']:.3f} | {r['mesh_s']:.3f} | "
-              f"{r['ratio']:.1f}x |" for r in frames]
+              f"{r['ratio']:.1f}x | {r['no_shadows_s']:.3f} |" for r in frames]
     lines += ["", f"(mesh: {frames[0]['triangles']:,} triangles, marching cubes per grid)", "",
               "| file | cells | raw read (s) | load (s) | ratio | read / derive / tree / device "
               "/ ranges (s) |", "|---|---|---|---|---|---|"]

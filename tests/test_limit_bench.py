@@ -1,0 +1,30 @@
+"""``bench --limit``'s parts on tiny images: the translucent-against-opaque timing runs all three
+scenes (and leaves the fast paths on), and the tables show every measured column. Speed itself
+is the benchmark's business, not a test's."""
+
+import math
+
+import pytest
+
+pytest.importorskip("mitsuba")
+
+from mi_amr.evaluation import limit_bench  # noqa: E402
+
+
+def test01_translucent_against_opaque_times_three_scenes(scene_data_ready):
+    row = limit_bench.translucent_against_opaque(frames=1, size=32, spp=1)
+    for key in ("opaque_s", "translucent_s", "translucent_slow_s", "ratio", "ratio_slow"):
+        assert math.isfinite(row[key]) and row[key] > 0, key
+    assert row["ratio"] == pytest.approx(row["translucent_s"] / row["opaque_s"])
+    table = limit_bench._layers_table(row)
+    assert f"{row['translucent_s']:.3f}" in table and f"{row['ratio_slow']:.1f}x" in table
+
+
+def test02_the_frame_table_shows_the_time_without_shadow_rays():
+    frames = [{"size": 256, "mi_amr_s": 0.5, "mesh_s": 0.1, "ratio": 5.0, "no_shadows_s": 0.3,
+               "triangles": 1000}]
+    loads = [{"file": "a.npz", "cells": 10, "raw_s": 0.01, "load_s": 1.0, "ratio": 100.0,
+              "steps": {"read": 0.1, "derive": 0.5, "tree": 0.2, "device": 0.1, "ranges": 0.1}}]
+    table = limit_bench._table(frames, loads)
+    assert "| 256x256 | 0.500 | 0.100 | 5.0x | 0.300 |" in table
+    assert "| a.npz | 10 | 0.010 | 1.00 | 100x |" in table
