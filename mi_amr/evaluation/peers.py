@@ -592,10 +592,12 @@ def _join_pieces(vol, pieces, integ):
 
 
 def _mitsuba_mesh(mi, V, F, N, C):
-    """A Mitsuba triangle mesh with vertex normals and a diffuse BSDF reading vertex colours."""
+    """A Mitsuba triangle mesh with vertex normals and a two-sided diffuse BSDF reading vertex
+    colours (an isosurface has no outside: the routes' normals point to lower field values,
+    which faces away from the camera where the field grows outwards, as on the sphere)."""
     props = mi.Properties()
-    props["bsdf"] = mi.load_dict({"type": "diffuse", "reflectance": {
-        "type": "mesh_attribute", "name": "vertex_color"}})
+    props["bsdf"] = mi.load_dict({"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
+        "type": "mesh_attribute", "name": "vertex_color"}}})
     mesh = mi.Mesh("isosurface", len(V), len(F), props, has_vertex_normals=True)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(V.astype(np.float32).ravel())
