@@ -108,7 +108,8 @@ def _add_bench(sub) -> None:
     s.add_argument("--scaling", action="store_true",
                    help="only how the frame time grows with image size, grids and cells")
     s.add_argument("--peers", action="store_true",
-                   help="only the peers (marching cubes + Mitsuba, yt) beside mi_amr exact")
+                   help="only the peers (marching cubes + Mitsuba, yt, VTK's AMR contour + "
+                        "Mitsuba) beside mi_amr exact")
     s.add_argument("--stability", action="store_true",
                    help="only the failure cases, every method on each (mi_amr.stability)")
     s.add_argument("--kdtree", action="store_true",

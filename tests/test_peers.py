@@ -1,5 +1,6 @@
 """mi_amr.peers: the mesh route (scikit-image marching cubes per grid) and yt's volume renderer,
-run on the analytic sphere and scored against its exact reference hit buffers.
+run on the analytic sphere and scored against its exact reference hit buffers (VTK's AMR
+contour routes: tests/test_peers_vtk.py).
 
 The sphere (radius 0.3 around (0.5, 0.5, 0.5)) is cut in half by the coarse/fine boundary at
 x = 0.5, so a mesh built grid by grid must crack there and mi_amr must not. The peers are
@@ -103,11 +104,12 @@ def test06_yt_mask_matches_with_its_camera():
 
 
 def test07_run_peers_reports_missing_packages(monkeypatch):
+    hidden = ("skimage", "yt", "vtk", "vtkmodules")
     for name in list(sys.modules):
-        if name.split(".")[0] in ("skimage", "yt"):
+        if name.split(".")[0] in hidden:
             monkeypatch.delitem(sys.modules, name)
-    monkeypatch.setitem(sys.modules, "skimage", None)
-    monkeypatch.setitem(sys.modules, "yt", None)
+    for name in hidden:
+        monkeypatch.setitem(sys.modules, name, None)
     rows = peers.run_peers((SCENE,), ours=False, progress=False)
     assert [r["peer"] for r in rows] == list(peers.PEERS)
     for r in rows:

@@ -7,6 +7,10 @@ buffers of :mod:`mi_amr.reference` (``reference/NAME_hits.npz``).
   own camera, light and other shapes.
 * :func:`yt_volume_route` -- yt's volume renderer with a narrow Gaussian transfer function
   around the isovalue, the camera of the Mitsuba scene rebuilt as a yt perspective camera.
+* :func:`vtk_amr_contour_route` -- VTK's watertight contour of overlapping AMR
+  (``vtkAMRContourFilter``, VTK >= 9.7; :mod:`mi_amr.evaluation.peers_vtk`), the vertex values
+  per grid as VTK's own test makes them, or shared by all grids of a level; the welded mesh
+  rendered by Mitsuba like the marching-cubes one.
 * :func:`mi_amr_route` -- our own ``exact`` method, loaded and rendered afresh in the same run,
   so the table compares like with like.
 
@@ -20,14 +24,17 @@ key             meaning
 ==============  ==========================================================================
 scene           reference scene name (:data:`mi_amr.reference.SCENES`)
 peer            ``mi_amr exact`` or a key of :data:`ROUTES` (``marching_cubes``,
-                ``marching_cubes+ghost``, ``yt_volume``, ``yt_volume+ghost``)
+                ``marching_cubes+ghost``, ``yt_volume``, ``yt_volume+ghost``,
+                ``vtk_amr_contour``, ``vtk_amr_contour+shared_vertices``)
 time_s          time to image in seconds (what the route must redo for new data or a new
                 isovalue; the shared reading of the data is excluded for the peers, see
                 ``time_detail``)
 time_detail     ``{step: seconds}``: the steps that add up to ``time_s``, then
-                ``warm_frame`` (a second frame of the same image, not in ``time_s``) and
-                ``data_shared`` (reading the file and deriving the field, which every route
-                needs; in ``time_s`` only for mi_amr, whose load includes it)
+                ``warm_frame`` (a second frame of the same image, not in ``time_s``),
+                for VTK ``new_isovalue`` and ``new_isovalue_frame`` (a new isovalue's
+                contour and mesh, then its frame; not in ``time_s``) and ``data_shared``
+                (reading the file and deriving the field, which every route needs; in
+                ``time_s`` only for mi_amr, whose load includes it)
 missed, false   fractions of pixels: reference hit and route none; route hit, reference none
 depth_mean/p99  depth error where both hit, in finest cells (NaN where a route has no depth)
 normal_mean     normal error where both hit, degrees, up to sign (NaN without normals)
@@ -51,6 +58,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mi_amr.evaluation import peers_vtk
 from mi_amr.evaluation import references as ref
 from mi_amr.core.boxes import intersection_volume, overlap_pairs
 from mi_amr.errors import AMRError
@@ -58,12 +66,20 @@ from mi_amr.evaluation.references import pixel_rays
 
 INSTALL_HINT = "pip install 'mi_amr[peers]'"
 # The peers run_peers() runs unless told otherwise; "yt_volume+ghost" (yt with ghost zones) is
-# left out as it takes minutes on sphere_wake and changes little.
-PEERS = ("marching_cubes", "marching_cubes+ghost", "yt_volume")
-ROUTES = {"marching_cubes": lambda name: marching_cubes_route(name),
-          "marching_cubes+ghost": lambda name: marching_cubes_route(name, ghost_cells=True),
-          "yt_volume": lambda name: yt_volume_route(name),
-          "yt_volume+ghost": lambda name: yt_volume_route(name, ghost_zones=True)}
+# left out as it takes minutes on sphere_wake and changes little. The VTK routes take about
+# 8 minutes each on sphere_wake (the filter's interface between levels).
+PEERS = ("marching_cubes", "marching_cubes+ghost", "yt_volume", "vtk_amr_contour",
+         "vtk_amr_contour+shared_vertices")
+# Each route is called with the scene's name and whether to print progress.
+ROUTES = {"marching_cubes": lambda name, progress: marching_cubes_route(name),
+          "marching_cubes+ghost": lambda name, progress: marching_cubes_route(name,
+                                                                              ghost_cells=True),
+          "yt_volume": lambda name, progress: yt_volume_route(name),
+          "yt_volume+ghost": lambda name, progress: yt_volume_route(name, ghost_zones=True),
+          "vtk_amr_contour": lambda name, progress: vtk_amr_contour_route(name,
+                                                                          progress=progress),
+          "vtk_amr_contour+shared_vertices": lambda name, progress: vtk_amr_contour_route(
+              name, shared_vertices=True, progress=progress)}
 # A gap is a pixel where the reference hits and the route does not, or where the route's first
 # hit lies more than SEE_THROUGH_CELLS finest cells behind the reference's (the ray went through
 # a gap in the surface and met the surface behind it). A gap is a crack when the reference hit
@@ -77,6 +93,10 @@ SEE_THROUGH_CELLS = 4.0
 YT_SIGMA = 0.004
 YT_BINS = 1024
 YT_DEPTH = 4.0
+# VTK: the new isovalue is this factor times the scene's (as bench's frame timings), and the
+# filter's progress is printed at most every PROGRESS_SECONDS.
+NEW_ISO_FACTOR = 1.1
+PROGRESS_SECONDS = 20.0
 ROW_KEYS = ("scene", "peer", "time_s", "time_detail", "missed", "false", "depth_mean",
             "depth_p99", "normal_mean", "cracks", "notes")
 
@@ -116,7 +136,8 @@ def run_peers(scenes=("sphere_wake", "plt_eb_3d"), *, peers=PEERS, ours: bool = 
             if progress:
                 print(f"{name}: {peer} ...", flush=True)
             try:
-                row = mi_amr_route(name) if peer == "mi_amr exact" else ROUTES[peer](name)
+                row = mi_amr_route(name) if peer == "mi_amr exact" else \
+                    ROUTES[peer](name, progress)
             except ImportError as e:
                 row = skipped_row(name, peer, e)
             rows.append(row)
@@ -474,18 +495,24 @@ def _grid_pieces(marching_cubes, vol, arrays, iso, ghost_cells) -> list:
 
 
 def _mesh_scene(mi, rs, pieces):
-    """The per-grid pieces joined into one mesh (:func:`_join_pieces`), placed in the scene's
-    world space with the integrator's ``to_world`` (vertices, and normals by the inverse
-    transpose), made a Mitsuba mesh and put in a scene with ``rs.scene``'s camera, emitters and
-    other shapes. Returns ``(mesh, scene, triangle count)``."""
-    to_world = rs.to_world
+    """The per-grid pieces joined into one mesh (:func:`_join_pieces`) and put in a scene
+    (:func:`_placed_mesh_scene`). Returns ``(mesh, scene, triangle count)``."""
     V, F, N, C = _join_pieces(rs.vol, pieces, rs.integ)
+    mesh, mesh_scene = _placed_mesh_scene(mi, rs, V, F, N, C)
+    return mesh, mesh_scene, len(F)
+
+
+def _placed_mesh_scene(mi, rs, V, F, N, C):
+    """A mesh (vertices ``V``, normals ``N`` in volume space, triangles ``F``, linear RGB
+    vertex colours ``C``) placed in the scene's world space with the integrator's ``to_world``
+    (normals by the inverse transpose), made a Mitsuba mesh and put in a scene with
+    ``rs.scene``'s camera, emitters and other shapes. Returns ``(mesh, scene)``."""
+    to_world = rs.to_world
     Vw = V @ to_world[:3, :3].T + to_world[:3, 3]
     Nw = N @ np.linalg.inv(to_world[:3, :3])
     Nw /= np.maximum(np.linalg.norm(Nw, axis=1, keepdims=True), 1e-30)
     mesh = _mitsuba_mesh(mi, Vw, F, Nw, C)
-    mesh_scene = mi.load_dict(_scene_dict(rs.scene, mesh))
-    return mesh, mesh_scene, len(F)
+    return mesh, mi.load_dict(_scene_dict(rs.scene, mesh))
 
 
 def _mesh_hit_buffers(mi, mesh_scene, mesh):
@@ -617,6 +644,121 @@ def _scene_dict(scene, mesh) -> dict:
     for i, s in enumerate(scene.shapes()):
         d[f"shape_{i}"] = s
     return d
+
+
+# ---------------------------------------------------------------------- VTK's AMR contour
+
+def vtk_amr_contour_route(scene_name: str, *, shared_vertices: bool = False,
+                          progress: bool = False) -> dict:
+    """VTK's watertight contour of overlapping AMR (``vtkAMRContourFilter``, VTK >= 9.7), the
+    mesh rendered as the marching-cubes route's (see :mod:`mi_amr.evaluation.peers_vtk`).
+
+    Input: the volume as a ``vtkOverlappingAMR`` (levels, ratios and grid boxes of the volume,
+    blanked), the scene's field as vertex values: ``shared_vertices=False`` converts each grid's
+    cells with ``vtkCellDataToPointData`` as VTK's own test of the filter does (grids of one
+    level that meet disagree on their common face); ``True`` gives every vertex position one
+    value per level, the mean of the level's cells around it across grids
+    (:func:`~mi_amr.evaluation.peers_vtk.shared_vertex_values`).
+
+    Output: the filter's pieces appended, welded (``vtkCleanPolyData``), given vertex normals
+    (``vtkPolyDataNormals``, oriented to lower field values) and vertex colours from the colour
+    field, placed with the integrator's ``to_world`` and rendered by Mitsuba's ``direct``
+    integrator with the scene's camera, emitters and other shapes.
+
+    Time to image = building the AMR (vertex values included) + first contour (the filter's
+    interface between levels, then the contour) + mesh (welding, normals, colours, Mitsuba mesh
+    and scene) + first render. ``new_isovalue``: a second contour at :data:`NEW_ISO_FACTOR`
+    times the isovalue on the same filter and input (the interface is reused) plus the mesh
+    rebuilt; ``new_isovalue_frame`` its first render. ``progress`` prints the filter's progress
+    every :data:`PROGRESS_SECONDS` (its first update takes minutes on thousands of grids).
+    ``notes`` gives the open edges of the welded mesh (cracks; the surface's cut at the
+    domain's faces counted apart)."""
+    import mitsuba as mi
+
+    vtk = peers_vtk.require_vtk()
+    rs = _route_scene(scene_name)
+    peer = "vtk_amr_contour+shared_vertices" if shared_vertices else "vtk_amr_contour"
+    report = _progress_printer(peer) if progress else None
+
+    # ---- The AMR and the filter, then the first contour and its mesh.
+    t0 = time.perf_counter()
+    contour = peers_vtk.AMRContour(rs.vol, rs.field, "shared" if shared_vertices else "per_grid",
+                                   progress=report)
+    t_build = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    first_mesh = contour.mesh(rs.iso)
+    t_contour = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mesh, mesh_scene = _vtk_mesh_scene(mi, rs, first_mesh)
+    t_mesh = time.perf_counter() - t0
+    first = _timed_render(mi, mesh_scene)
+    warm = _timed_render(mi, mesh_scene)
+    hits = _mesh_hit_buffers(mi, mesh_scene, mesh)
+
+    # ---- A new isovalue on the same filter and input.
+    t0 = time.perf_counter()
+    new_mesh = contour.mesh(rs.iso * NEW_ISO_FACTOR)
+    _, new_scene = _vtk_mesh_scene(mi, rs, new_mesh)
+    t_new = time.perf_counter() - t0
+    new_frame = _timed_render(mi, new_scene)
+
+    detail = {"build_amr": t_build, "contour": t_contour, "mesh": t_mesh, "render": first,
+              "warm_frame": warm, "new_isovalue": t_new, "new_isovalue_frame": new_frame,
+              "data_shared": _data_seconds(rs.scene)}
+    return _scored_row(scene_name, peer, t_build + t_contour + t_mesh + first, detail, hits,
+                       rs.scene, notes=_vtk_notes(vtk, first_mesh, new_mesh, shared_vertices))
+
+
+def _vtk_mesh_scene(mi, rs, cm):
+    """The Mitsuba mesh and scene of a :class:`~mi_amr.evaluation.peers_vtk.ContourMesh`."""
+    colours = _vertex_colours(rs.vol, rs.integ, cm.V)
+    return _placed_mesh_scene(mi, rs, cm.V, cm.F, cm.N, colours)
+
+
+def _vertex_colours(vol, integ, V) -> np.ndarray:
+    """Linear RGB per vertex (``V``: ``(N, 3)``, volume space): the colour field through the
+    scene's colour map (trilinear at the finest level there), else the first iso colour."""
+    from mi_amr.kernels.colormap import ColorMap
+
+    opt = integ.opt
+    if opt.colormap is None:
+        return np.tile(np.asarray(opt.iso_colors[0], dtype=np.float64), (len(V), 1))
+    field = integ.prep.color_field
+    cmap = ColorMap.parse(opt.colormap, vol.value_range(field))
+    values = peers_vtk.sample_field(vol, field, V)
+    return cmap.numpy(np.nan_to_num(values, nan=vol.value_range(field)[0]), opt.color_range)
+
+
+def _vtk_notes(vtk, first_mesh, new_mesh, shared_vertices) -> str:
+    """The VTK routes' notes: VTK's version, the vertex rule, the meshes' sizes and open edges."""
+    rule = ("one value per vertex position and level, the mean of the level's cells around "
+            "it" if shared_vertices else "vtkCellDataToPointData per grid")
+
+    def edges(cm):
+        return (f"{cm.open_edges - cm.open_at_domain:,} open edges off the domain's faces "
+                f"(+{cm.open_at_domain:,} at them)")
+
+    return (f"vtkAMRContourFilter (VTK {vtk.vtkVersion.GetVTKVersion()}), vertex values: "
+            f"{rule}; {first_mesh.pieces} pieces appended and welded (tolerance "
+            f"{peers_vtk.WELD_CELLS:g} finest cells), {len(first_mesh.F):,} triangles, "
+            f"{edges(first_mesh)}; new isovalue {new_mesh.iso:.4g}: {len(new_mesh.F):,} "
+            f"triangles, {edges(new_mesh)}; vtkPolyDataNormals; Mitsuba 'direct', 1 spp")
+
+
+def _progress_printer(label: str):
+    """A progress callback (fraction in [0, 1]) that prints at most every
+    :data:`PROGRESS_SECONDS` seconds."""
+    start = time.perf_counter()
+    last = [start]
+
+    def report(fraction: float) -> None:
+        now = time.perf_counter()
+        if now - last[0] >= PROGRESS_SECONDS:
+            last[0] = now
+            print(f"  {label}: VTK reports {100.0 * fraction:.0f}% after {now - start:.0f} s",
+                  flush=True)
+
+    return report
 
 
 # ---------------------------------------------------------------------- yt volume rendering
