@@ -56,14 +56,15 @@ def derive(volume, *names: str, velocity=None):
     out = {}
     if "speed" in names:
         out["speed"] = [_speed(g, comps) for g in volume.grids]
-    if "q_criterion" in names or "vorticity_magnitude" in names:
-        grads = velocity_gradient(volume, comps)
-        if "q_criterion" in names:
-            out["q_criterion"] = [_cast(q_criterion(G), g, comps) for G, g in
-                                  zip(grads, volume.grids)]
-        if "vorticity_magnitude" in names:
-            out["vorticity_magnitude"] = [_cast(vorticity_magnitude(G), g, comps) for G, g in
-                                          zip(grads, volume.grids)]
+    wanted = [(n, f) for n, f in (("q_criterion", q_criterion),
+                                  ("vorticity_magnitude", vorticity_magnitude)) if n in names]
+    for name, _ in wanted:
+        out[name] = []
+    # One grid's float64 gradient at a time (9 values a cell), not the whole volume's.
+    if wanted:
+        for G, g in zip(_gradients(volume, comps), volume.grids):
+            for name, of in wanted:
+                out[name].append(_cast(of(G), g, comps))
     return volume.with_fields(out)
 
 
@@ -84,8 +85,12 @@ def vorticity_magnitude(grad: np.ndarray) -> np.ndarray:
 
 def velocity_gradient(volume, comps) -> list:
     """Per grid, ``(3, 3, nx, ny, nz)`` float64 with ``[i][j] = d v_i / d x_j`` (world units)."""
+    return list(_gradients(volume, comps))
+
+
+def _gradients(volume, comps):
+    """:func:`velocity_gradient` one grid at a time (a generator)."""
     ghosts = _ghost_layers(volume, comps)
-    out = []
     for gi, g in enumerate(volume.grids):
         grad = np.empty((3, 3) + g.shape)
         for c, name in enumerate(comps):
@@ -93,8 +98,7 @@ def velocity_gradient(volume, comps) -> list:
             for axis in range(3):
                 lo_ghost, hi_ghost = ghosts[gi][axis]
                 grad[c, axis] = _difference(v, lo_ghost[c], hi_ghost[c], axis, g.spacing[axis])
-        out.append(grad)
-    return out
+        yield grad
 
 
 def _speed(g, comps):
