@@ -386,7 +386,7 @@ def chart(rows, path):
 def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) -> list:
     """How the warm frame time of the default scene (exact, basis, shadows) grows with the image
     size, the number of grids (the same cells cut into smaller grids) and the number of cells
-    (the sphere_wake sizes, up to ``xlarge``: 46M cells, 7.4 GB resident while it loads).
+    (the sphere_wake sizes, up to ``xlarge``: 46M cells, 4.5 GB resident while it loads).
     Writes ``scaling.md``; returns the rows."""
     import mitsuba as mi
     from tqdm import tqdm
