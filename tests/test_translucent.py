@@ -5,6 +5,7 @@
 * Shadow rays count crossings in one walk (:mod:`mi_amr.kernels.transmit`); the slow twin
   composites them layer by layer (:func:`mi_amr.plugin.layers.front_to_back`). They agree
   except where the field comes within ``SIGN_SURE_REL`` of an isovalue and turns back.
+* The walk takes a few steps of a leaf search per piece; any number of steps gives the same.
 * A jump of the field across several isovalues (``finest`` at grid edges) is one layer per
   isovalue, met in the order the value passes them.
 
@@ -145,3 +146,20 @@ def test04_a_jump_across_isovalues_is_a_layer_for_each(scenes):
             before = np.interp(t[j, r] - 1e-3, s, v)
             a, b = ISOVALUES[k[j, r]], ISOVALUES[k[j + 1, r]]
             assert abs(a - before) < abs(b - before)
+
+
+@pytest.mark.parametrize("rec", ["basis", "finest"])
+def test05_leaf_searches_in_parts_find_what_whole_searches_find(scenes, rec, monkeypatch):
+    """The march takes a few steps of a leaf search per piece (``traverse.SEEK_STEPS``); one
+    step at a time and the whole search at once (None) give the same layers, bit for bit, and
+    the same shadow-ray transmittance."""
+    from mi_amr.kernels import traverse
+
+    integ = scenes[rec].integrator()
+    o, d = random_rays(integ, n=3000, seed=2)
+    results = []
+    for steps in (1, None):
+        monkeypatch.setattr(traverse, "SEEK_STEPS", steps)
+        results.append((*layers(integ, o, d, resume=True), transmittance(integ, o, d, True)))
+    for a, b in zip(*results):
+        np.testing.assert_array_equal(a, b)

@@ -40,7 +40,8 @@ from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
 from mi_amr.kernels.config import MarchConfig, first_between, sides_differ
 from mi_amr.kernels.device import lnot
-from mi_amr.kernels.traverse import Walk, box_exit, clip_to_volume, epsilon, next_dual_plane, seek
+from mi_amr.kernels.traverse import (Walk, box_exit, clip_to_volume, epsilon, next_dual_plane,
+                                     seek, seek_part, seek_start)
 
 
 @dataclass
@@ -208,10 +209,12 @@ def _march_exact(dev, cfg, o, d, w: Walk, v_before, t1, active):
     hit = m.Bool(False)
     k_jump = m.UInt32(0)
     piece = PieceHit.empty(m)
+    sk = seek_start(dev, o, d, w.t, w.node, w.face, v_prev, m.Bool(False))
     while active:
-        # --- Find the next leaf that may hold a crossing (skipping all that cannot).
-        new = w.needs_leaf()
-        st = seek(dev, cfg, o, d, w.t, t1, w.node, w.face, v_prev, active & new)
+        # --- Find the next leaf that may hold a crossing (skipping all that cannot), a few
+        # steps of the search per piece, so that the lanes with a leaf wait less.
+        sk, new = seek_part(dev, cfg, o, d, t1, w, sk, v_prev, active)
+        st = sk.stretch()
         w = w.adopt(new, st)
         v_prev = dr.select(new & dr.isfinite(st.side), st.side, v_prev)
         # A skipped node across an isovalue from what came before: the jump is the crossing.
@@ -220,20 +223,21 @@ def _march_exact(dev, cfg, o, d, w: Walk, v_before, t1, active):
         piece = piece.keep(turned, True, w.t, piece.num, piece.den, piece.L)
         k_jump = dr.select(turned, first_between(dev, cfg, v_prev, st.turn_value), k_jump)
         active &= lnot(turned) & (lnot(new) | st.found)
+        work = active & lnot(sk.searching)
 
         # --- The piece [t, t_b] and its crossings: a jump at its start, or a root.
         t_b, L, nums, den = cubic_piece(dev, cfg, o, d, inv_d, dnorm, w, t1, level_masks, values,
-                                   active)
-        samples += dr.select(active, 1, 0)
+                                        work)
+        samples += dr.select(work, 1, 0)
         have, v_end, jumped, k_jump, found = _piece_crossings(dev, cfg, nums[0], den, L, v_prev,
-                                                              k_jump, active)
-        got = active & (jumped | found)
+                                                              k_jump, work)
+        got = work & (jumped | found)
         hit |= got
         piece = piece.keep(got, jumped, w.t, nums[0], den, L)
 
         # --- Advance to the piece's end.
-        v_prev = dr.select(active, dr.select(have, v_end, dr.nan), v_prev)
-        w.t = dr.select(active, t_b, w.t)
+        v_prev = dr.select(work, dr.select(have, v_end, dr.nan), v_prev)
+        w.t = dr.select(work, t_b, w.t)
         active &= lnot(got) & (w.t < t1)
     return _refine_exact(dev, cfg, piece, hit, k_jump, samples), w
 

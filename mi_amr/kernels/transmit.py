@@ -34,7 +34,7 @@ from mi_amr import tolerances as tol
 from mi_amr.kernels import roots
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.surface import cubic_piece
-from mi_amr.kernels.traverse import Walk, clip_to_volume, seek
+from mi_amr.kernels.traverse import Walk, clip_to_volume, seek_part, seek_start
 
 MAX_PER_PIECE = 4      # changes of side per isovalue in one piece: its start and 3 intervals
 
@@ -83,11 +83,13 @@ def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int
     sides = Sides.start(m, cfg.num_iso)
     T = m.Float(1.0)
     layers = m.UInt32(0)
+    sk = seek_start(dev, o, d, w.t, w.node, w.face, v_prev, m.Bool(False))
     while active:
-        # --- The next leaf that may hold a crossing. Skipped nodes tell their side; one
-        # across isovalues from the value before ends the seek (then it is skipped next).
-        new = w.needs_leaf()
-        st = seek(dev, cfg, o, d, w.t, t1, w.node, w.face, v_prev, active & new)
+        # --- The next leaf that may hold a crossing (a few search steps at a time). Skipped
+        # nodes tell their side; one across isovalues from the value before ends the search
+        # (then it is skipped next).
+        sk, new = seek_part(dev, cfg, o, d, t1, w, sk, v_prev, active)
+        st = sk.stretch()
         w = w.adopt(new, st)
         skipped = new & dr.isfinite(st.side)
         turned = new & st.turned
@@ -96,7 +98,8 @@ def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int
                   for k in range(cfg.num_iso)]
         T, layers = _pass(dev, cfg, opacity, T, layers, max_layers, counts)
         v_prev = dr.select(turned, st.turn_value, dr.select(skipped, st.side, v_prev))
-        march = active & lnot(turned) & (lnot(new) | st.found)
+        searching = active & sk.searching
+        march = active & lnot(turned) & (lnot(new) | st.found) & lnot(searching)
 
         # --- The piece [t, t_b]: the sides along it.
         t_b, L, nums, den = cubic_piece(dev, cfg, o, d, inv_d, dnorm, w, t1, level_masks,
@@ -105,7 +108,8 @@ def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int
         T, layers = _pass(dev, cfg, opacity, T, layers, max_layers, counts)
         v_prev = dr.select(march, dr.select(have, v_end, dr.nan), v_prev)
         w.t = dr.select(march, t_b, w.t)
-        active = (march | turned) & (w.t < t1) & (T > tol.T_MIN) & (layers < max_layers)
+        active = (march | turned | searching) & (w.t < t1) & (T > tol.T_MIN) & \
+            (layers < max_layers)
     return dr.select(T <= tol.T_MIN, 0.0, T)
 
 
