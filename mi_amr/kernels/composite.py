@@ -22,7 +22,8 @@ from mi_amr.kernels.device import lnot
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.kernels.transfer2d import alpha as alpha2d
 from mi_amr.kernels.transfer2d import segment_alpha as segment_alpha2d
-from mi_amr.kernels.traverse import Walk, clip_to_volume, epsilon, next_dual_plane, seek
+from mi_amr.kernels.traverse import (Walk, clip_to_volume, epsilon, next_dual_plane, seek_part,
+                                     seek_start)
 
 
 @dataclass
@@ -362,14 +363,16 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     T = m.Float(1.0)
     w = Walk.start(m, t0)
     samples = m.UInt32(0)
+    no_side = m.Float(dr.nan)
+    sk = seek_start(dev, o, d, w.t, w.node, w.face, no_side, m.Bool(False))
     while active:
-        new = w.needs_leaf()
-        st = seek(dev, cfg, o, d, w.t, t1, w.node, w.face, m.Float(dr.nan), active & new)
-        w = w.adopt(new, st)
-        active &= lnot(new) | st.found
+        # --- The next leaf with opacity, a few search steps at a time (traverse.seek_part).
+        sk, new = seek_part(dev, cfg, o, d, t1, w, sk, no_side, active)
+        w = w.adopt(new, sk.stretch())
+        active &= lnot(new) | sk.found
 
         # --- The cubic piece [t, t_b] up to the next dual-cell plane (or the leaf's end).
-        work = m.Bool(active)
+        work = active & lnot(sk.searching)
         t_b = _leaf_piece_end(dev, o, d, inv_d, w, t1, dnorm, level_masks, work)
         L = t_b - w.t
         nums, den = rec.segment_cubic(dev, cfg.basis, w.leaf, dr.fma(d, w.t, o), d, 0.5 * L,
@@ -386,14 +389,14 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
             ctx = lighting.sample(dr.fma(d, w.t + s_best, o), lit, True)
             C_p, T_p = _piece_light(m, cfg, piece, subs, dnorm, ctx, lighting, lit, centres,
                                     color_of)
-            C += T * C_p
-            T *= T_p
+            C += dr.select(work, T * C_p, 0.0)
+            T = dr.select(work, T * T_p, T)
         else:
             for sub in subs:
                 for a in sub.alphas:
-                    T *= 1.0 - a
+                    T = dr.select(work, T * (1.0 - a), T)
 
-        w.t = dr.select(active, t_b, w.t)
+        w.t = dr.select(work, t_b, w.t)
         active &= (w.t < t1) & (T > tol.T_MIN)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
     return Composite(C=C, T=T, samples=samples)
@@ -522,21 +525,24 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     samples = m.UInt32(0)
+    no_side = m.Float(dr.nan)
+    sk = seek_start(dev, o, d, w.t, w.node, w.face, no_side, m.Bool(False))
     while active:
         # Skipped nodes have no opacity; the sample before them no longer borders the next one:
         # the next step's stretch starts where the leaf does.
-        new = w.needs_leaf()
-        st = seek(dev, cfg, o, d, w.t, t1, w.node, w.face, m.Float(dr.nan), active & new)
+        sk, new = seek_part(dev, cfg, o, d, t1, w, sk, no_side, active)
+        st = sk.stretch()
         skipped = new & (st.t > w.t)
         v_prev = dr.select(skipped, dr.nan, v_prev)
         t_prev = dr.select(skipped, st.t, t_prev)
         w = w.adopt(new, st)
         active &= lnot(new) | st.found
+        work = active & lnot(sk.searching)
         if dr.hint(not uniform, mode="scalar"):
             leaf_h = dr.gather(m.Float, dev.leaf_min_h, w.leaf, active & new)
             dt = dr.select(new, cfg.step_scale * leaf_h / dnorm, dt)
 
-        smp = _volume_sample(dev, cfg, o, d, dnorm, w, t1, t_anchor, rho, dt, arrays, active)
+        smp = _volume_sample(dev, cfg, o, d, dnorm, w, t1, t_anchor, rho, dt, arrays, work)
         samples += dr.select(smp.take, 1, 0)
         if dr.hint(cfg.method == "bisect", mode="scalar"):
             smp = _into_band(dev, cfg, o, d, smp, t_prev, v_prev, bands, arrays)
@@ -547,11 +553,11 @@ def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, activ
             ctx = lighting.sample(dr.fma(d, t_light, o), lit, True)
             A, S = lighting.terms(ctx, smp.grad, lit)
             C += dr.select(lit, T * a * (color_of(shares, smp.cval) * A + S), 0.0)
-        T *= 1.0 - a
+        T = dr.select(work, T * (1.0 - a), T)
         t_prev = dr.select(smp.take, smp.t_s, t_prev)
         v_prev = dr.select(smp.take, smp.v, v_prev)
 
-        w.t = dr.select(active, smp.b, w.t)
+        w.t = dr.select(work, smp.b, w.t)
         active &= (w.t < t1) & (T > tol.T_MIN)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
     return Composite(C=C, T=T, samples=samples)

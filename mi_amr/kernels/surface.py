@@ -41,7 +41,7 @@ from mi_amr.kernels import roots
 from mi_amr.kernels.config import MarchConfig, first_between, sides_differ
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.traverse import (Walk, box_exit, clip_to_volume, epsilon, next_dual_plane,
-                                     seek, seek_part, seek_start)
+                                     seek_part, seek_start)
 
 
 @dataclass
@@ -297,14 +297,15 @@ class Trail:
                      v_b=m.Float(0.0))
 
 
-def _next_leaf_sampled(dev, cfg, o, d, dnorm, w: Walk, tr: Trail, t1, t_anchor, active):
+def _next_leaf_sampled(dev, cfg, o, d, dnorm, w: Walk, tr: Trail, sk, t1, t_anchor, active):
     """Seek the next leaf that may hold a crossing, or a skipped node across one (whose first
-    sample is then taken after all, in the leaf where that node starts). Returns the new walk
-    and trail and the lanes still marching."""
+    sample is then taken after all, in the leaf where that node starts), a few search steps at
+    a time (:func:`~mi_amr.kernels.traverse.seek_part`). Returns the new walk, trail and
+    search, the lanes still marching and those of them that take a sample now."""
     m = dev.m
     uniform = cfg.method == "uniform"
-    new = w.needs_leaf()
-    st = seek(dev, cfg, o, d, w.t, t1, w.node, w.face, tr.v_prev, active & new)
+    sk, new = seek_part(dev, cfg, o, d, t1, w, sk, tr.v_prev, active)
+    st = sk.stretch()
     turned = new & st.turned
     # Past skipped nodes the previous sample becomes "their last one", on their side.
     skipped = new & dr.isfinite(st.side)
@@ -329,7 +330,7 @@ def _next_leaf_sampled(dev, cfg, o, d, dnorm, w: Walk, tr: Trail, t1, t_anchor, 
     if not uniform:
         leaf_h = dr.gather(m.Float, dev.leaf_min_h, w.leaf, active & new)
         tr.dt = dr.select(new, cfg.step_scale * leaf_h / dnorm, tr.dt)
-    return w, tr, active
+    return w, tr, sk, active, active & lnot(sk.searching)
 
 
 def _sample(dev, cfg, o, d, dnorm, w: Walk, tr: Trail, t1, t_anchor, rho, values, active):
@@ -396,16 +397,18 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
     w = Walk.start(m, t0)
     tr = Trail.start(m, cfg.step_scale * dev.min_h / dnorm)
     samples = m.UInt32(0)
+    sk = seek_start(dev, o, d, w.t, w.node, w.face, tr.v_prev, m.Bool(False))
     while active:
-        w, tr, active = _next_leaf_sampled(dev, cfg, o, d, dnorm, w, tr, t1, t_anchor, active)
+        w, tr, sk, active, work = _next_leaf_sampled(dev, cfg, o, d, dnorm, w, tr, sk, t1,
+                                                     t_anchor, active)
         b, t_s, v, take = _sample(dev, cfg, o, d, dnorm, w, tr, t1, t_anchor, rho, values,
-                                  active)
+                                  work)
         forced = tr.forced
         tr, got, extra = _straddle(dev, cfg, o, d, tr, t_s, v, take, values)
         samples += dr.select(take, 1, 0) + extra
         # --- Advance. After a forced sample, the rest of its node is skipped by the next seek.
-        w.t = dr.select(forced & (t_s > b), t_s, b)
-        w.t_exit = dr.select(forced, -dr.inf, w.t_exit)
+        w.t = dr.select(work, dr.select(forced & (t_s > b), t_s, b), w.t)
+        w.t_exit = dr.select(work & forced, -dr.inf, w.t_exit)
         tr.forced = m.Bool(False)
         active &= lnot(got) & (w.t < t1)
 
