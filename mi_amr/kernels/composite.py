@@ -22,8 +22,8 @@ from mi_amr.kernels.device import lnot
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.kernels.transfer2d import alpha as alpha2d
 from mi_amr.kernels.transfer2d import segment_alpha as segment_alpha2d
-from mi_amr.kernels.traverse import (Walk, clip_to_volume, epsilon, next_dual_plane, seek_part,
-                                     seek_start)
+from mi_amr.kernels.traverse import (Walk, clip_to_volume, epsilon, next_dual_plane, seek,
+                                     seek_part, seek_start)
 
 
 @dataclass
@@ -363,16 +363,17 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
     T = m.Float(1.0)
     w = Walk.start(m, t0)
     samples = m.UInt32(0)
-    no_side = m.Float(dr.nan)
-    sk = seek_start(dev, o, d, w.t, w.node, w.face, no_side, m.Bool(False))
     while active:
-        # --- The next leaf with opacity, a few search steps at a time (traverse.seek_part).
-        sk, new = seek_part(dev, cfg, o, d, t1, w, sk, no_side, active)
-        w = w.adopt(new, sk.stretch())
-        active &= lnot(new) | sk.found
+        # --- The next leaf with opacity: the whole search at once. (A few steps at a time,
+        # traverse.seek_part, made this march slower: 1.15 against 0.89 s on
+        # sphere_wake_volume at 256^2, as its pieces cost far more than search steps.)
+        new = w.needs_leaf()
+        st = seek(dev, cfg, o, d, w.t, t1, w.node, w.face, m.Float(dr.nan), active & new)
+        w = w.adopt(new, st)
+        active &= lnot(new) | st.found
 
         # --- The cubic piece [t, t_b] up to the next dual-cell plane (or the leaf's end).
-        work = active & lnot(sk.searching)
+        work = m.Bool(active)
         t_b = _leaf_piece_end(dev, o, d, inv_d, w, t1, dnorm, level_masks, work)
         L = t_b - w.t
         nums, den = rec.segment_cubic(dev, cfg.basis, w.leaf, dr.fma(d, w.t, o), d, 0.5 * L,

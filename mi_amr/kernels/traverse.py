@@ -180,7 +180,10 @@ def seek_part(dev, cfg, o, d, t1, w: Walk, sk: Seeking, side, active):
     """Up to :data:`SEEK_STEPS` steps of the leaf search of the lanes of walk ``w`` that have
     used up their leaf (starting a search where none is under way, from ``side``). Returns the
     search and the lanes whose search ended now: for them ``sk.stretch()`` is what
-    :func:`seek` gives. Lanes still searching must not work on a leaf this step."""
+    :func:`seek` gives. Lanes still searching must not work on a leaf this step. A march whose
+    step costs far more than a search step (volume mode's exact pieces, each lit with its own
+    shadow rays) is faster with :func:`seek`, the whole search at once: the search's state
+    carried in the loop costs more than the waiting saves there."""
     begin = active & w.needs_leaf() & lnot(sk.searching)
     sk = sk.replaced(begin, seek_start(dev, o, d, w.t, w.node, w.face, side, begin))
     sk = seek_steps(dev, cfg, o, d, t1, sk, SEEK_STEPS)
