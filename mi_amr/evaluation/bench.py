@@ -446,10 +446,9 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
         lines.append(f"| {r['what']} | {r['value']} | {r['resolution']}x{r['resolution']} | "
                      f"{r['load_s']:.1f} | {r['frame_s']:.2f} |")
     table = "\n".join(lines)
-    from mi_amr.core.atomic import replacing
+    from mi_amr.workflows.movie.output import write_bytes_atomic
 
-    with replacing(out / "scaling.md") as tmp:
-        tmp.write_text(table + "\n")
+    write_bytes_atomic(out / "scaling.md", (table + "\n").encode())
     print(table)
     return rows
 

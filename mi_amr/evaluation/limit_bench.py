@@ -145,6 +145,8 @@ def load_against_read(paths) -> list:
 def run_limit_bench(out_dir="out/bench", variant: str = "llvm_ad_rgb") -> dict:
     import mitsuba as mi
 
+    from mi_amr.workflows.movie.output import write_bytes_atomic
+
     mi.set_variant(variant)
     from mi_amr.plugin.integrator import register
 
@@ -158,20 +160,12 @@ def run_limit_bench(out_dir="out/bench", variant: str = "llvm_ad_rgb") -> dict:
     paths = [data / "sphere_wake.npz"] + sorted((data / "scaling").glob("cells_large*.npz"))
     loads = load_against_read(paths)
     table = _table(frames, loads) + "\n\n" + _layers_table(layers)
-    write_text_atomic(out / "limit.md", table + "\n")
+    write_bytes_atomic(out / "limit.md", (table + "\n").encode())
     result = {"frames": frames, "loads": loads, "translucent": layers}
-    write_text_atomic(out / "limit.json", json.dumps(result, indent=2))
+    write_bytes_atomic(out / "limit.json", json.dumps(result, indent=2).encode())
     print(table)
     print(f"wrote {out / 'limit.md'}")
     return result
-
-
-def write_text_atomic(path: Path, text: str) -> None:
-    """``path`` replaced by ``text`` through a temporary file (the old one stays on failure)."""
-    from mi_amr.core.atomic import replacing
-
-    with replacing(path) as tmp:
-        tmp.write_text(text)
 
 
 def _layers_table(r) -> str:
