@@ -368,9 +368,9 @@ def test33_whole_level_gradients_match_the_grid_by_grid_twin(monkeypatch, seed, 
     """The level-wide gradient (index arithmetic, one ghost pass per chunk, here chunks of a
     few grids) equals the grid-by-grid twin (padded grids, array slices) bit for bit, one-sided
     and one- or two-cell-thick cases included; so do the derived fields."""
-    from mi_amr.core import derive as derive_mod, gradient
+    from mi_amr.core import derive as derive_mod, gradient, levels
 
-    monkeypatch.setattr(gradient, "CHUNK_CELLS", 40)
+    monkeypatch.setattr(levels, "CHUNK_CELLS", 40)
     vol = _velocity_hierarchy(seed, ratios, dtype, holes)
     comps = ("vx", "vy", "vz")
     thin = [g for g in vol.grids if min(g.shape) <= 2]

@@ -13,7 +13,8 @@ Two implementations give the same numbers bit for bit:
 
 * :func:`level_gradients` works on whole levels: the level's cells flattened grid after grid
   (the order of :func:`levels.level_values`), neighbours found by index arithmetic, and one
-  ghost-cell pass (one lookup, one interpolation) per chunk of :data:`CHUNK_CELLS` cells.
+  ghost-cell pass (one lookup, one interpolation) per chunk of :data:`levels.CHUNK_CELLS`
+  cells.
 * :func:`grid_gradients_reference` is the slow obvious twin: grid by grid, each grid padded
   with its ghost layers and differenced with array slices.
 
@@ -28,11 +29,6 @@ import numpy as np
 
 from mi_amr.core import levels
 
-# Cells per pass of the level-wide gradient: whole grids are taken until a chunk holds at least
-# this many cells. It bounds the pass's temporaries (~250 bytes a cell, ~260 MB at 2^20)
-# whatever the level's size.
-CHUNK_CELLS = 1 << 20
-
 
 def level_gradients(volume, comps):
     """Yields ``(grids, grad)`` chunk by chunk, level by level: ``grids`` the volume's indices
@@ -41,18 +37,13 @@ def level_gradients(volume, comps):
     cells in C order of its ``(nx, ny, nz)`` array."""
     for level in range(volume.num_levels):
         table = levels.level_index(volume, level)
-        counts = np.prod(table.hi - table.lo, axis=1)
         flat = [levels.level_values(volume, level, name) for name in comps]
         offsets = levels.grid_offsets(volume, level)
-        start = 0
-        while start < len(counts):
-            stop = start + 1 + int(np.searchsorted(np.cumsum(counts[start:]), CHUNK_CELLS))
-            stop = min(stop, len(counts))
-            cells = _ChunkCells(volume, level, table, start, stop)
+        for start, stop in levels.grid_chunks(table):
+            cells = _ChunkCells(volume, table, start, stop)
             lo, hi = offsets[start], offsets[start] + cells.size
             values = [np.asarray(f[lo:hi], dtype=np.float64) for f in flat]
             yield table.grids[start:stop], _chunk_gradient(volume, level, comps, cells, values)
-            start = stop
 
 
 class _ChunkCells:
@@ -60,18 +51,14 @@ class _ChunkCells:
     its grid (position in the table), grid shape, index in the grid and strides (in cells of
     the flattened chunk) along each axis."""
 
-    def __init__(self, volume, level, table, start, stop):
-        dims = (table.hi - table.lo)[start:stop]
-        counts = np.prod(dims, axis=1)
-        self.size = int(counts.sum())
-        first = np.cumsum(counts) - counts
-        self.grid = np.repeat(np.arange(start, stop), counts)
-        offset = np.arange(self.size) - np.repeat(first, counts)
-        self.shape = np.repeat(dims, counts, axis=0)
+    def __init__(self, volume, table, start, stop):
+        self.index, owner = levels.box_points(table.lo[start:stop], table.hi[start:stop])
+        self.size = len(owner)
+        self.grid = owner + start
+        self.local = self.index - table.lo[self.grid]
+        self.shape = (table.hi - table.lo)[self.grid]
         ny, nz = self.shape[:, 1], self.shape[:, 2]
-        self.local = np.stack([offset // (ny * nz), (offset // nz) % ny, offset % nz], axis=1)
         self.stride = np.stack([ny * nz, nz, np.ones_like(nz)], axis=1)
-        self.index = table.lo[self.grid] + self.local
         self.spacing = volume.spacings()[table.grids][self.grid]
         self.faces = [(np.flatnonzero(self.local[:, a] == 0),
                        np.flatnonzero(self.local[:, a] == self.shape[:, a] - 1))

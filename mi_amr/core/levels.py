@@ -12,6 +12,10 @@ import numpy as np
 
 
 DENSE_BLOCKS = 1 << 24     # blocks: up to this many, LevelIndex keeps a dense table (64 MiB)
+# Cells per pass of a level-wide computation (derived fields, brick pools): whole grids are
+# taken until a chunk holds at least this many cells, which bounds the pass's temporaries
+# (~250 bytes a cell for the gradient, ~260 MB at 2^20) whatever the level's size.
+CHUNK_CELLS = 1 << 20
 
 
 class LevelIndex:
@@ -35,12 +39,7 @@ class LevelIndex:
         blo, bhi = glo // block, ghi // block
         self.origin = blo.min(axis=0)
         self.dims = bhi.max(axis=0) - self.origin
-        counts = np.prod(bhi - blo, axis=1)
-        owner = np.repeat(np.arange(len(self.grids)), counts)
-        k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-        span = (bhi - blo)[owner]
-        cell = blo[owner] + np.stack([k // (span[:, 1] * span[:, 2]), (k // span[:, 2]) % span[:, 1],
-                                      k % span[:, 2]], axis=1)
+        cell, owner = box_points(blo, bhi)
         keys = self._key(cell)
         order = np.argsort(keys)
         self.keys, self.owner = keys[order], owner[order]
@@ -73,6 +72,31 @@ class LevelIndex:
         idx = np.flatnonzero(inside)
         out[idx[hit]] = self.owner[at[hit]]
         return out
+
+
+def box_points(lo, hi):
+    """All integer points of the half-open boxes ``[lo, hi)`` (``(B, 3)`` int each), box after
+    box, each box's points in C order: ``(points (N, 3), box of each point (N,))``. For the
+    index boxes of a level's grids these are its cells in the order of :func:`level_values`."""
+    span = hi - lo
+    counts = np.prod(span, axis=1)
+    owner = np.repeat(np.arange(len(lo)), counts)
+    k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    s = span[owner]
+    local = np.stack([k // (s[:, 1] * s[:, 2]), (k // s[:, 2]) % s[:, 1], k % s[:, 2]], axis=1)
+    return lo[owner] + local, owner
+
+
+def grid_chunks(table):
+    """``(start, stop)`` ranges of consecutive grids of :class:`LevelIndex` ``table`` holding
+    at least :data:`CHUNK_CELLS` cells each (the last may hold fewer)."""
+    ends = np.cumsum(np.prod(table.hi - table.lo, axis=1))
+    start = 0
+    while start < len(ends):
+        before = ends[start - 1] if start else 0
+        stop = min(int(np.searchsorted(ends, before + CHUNK_CELLS)) + 1, len(ends))
+        yield start, stop
+        start = stop
 
 
 def level_index(volume, level: int) -> LevelIndex:
