@@ -47,22 +47,36 @@ def level_gradients(volume, comps):
 
 
 class _ChunkCells:
-    """Where the cells of grids ``start:stop`` of a level's :class:`LevelIndex` lie: per cell
-    its grid (position in the table), grid shape, index in the grid and strides (in cells of
-    the flattened chunk) along each axis."""
+    """Where the cells of grids ``start:stop`` of a level's :class:`LevelIndex` lie, one flat
+    array per axis (cells grid after grid, each grid in C order): ``local[a]`` the cell's
+    index in its grid, ``thick[a]`` the grid's size, ``stride[a]`` the step to the next cell
+    (in cells of the chunk), ``spacing[a]`` the cell size (world units; a number when the
+    level's grids agree) and ``faces[a]`` the chunk positions of the cells on the grid's lower
+    and upper face. ``grid`` is each cell's grid (position in the table)."""
 
     def __init__(self, volume, table, start, stop):
-        self.index, owner = levels.box_points(table.lo[start:stop], table.hi[start:stop])
-        self.size = len(owner)
-        self.grid = owner + start
-        self.local = self.index - table.lo[self.grid]
-        self.shape = (table.hi - table.lo)[self.grid]
-        ny, nz = self.shape[:, 1], self.shape[:, 2]
-        self.stride = np.stack([ny * nz, nz, np.ones_like(nz)], axis=1)
-        self.spacing = volume.spacings()[table.grids][self.grid]
-        self.faces = [(np.flatnonzero(self.local[:, a] == 0),
-                       np.flatnonzero(self.local[:, a] == self.shape[:, a] - 1))
-                      for a in range(3)]
+        dims = (table.hi - table.lo)[start:stop]
+        counts = np.prod(dims, axis=1)
+        self.size = int(counts.sum())
+        self.grid = np.repeat(np.arange(start, stop), counts)
+        offset = np.arange(self.size) - np.repeat(np.cumsum(counts) - counts, counts)
+        self.thick = [np.repeat(dims[:, a], counts) for a in range(3)]
+        plane = self.thick[1] * self.thick[2]
+        i = offset // plane
+        rest = offset - i * plane
+        j = rest // self.thick[2]
+        self.local = [i, j, rest - j * self.thick[2]]
+        self.stride = [plane, self.thick[2], 1]
+        h = volume.spacings()[table.grids[start:stop]]
+        self.spacing = [h[0, a] if np.all(h[:, a] == h[0, a]) else np.repeat(h[:, a], counts)
+                        for a in range(3)]
+        self.faces = [(np.flatnonzero(self.local[a] == 0),
+                       np.flatnonzero(self.local[a] == self.thick[a] - 1)) for a in range(3)]
+        self.origin = table.lo
+
+    def index(self, at):
+        """Level index of the cells at chunk positions ``at``: ``(len(at), 3)`` int64."""
+        return self.origin[self.grid[at]] + np.stack([x[at] for x in self.local], axis=1)
 
 
 def _chunk_gradient(volume, level, comps, cells, values):
@@ -83,7 +97,7 @@ def _ghost_values(volume, level, comps, cells):
     parts = []
     for axis in range(3):
         for side, step in ((0, -1), (1, 1)):
-            index = cells.index[cells.faces[axis][side]].copy()
+            index = cells.index(cells.faces[axis][side])
             index[:, axis] += step
             parts.append(index)
     index = np.concatenate(parts)
@@ -100,22 +114,26 @@ def _ghost_values(volume, level, comps, cells):
 def _axis_difference(v, lo_ghost, hi_ghost, cells, axis):
     """d v / d x along ``axis`` for a chunk's cells (``v`` flat float64): central differences,
     neighbours beyond a face taken from the ghosts, one-sided where a ghost is NaN."""
-    n = cells.size
-    here = np.arange(n)
-    stride = cells.stride[:, axis]
+    stride = cells.stride[axis]
     lo_face, hi_face = cells.faces[axis]
-    above = np.take(v, np.minimum(here + stride, n - 1))
+    if axis == 2:                               # stride 1: shifted copies
+        above, below = np.empty_like(v), np.empty_like(v)
+        above[:-1], below[1:] = v[1:], v[:-1]
+    else:                                       # the values beyond a face are replaced below
+        here = np.arange(cells.size)
+        above = np.take(v, here + stride, mode="clip")
+        below = np.take(v, here - stride, mode="clip")
     above[hi_face] = hi_ghost
-    below = np.take(v, np.maximum(here - stride, 0))
     below[lo_face] = lo_ghost
-    h = cells.spacing[:, axis]
+    h = cells.spacing[axis]
     d = (above - below) / (2.0 * h)
     # The lower face first, then the upper: a cell 1 thick is on both and the upper one wins,
     # as in the slow twin.
     for sign, face, ghost, other in ((1, lo_face, below, above), (-1, hi_face, above, below)):
         at = face[~np.isfinite(ghost[face])]
         if len(at):
-            d[at] = _one_sided(v, at, sign, stride[at], cells.shape[at, axis], h[at], other[at])
+            d[at] = _one_sided(v, at, sign, np.broadcast_to(stride, v.shape)[at],
+                               cells.thick[axis][at], np.broadcast_to(h, v.shape)[at], other[at])
     return d
 
 

@@ -14,8 +14,9 @@ import numpy as np
 DENSE_BLOCKS = 1 << 24     # blocks: up to this many, LevelIndex keeps a dense table (64 MiB)
 # Cells per pass of a level-wide computation (derived fields, brick pools): whole grids are
 # taken until a chunk holds at least this many cells, which bounds the pass's temporaries
-# (~250 bytes a cell for the gradient, ~260 MB at 2^20) whatever the level's size.
-CHUNK_CELLS = 1 << 20
+# (~250 bytes a cell for the gradient, ~65 MB at 2^18) whatever the level's size; smaller
+# chunks also reuse freed memory instead of page-faulting fresh temporaries (2^20: 30 % slower).
+CHUNK_CELLS = 1 << 18
 
 
 class LevelIndex:
@@ -59,7 +60,9 @@ class LevelIndex:
         """Position in ``self.grids`` of the grid holding each cell ``index`` (``(N, 3)`` int),
         -1 where the level has no such cell."""
         b = index // self.block
-        inside = np.all((b >= self.origin) & (b < self.origin + self.dims), axis=1)
+        rel = (b - self.origin).astype(np.uint64)       # below the origin: huge, so outside
+        dims = self.dims.astype(np.uint64)
+        inside = (rel[:, 0] < dims[0]) & (rel[:, 1] < dims[1]) & (rel[:, 2] < dims[2])
         out = np.full(len(index), -1, dtype=np.int64)
         if not inside.any() or len(self.keys) == 0:
             return out
@@ -185,21 +188,21 @@ def interpolate(volume, level: int, points, fields, *, complete: bool = False):
     # Points sharing a base cell share their 8 cells: look each base up once (ghost layers of a
     # fine level have ~4 points per coarse base).
     bases, which = _unique_rows(base)
+    bits = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
+    cells = (bases[None] + bits[:, None]).reshape(-1, 3)     # corner after corner
+    vals, found = cell_values(volume, level, cells, fields)
+    if level > 0 and not found.all():
+        missing = np.flatnonzero(~found)
+        centres = volume.anchor + (cells[missing] + 0.5) * h
+        vals[:, missing] = interpolate(volume, level - 1, centres, fields, complete=complete)
+    vals = vals.reshape(len(fields), 8, len(bases))
     num = np.zeros((len(fields), len(points)))
     den = np.zeros(len(points))
     for corner in range(8):
-        bits = np.array([(corner >> 2) & 1, (corner >> 1) & 1, corner & 1])
-        idx = bases + bits
-        w = np.prod(np.where(bits == 1, frac, 1.0 - frac), axis=1)
-        vals, found = cell_values(volume, level, idx, fields)
-        if level > 0 and not found.all():
-            missing = np.flatnonzero(~found)
-            centres = volume.anchor + (idx[missing] + 0.5) * h
-            vals[:, missing] = interpolate(volume, level - 1, centres, fields,
-                                           complete=complete)
-        vals = vals[:, which]
-        ok = np.all(np.isfinite(vals), axis=0)
-        num[:, ok] += w[ok] * vals[:, ok]
+        w = np.prod(np.where(bits[corner] == 1, frac, 1.0 - frac), axis=1)
+        v = vals[:, corner, which]
+        ok = np.all(np.isfinite(v), axis=0)
+        num[:, ok] += w[ok] * v[:, ok]
         den[ok] += w[ok]
     # The weights sum to 1 up to rounding when no cell is missing.
     enough = den > 1.0 - 1e-9 if complete else den > 0
