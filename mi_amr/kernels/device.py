@@ -29,6 +29,7 @@ import drjit as dr
 import numpy as np
 
 from mi_amr import tolerances as tol
+from mi_amr.core import levels
 from mi_amr.errors import AMRError
 
 NO_GRID = 0xFFFFFFFF
@@ -222,52 +223,20 @@ class DeviceVolume:
         8 corners of any dual cell lie in the brick of its lower corner: one table lookup finds
         them whichever grids hold them. This is what the basis reconstruction reads."""
         vol = self.volume
-        ilo, ihi = vol.index_boxes()
-        levels = vol.levels
         names = [self.field] + ([self.color_field] if self.color_field != self.field else [])
         tables, pools = [], [[] for _ in names]
         level_lo, level_dims, level_off = [], [], []
         count, table_at = 0, 0
         for level in range(vol.num_levels):
-            ids = np.flatnonzero(levels == level)
-            lo = ilo[ids].min(axis=0) - 1
-            hi = ihi[ids].max(axis=0)
-            dims = -(-(hi - lo) // BRICK)
-            table = np.full(tuple(dims), NO_BRICK, dtype=np.uint32)
-            # Bricks touched by a grid, its apron included (a dual cell may start one cell
-            # below a grid).
-            spans = [((ilo[g] - 1 - lo) // BRICK, (ihi[g] - 1 - lo) // BRICK) for g in ids]
-            for a, b in spans:
-                table[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = 0
-            used = table == 0
-            n = int(used.sum())
-            table[used] = np.arange(count, count + n, dtype=np.uint32)
-            level_pools = [np.full((n, BRICK_N, BRICK_N, BRICK_N), np.nan, dtype=np.float32)
-                           for _ in names]
-            for g, (a, b) in zip(ids, spans):
-                arrays = [np.where(vol.leaf_mask(g), vol.grids[g].fields[nm], np.nan)
-                          for nm in names]
-                for bx in range(a[0], b[0] + 1):
-                    for by in range(a[1], b[1] + 1):
-                        for bz in range(a[2], b[2] + 1):
-                            start = lo + np.array([bx, by, bz]) * BRICK
-                            c0 = np.maximum(start, ilo[g])
-                            c1 = np.minimum(start + BRICK_N, ihi[g])
-                            if np.any(c1 <= c0):
-                                continue
-                            k = table[bx, by, bz] - count
-                            dst = tuple(slice(x, y) for x, y in zip(c0 - start, c1 - start))
-                            src = tuple(slice(x, y) for x, y in zip(c0 - ilo[g], c1 - ilo[g]))
-                            for pool, arr in zip(level_pools, arrays):
-                                pool[k][dst] = arr[src]
+            lo, dims, table, level_pools = level_bricks(vol, level, names, count)
             for i, pool in enumerate(level_pools):
-                pools[i].append(pool.ravel())
-            tables.append(table.ravel())
+                pools[i].append(pool)
+            tables.append(table)
             level_lo.append(lo)
             level_dims.append(dims)
             level_off.append(table_at)
             table_at += table.size
-            count += n
+            count += len(level_pools[0]) // BRICK_N ** 3
         self.brick_table = self._uints(np.concatenate(tables))
         # Per level 8 uints: lo (int32 bits) and the table offset, the table's dims and 0.
         table = np.zeros((len(level_lo), 2, 4), dtype=np.uint32)
@@ -296,3 +265,85 @@ class DeviceVolume:
             self._ranges[key] = self._floats(np.stack([rlo, rhi], axis=1).astype(np.float32)
                                              .ravel())
         return self._ranges[key]
+
+
+def level_bricks(volume, level, names, first):
+    """One level's part of :meth:`DeviceVolume._build_bricks`: ``(lo, dims, table, pools)``.
+
+    ``lo`` is the level-index cell one below the level's grids, ``dims`` the brick table's
+    size, ``table`` the flat dense table (brick number from ``first`` on, or
+    :data:`NO_BRICK`) and ``pools`` per field of ``names`` the bricks' ``BRICK_N^3`` float32
+    values each, flat. Bricks touched by a grid, its apron included (a dual cell may start one
+    cell below a grid), are kept; each leaf cell is written to every brick holding it (up to 8
+    where it sits on a brick's lower faces), chunk by chunk of whole grids.
+    :func:`level_bricks_reference` is the slow twin (grid by grid, brick by brick)."""
+    index = levels.level_index(volume, level)
+    lo = index.lo.min(axis=0) - 1
+    dims = -(-(index.hi.max(axis=0) - lo) // BRICK)
+    used = np.zeros(int(np.prod(dims)), dtype=bool)
+    spans, _ = levels.box_points((index.lo - 1 - lo) // BRICK, (index.hi - 1 - lo) // BRICK + 1)
+    used[(spans[:, 0] * dims[1] + spans[:, 1]) * dims[2] + spans[:, 2]] = True
+    table = np.full(len(used), NO_BRICK, dtype=np.uint32)
+    n = int(used.sum())
+    table[used] = np.arange(first, first + n, dtype=np.uint32)
+    pools = [np.full(n * BRICK_N ** 3, np.nan, dtype=np.float32) for _ in names]
+    leaf = np.concatenate([volume.leaf_mask(g).ravel() for g in index.grids])
+    values = [levels.level_values(volume, level, name) for name in names]
+    offsets = levels.grid_offsets(volume, level)
+    for start, stop in levels.grid_chunks(index):
+        cells, _ = levels.box_points(index.lo[start:stop], index.hi[start:stop])
+        at = slice(offsets[start], offsets[start] + len(cells))
+        keep = np.flatnonzero(leaf[at])
+        _scatter_chunk(pools, [v[at][keep] for v in values], cells[keep] - lo, table, dims,
+                       first)
+    return lo, dims, table, pools
+
+
+def _scatter_chunk(pools, values, cells, table, dims, first):
+    """Write leaf ``values`` (one array per pool) of ``cells`` (``(N, 3)``, relative to the
+    level's brick table) into every brick holding them: the brick of the cell and, where the
+    cell lies on a brick's lower face on some axes (and not at the table's edge), the bricks
+    below on those axes, where it is on the upper face (corners 1..7 pick the axes)."""
+    block = [cells[:, a] // BRICK for a in range(3)]
+    offset = [cells[:, a] - block[a] * BRICK for a in range(3)]
+    key = (block[0] * dims[1] + block[1]) * dims[2] + block[2]
+    within = (offset[0] * BRICK_N + offset[1]) * BRICK_N + offset[2]
+    face = sum(((offset[a] == 0) & (block[a] > 0)).astype(np.int64) << (2 - a) for a in range(3))
+    table_step, brick_step = (dims[1] * dims[2], dims[2], 1), (BRICK_N ** 2, BRICK_N, 1)
+    on_face = np.flatnonzero(face)
+    for corner in range(8):
+        sel = on_face[(face[on_face] & corner) == corner] if corner else slice(None)
+        back = [(corner >> (2 - a)) & 1 for a in range(3)]
+        k = table[key[sel] - sum(b * t for b, t in zip(back, table_step))].astype(np.int64)
+        dst = (k - first) * BRICK_N ** 3 + within[sel] + \
+            BRICK * sum(b * t for b, t in zip(back, brick_step))
+        for pool, v in zip(pools, values):
+            pool[dst] = v[sel]
+
+
+def level_bricks_reference(volume, level, names, first):
+    """Slow twin of :func:`level_bricks`: grid by grid, brick by brick, with array slices."""
+    ilo, ihi = volume.index_boxes()
+    ids = np.flatnonzero(volume.levels == level)
+    lo = ilo[ids].min(axis=0) - 1
+    dims = -(-(ihi[ids].max(axis=0) - lo) // BRICK)
+    table = np.full(tuple(dims), NO_BRICK, dtype=np.uint32)
+    spans = [((ilo[g] - 1 - lo) // BRICK, (ihi[g] - 1 - lo) // BRICK) for g in ids]
+    for a, b in spans:
+        table[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = 0
+    used = table == 0
+    n = int(used.sum())
+    table[used] = np.arange(first, first + n, dtype=np.uint32)
+    pools = [np.full((n, BRICK_N, BRICK_N, BRICK_N), np.nan, dtype=np.float32) for _ in names]
+    for g, (a, b) in zip(ids, spans):
+        arrays = [np.where(volume.leaf_mask(g), volume.grids[g].fields[nm], np.nan)
+                  for nm in names]
+        for bx, by, bz in np.ndindex(*(b - a + 1)):
+            start = lo + (a + (bx, by, bz)) * BRICK
+            c0, c1 = np.maximum(start, ilo[g]), np.minimum(start + BRICK_N, ihi[g])
+            k = table[tuple(a + (bx, by, bz))] - first
+            dst = tuple(slice(x, y) for x, y in zip(c0 - start, c1 - start))
+            src = tuple(slice(x, y) for x, y in zip(c0 - ilo[g], c1 - ilo[g]))
+            for pool, arr in zip(pools, arrays):
+                pool[k][dst] = arr[src]
+    return lo, dims, table.ravel(), [p.ravel() for p in pools]
