@@ -69,7 +69,11 @@ def derive(volume, *names: str, velocity=None):
             start = levels.grid_offsets(volume, level)[_position(volume, level, grids[0])]
             for name, of in wanted:
                 flat[name][level][start:start + grad.shape[-1]] = of(grad)
-    return volume.with_fields({n: _per_grid(volume, arrays, comps) for n, arrays in flat.items()})
+    out = volume.with_fields({n: _per_grid(volume, arrays, comps) for n, arrays in flat.items()})
+    for name, arrays in flat.items():
+        for level, values in enumerate(arrays):
+            levels.share_level_values(out, level, name, values)
+    return out
 
 
 def q_criterion(grad: np.ndarray) -> np.ndarray:

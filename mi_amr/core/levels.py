@@ -85,9 +85,15 @@ def box_points(lo, hi):
     counts = np.prod(span, axis=1)
     owner = np.repeat(np.arange(len(lo)), counts)
     k = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-    s = span[owner]
-    local = np.stack([k // (s[:, 1] * s[:, 2]), (k // s[:, 2]) % s[:, 1], k % s[:, 2]], axis=1)
-    return lo[owner] + local, owner
+    ny, nz = np.repeat(span[:, 1], counts), np.repeat(span[:, 2], counts)
+    points = np.empty((len(k), 3), dtype=np.result_type(lo, np.int64))
+    i = k // (ny * nz)
+    k -= i * (ny * nz)
+    j = k // nz
+    points[:, 0] = np.repeat(lo[:, 0], counts) + i
+    points[:, 1] = np.repeat(lo[:, 1], counts) + j
+    points[:, 2] = np.repeat(lo[:, 2], counts) + (k - j * nz)
+    return points, owner
 
 
 def grid_chunks(table):
@@ -122,6 +128,28 @@ def level_values(volume, level: int, name: str) -> np.ndarray:
         flat = np.concatenate([a.ravel() for a in arrays]) if arrays else np.zeros(0)
         cache[key] = ([id(a) for a in arrays], arrays, flat)
     return cache[key][2]
+
+
+def share_level_values(volume, level: int, name: str, flat: np.ndarray) -> None:
+    """Make ``flat`` the cached :func:`level_values` of field ``name`` on ``level`` when every
+    grid's array of it is a view of ``flat`` (as :func:`mi_amr.derive` makes them), so no
+    copy is made; otherwise do nothing."""
+    arrays = [volume.grids[g].fields[name] for g in level_index(volume, level).grids]
+    if all(a.base is flat for a in arrays):
+        volume.__dict__.setdefault("_level_values", {})[(level, name)] = (
+            [id(a) for a in arrays], arrays, flat)
+
+
+def adopt_caches(volume, source) -> None:
+    """Give ``volume`` the level tables and the flat level values of its fields cached on
+    ``source``, a volume of the same hierarchy (values are checked against the arrays before
+    each use)."""
+    if "_level_index" in source.__dict__:
+        volume.__dict__["_level_index"] = dict(source.__dict__["_level_index"])
+    # Only fields the volume holds: a flat copy of a dropped field would stay alive with it.
+    kept = {k: v for k, v in source.__dict__.get("_level_values", {}).items()
+            if k[1] in volume.field_names}
+    volume.__dict__["_level_values"] = kept
 
 
 def grid_offsets(volume, level: int) -> np.ndarray:

@@ -25,6 +25,7 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
+from mi_amr.core import levels
 from mi_amr.core.boxes import intersection_volume, overlap_pairs
 from mi_amr.errors import AMRError, shown
 
@@ -159,6 +160,7 @@ class AMRVolume:
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
         out._leaf_masks, out._partly = self._leaf_masks, self._partly
+        levels.adopt_caches(out, self)
         return out
 
     def select_fields(self, names: Sequence[str]) -> "AMRVolume":
@@ -172,6 +174,7 @@ class AMRVolume:
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
         out._leaf_masks, out._partly = self._leaf_masks, self._partly
+        levels.adopt_caches(out, self)
         return out
 
     # ------------------------------------------------------------------ hierarchy queries

@@ -61,11 +61,24 @@ def host_aligned(values, dtype) -> np.ndarray:
     whatever address NumPy gave them, the same scene would compile different kernels from one
     load to the next."""
     a = np.ascontiguousarray(values, dtype=dtype).ravel()
-    buf = np.empty(a.nbytes + ALIGN, dtype=np.uint8)
-    start = (-buf.ctypes.data) % ALIGN
-    out = buf[start:start + a.nbytes].view(dtype)
+    out = _aligned_empty(a.size, dtype)
     out[:] = a
     return out
+
+
+def aligned_full(size: int, value, dtype) -> np.ndarray:
+    """A new flat NumPy array of ``size`` elements of ``dtype``, all ``value``, starting on an
+    :data:`ALIGN` byte boundary (see :func:`host_aligned`)."""
+    out = _aligned_empty(size, dtype)
+    out.fill(value)
+    return out
+
+
+def _aligned_empty(size: int, dtype) -> np.ndarray:
+    itemsize = np.dtype(dtype).itemsize
+    buf = np.empty(size * itemsize + ALIGN, dtype=np.uint8)
+    start = (-buf.ctypes.data) % ALIGN
+    return buf[start:start + size * itemsize].view(dtype)
 
 
 def device_array(T, values, dtype):
@@ -224,29 +237,24 @@ class DeviceVolume:
         them whichever grids hold them. This is what the basis reconstruction reads."""
         vol = self.volume
         names = [self.field] + ([self.color_field] if self.color_field != self.field else [])
-        tables, pools = [], [[] for _ in names]
-        level_lo, level_dims, level_off = [], [], []
-        count, table_at = 0, 0
+        parts, count = [], 0
         for level in range(vol.num_levels):
-            lo, dims, table, level_pools = level_bricks(vol, level, names, count)
-            for i, pool in enumerate(level_pools):
-                pools[i].append(pool)
-            tables.append(table)
-            level_lo.append(lo)
-            level_dims.append(dims)
-            level_off.append(table_at)
-            table_at += table.size
-            count += len(level_pools[0]) // BRICK_N ** 3
-        self.brick_table = self._uints(np.concatenate(tables))
+            parts.append(brick_table(vol, level, count))
+            count += parts[-1][3]
+        # One aligned pool per field for all levels, filled in place and mapped by Dr.Jit as it
+        # is (no copy: the large data of a big volume is written once).
+        pools = [aligned_full(count * BRICK_N ** 3, np.nan, np.float32) for _ in names]
+        for level, (lo, dims, table, _) in enumerate(parts):
+            fill_bricks(vol, level, names, lo, dims, table, 0, pools)
+        self.brick_table = self._uints(np.concatenate([p[2] for p in parts]))
         # Per level 8 uints: lo (int32 bits) and the table offset, the table's dims and 0.
-        table = np.zeros((len(level_lo), 2, 4), dtype=np.uint32)
-        table[:, 0, :3] = np.asarray(level_lo, dtype=np.int32).reshape(-1, 3).view(np.uint32)
-        table[:, 0, 3] = level_off
-        table[:, 1, :3] = np.asarray(level_dims, dtype=np.uint32).reshape(-1, 3)
+        table = np.zeros((len(parts), 2, 4), dtype=np.uint32)
+        table[:, 0, :3] = np.array([p[0] for p in parts], dtype=np.int32).view(np.uint32)
+        table[:, 0, 3] = np.cumsum([0] + [p[2].size for p in parts[:-1]])
+        table[:, 1, :3] = np.array([p[1] for p in parts], dtype=np.uint32)
         self.level_table = self._uints(table.ravel())
-        self.brick_values = self._floats(np.concatenate(pools[0]))
-        self.brick_colors = self.brick_values if len(names) == 1 else \
-            self._floats(np.concatenate(pools[1]))
+        self.brick_values = self.m.Float(pools[0])
+        self.brick_colors = self.brick_values if len(names) == 1 else self.m.Float(pools[1])
         self.num_bricks = count
 
     def _floats(self, a):
@@ -268,15 +276,22 @@ class DeviceVolume:
 
 
 def level_bricks(volume, level, names, first):
-    """One level's part of :meth:`DeviceVolume._build_bricks`: ``(lo, dims, table, pools)``.
-
-    ``lo`` is the level-index cell one below the level's grids, ``dims`` the brick table's
-    size, ``table`` the flat dense table (brick number from ``first`` on, or
-    :data:`NO_BRICK`) and ``pools`` per field of ``names`` the bricks' ``BRICK_N^3`` float32
-    values each, flat. Bricks touched by a grid, its apron included (a dual cell may start one
-    cell below a grid), are kept; each leaf cell is written to every brick holding it (up to 8
-    where it sits on a brick's lower faces), chunk by chunk of whole grids.
+    """One level's part of :meth:`DeviceVolume._build_bricks`: ``(lo, dims, table, pools)``
+    (see :func:`brick_table`), ``pools`` per field of ``names`` the level's bricks'
+    ``BRICK_N^3`` float32 values each, flat (see :func:`fill_bricks`).
     :func:`level_bricks_reference` is the slow twin (grid by grid, brick by brick)."""
+    lo, dims, table, n = brick_table(volume, level, first)
+    pools = [np.full(n * BRICK_N ** 3, np.nan, dtype=np.float32) for _ in names]
+    fill_bricks(volume, level, names, lo, dims, table, first, pools)
+    return lo, dims, table, pools
+
+
+def brick_table(volume, level, first):
+    """``(lo, dims, table, n)`` of one level's bricks: ``lo`` the level-index cell one below
+    the level's grids, ``dims`` the dense table's size in bricks, ``table`` the flat table
+    (brick numbers from ``first`` on, :data:`NO_BRICK` where unused) and ``n`` the bricks
+    used: those touched by a grid, its apron included (a dual cell may start one cell below
+    a grid)."""
     index = levels.level_index(volume, level)
     lo = index.lo.min(axis=0) - 1
     dims = -(-(index.hi.max(axis=0) - lo) // BRICK)
@@ -286,7 +301,15 @@ def level_bricks(volume, level, names, first):
     table = np.full(len(used), NO_BRICK, dtype=np.uint32)
     n = int(used.sum())
     table[used] = np.arange(first, first + n, dtype=np.uint32)
-    pools = [np.full(n * BRICK_N ** 3, np.nan, dtype=np.float32) for _ in names]
+    return lo, dims, table, n
+
+
+def fill_bricks(volume, level, names, lo, dims, table, base, pools):
+    """Write the level's leaf values of fields ``names`` into ``pools`` (flat float32, brick
+    number ``base`` first), each leaf cell into every brick holding it (up to 8 where it sits
+    on a brick's lower faces), chunk by chunk of whole grids. Other values are left as they
+    are (NaN)."""
+    index = levels.level_index(volume, level)
     leaf = np.concatenate([volume.leaf_mask(g).ravel() for g in index.grids])
     values = [levels.level_values(volume, level, name) for name in names]
     offsets = levels.grid_offsets(volume, level)
@@ -295,13 +318,12 @@ def level_bricks(volume, level, names, first):
         at = slice(offsets[start], offsets[start] + len(cells))
         keep = np.flatnonzero(leaf[at])
         _scatter_chunk(pools, [v[at][keep] for v in values], cells[keep] - lo, table, dims,
-                       first)
-    return lo, dims, table, pools
+                       base)
 
 
-def _scatter_chunk(pools, values, cells, table, dims, first):
-    """Write leaf ``values`` (one array per pool) of ``cells`` (``(N, 3)``, relative to the
-    level's brick table) into every brick holding them: the brick of the cell and, where the
+def _scatter_chunk(pools, values, cells, table, dims, base):
+    """Write leaf ``values`` (one array per pool, brick number ``base`` first) of ``cells``
+    (``(N, 3)``, relative to the level's brick table) into every brick holding them: the brick of the cell and, where the
     cell lies on a brick's lower face on some axes (and not at the table's edge), the bricks
     below on those axes, where it is on the upper face (corners 1..7 pick the axes)."""
     block = [cells[:, a] // BRICK for a in range(3)]
@@ -315,7 +337,7 @@ def _scatter_chunk(pools, values, cells, table, dims, first):
         sel = on_face[(face[on_face] & corner) == corner] if corner else slice(None)
         back = [(corner >> (2 - a)) & 1 for a in range(3)]
         k = table[key[sel] - sum(b * t for b, t in zip(back, table_step))].astype(np.int64)
-        dst = (k - first) * BRICK_N ** 3 + within[sel] + \
+        dst = (k - base) * BRICK_N ** 3 + within[sel] + \
             BRICK * sum(b * t for b, t in zip(back, brick_step))
         for pool, v in zip(pools, values):
             pool[dst] = v[sel]
