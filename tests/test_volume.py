@@ -160,6 +160,27 @@ def test09_leaf_mask_of_random_hierarchies():
             np.testing.assert_array_equal(vol.leaf_mask(i), mask, err_msg=f"seed {seed} grid {i}")
 
 
+@pytest.mark.parametrize("box_cells, chunk_cells", [(4096, 1 << 16), (0, 1 << 16), (8, 1)])
+def test09b_leaf_masks_equal_their_slow_twin(monkeypatch, box_cells, chunk_cells):
+    """The flat leaf masks, cleared through flat cell indices in blocks (or box by box with
+    slices above MASK_BOX_CELLS), equal the slow twin's per-pair slices on random and reference
+    hierarchies, ratio 4 included."""
+    from mi_amr.core import volume as volume_module
+
+    monkeypatch.setattr(volume_module, "MASK_BOX_CELLS", box_cells)
+    monkeypatch.setattr(volume_module, "MASK_CHUNK_CELLS", chunk_cells)
+    hierarchies = [random_grids(seed, ratios=ratios) for seed in range(4)
+                   for ratios in ((2, 2), (4, 2), (2, 4))] + [reference_grids((4, 2))]
+    for grids in hierarchies:
+        vol = AMRVolume.from_grids(grids)
+        masks, partly = volume_module._leaf_masks_reference(vol)
+        np.testing.assert_array_equal(vol.partly_covered(), partly)
+        for i, mask in enumerate(masks):
+            np.testing.assert_array_equal(vol.leaf_mask(i), mask, err_msg=f"grid {i}")
+        np.testing.assert_array_equal(vol.leaf_mask_flat(),
+                                      np.concatenate([m.ravel() for m in masks]))
+
+
 def test10_value_range_global_and_per_grid():
     # f = 10 * level + x: known per-grid minima and maxima at the extreme cell centres.
     grids = reference_grids()

@@ -36,6 +36,11 @@ LATTICE_TOLERANCE = 1e-3
 # int64 and the kd-tree scales them to the finest level (4^11 = 2^22 at most), so 2^40 leaves
 # room; beyond it the cast to integers overflows and a grid would land somewhere else.
 MAX_LATTICE_OFFSET = float(2 ** 40)
+# Leaf masks (_leaf_masks): covered boxes of up to MASK_BOX_CELLS cells are cleared together
+# through flat cell indices, in blocks of about MASK_CHUNK_CELLS cells (temporaries that stay
+# small reuse memory); bigger boxes are cleared one at a time with a slice.
+MASK_BOX_CELLS = 4096
+MASK_CHUNK_CELLS = 1 << 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,8 +109,9 @@ class AMRVolume:
         self.ratios = ratios
         self.anchor = anchor
         self._index_lo = index_lo
-        self._leaf_masks = None
+        self._leaf_flat = None   # every grid's leaf mask, flat, grid after grid (_leaf_masks)
         self._partly = None
+        self._columns = None     # per-grid arrays (_grid_columns), built once
         self._ranges = {}
 
     # ------------------------------------------------------------------ construction
@@ -158,7 +164,7 @@ class AMRVolume:
                       for i, g in enumerate(self.grids))
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
-        out._leaf_masks, out._partly = self._leaf_masks, self._partly
+        out._leaf_flat, out._partly = self._leaf_flat, self._partly
         return out
 
     def select_fields(self, names: Sequence[str]) -> "AMRVolume":
@@ -171,7 +177,7 @@ class AMRVolume:
                       for g in self.grids)
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
-        out._leaf_masks, out._partly = self._leaf_masks, self._partly
+        out._leaf_flat, out._partly = self._leaf_flat, self._partly
         return out
 
     # ------------------------------------------------------------------ hierarchy queries
@@ -208,39 +214,71 @@ class AMRVolume:
     @property
     def levels(self) -> np.ndarray:
         """Level of every grid, shape ``(G,)``."""
-        return np.array([g.level for g in self.grids], dtype=np.int32)
+        return self._grid_columns()["level"].copy()
 
     def grid_boxes(self):
         """World-space boxes of all grids: ``(lo, hi)``, each shape ``(G, 3)``."""
-        lo = np.array([g.origin for g in self.grids], dtype=np.float64)
-        hi = lo + np.array([g.shape for g in self.grids]) * self.spacings()
+        lo = self._grid_columns()["origin"].copy()
+        hi = lo + self.shapes() * self.spacings()
         return lo, hi
 
     def spacings(self) -> np.ndarray:
         """Cell size of every grid, shape ``(G, 3)`` (world units)."""
-        return np.array([g.spacing for g in self.grids], dtype=np.float64)
+        return self._grid_columns()["spacing"].copy()
+
+    def shapes(self) -> np.ndarray:
+        """Cells per axis of every grid, shape ``(G, 3)`` int64."""
+        return self._grid_columns()["shape"].copy()
+
+    def cell_offsets(self) -> np.ndarray:
+        """Where each grid's cells start in the flat array of all cells (grid after grid, each
+        raveled in C order), shape ``(G,)`` int64."""
+        return self._grid_columns()["offset"].copy()
 
     def index_boxes(self):
         """Integer index boxes ``(lo, hi)`` of all grids, each ``(G, 3)`` int64, half-open, in
         cells of each grid's own level counted from :attr:`anchor`."""
-        shapes = np.array([g.shape for g in self.grids], dtype=np.int64)
-        return self._index_lo, self._index_lo + shapes
+        return self._index_lo, self._index_lo + self._grid_columns()["shape"]
+
+    def _grid_columns(self) -> dict:
+        """Per-grid arrays gathered from the records once (the records never change): level
+        ``(G,)`` int32, origin and spacing ``(G, 3)`` float64 (world), shape ``(G, 3)`` int64
+        and the offset of each grid's cells in the flat array of all cells ``(G,)`` int64.
+        Callers get copies (the public accessors above)."""
+        if self._columns is None:
+            shape = np.array([g.shape for g in self.grids], dtype=np.int64).reshape(-1, 3)
+            sizes = np.prod(shape, axis=1)
+            self._columns = {
+                "level": np.array([g.level for g in self.grids], dtype=np.int32),
+                "origin": np.array([g.origin for g in self.grids], dtype=np.float64),
+                "spacing": np.array([g.spacing for g in self.grids], dtype=np.float64),
+                "shape": shape,
+                "offset": np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)}
+        return self._columns
 
     def leaf_mask(self, grid: int) -> np.ndarray:
         """Boolean array of the grid's shape: True where no finer cell covers the cell."""
-        if self._leaf_masks is None:
-            self._leaf_masks, self._partly = _leaf_masks(self)
-        return self._leaf_masks[grid]
+        flat = self.leaf_mask_flat()
+        g = self.grids[grid]
+        start = int(self._grid_columns()["offset"][grid])
+        return flat[start:start + g.num_cells].reshape(g.shape)
+
+    def leaf_mask_flat(self) -> np.ndarray:
+        """Every grid's :meth:`leaf_mask`, raveled and concatenated grid after grid (offsets:
+        :meth:`cell_offsets`), one boolean array over all cells."""
+        if self._leaf_flat is None:
+            self._leaf_flat, self._partly = _leaf_masks(self)
+        return self._leaf_flat
 
     def partly_covered(self) -> np.ndarray:
         """Boolean per grid: True where some of the grid's cells are covered by a finer grid
         (its leaf mask is not all True)."""
-        if self._leaf_masks is None:
-            self._leaf_masks, self._partly = _leaf_masks(self)
+        if self._leaf_flat is None:
+            self._leaf_flat, self._partly = _leaf_masks(self)
         return self._partly
 
     def num_leaf_cells(self) -> int:
-        return sum(int(self.leaf_mask(i).sum()) for i in range(len(self.grids)))
+        return int(np.count_nonzero(self.leaf_mask_flat()))
 
     def value_range(self, field: str, grid: int | None = None):
         """``(min, max)`` of the finite values of ``field``, over all grids or one grid.
@@ -505,8 +543,61 @@ def _check_overlap_and_nesting(records, index_lo, ratios, prefix: str) -> None:
 
 
 def _leaf_masks(volume: AMRVolume):
-    """Per grid, True where no cell of the next finer level covers the cell; and per grid,
-    whether any of its cells is covered."""
+    """Every grid's leaf mask (True where no cell of the next finer level covers the cell),
+    flat over all cells grid after grid (see :meth:`AMRVolume.cell_offsets`); and per grid,
+    whether any of its cells is covered. :func:`_leaf_masks_reference` is the slow twin.
+
+    The covered index boxes (cells of the coarse grid, from its lower corner) of all (coarse,
+    fine) pairs of a level are cleared at once through their flat cell indices; boxes of more
+    than :data:`MASK_BOX_CELLS` cells are cleared one by one with a slice."""
+    shapes = volume._grid_columns()["shape"]
+    offsets = volume._grid_columns()["offset"]
+    flat = np.ones(int(np.prod(shapes, axis=1).sum()), dtype=bool)
+    partly = np.zeros(len(shapes), dtype=bool)
+    levels = volume._grid_columns()["level"]
+    lo, hi = volume.index_boxes()
+    for level, ratio in enumerate(volume.ratios):
+        coarse = np.flatnonzero(levels == level)
+        fine = np.flatnonzero(levels == level + 1)
+        flo, fhi = lo[fine] // ratio, hi[fine] // ratio
+        ca, fb = overlap_pairs(lo[coarse], hi[coarse], flo, fhi)
+        c = coarse[ca]
+        a = np.maximum(lo[c], flo[fb]) - lo[c]
+        b = np.minimum(hi[c], fhi[fb]) - lo[c]
+        partly[c] = True
+        cells = np.prod(b - a, axis=1)
+        for q in np.flatnonzero(cells > MASK_BOX_CELLS):
+            n = shapes[c[q]]
+            mask = flat[offsets[c[q]]:offsets[c[q]] + int(np.prod(n))].reshape(n)
+            mask[a[q, 0]:b[q, 0], a[q, 1]:b[q, 1], a[q, 2]:b[q, 2]] = False
+        small = np.flatnonzero(cells <= MASK_BOX_CELLS)
+        # Blocks of pairs with at most about CHUNK cells between them keep temporaries small.
+        block = max(1, MASK_CHUNK_CELLS // max(1, int(cells[small].max(initial=1))))
+        for start in range(0, len(small), block):
+            q = small[start:start + block]
+            flat[_box_cell_indices(offsets[c[q]], shapes[c[q]], a[q], b[q])] = False
+    return flat, partly
+
+
+def _box_cell_indices(offset, shape, a, b) -> np.ndarray:
+    """Flat indices (into the array of all cells) of the cells of the half-open index boxes
+    ``[a, b)`` (rows, cells of each box's grid) of grids with the given cell ``offset`` and
+    ``shape`` (rows)."""
+    ext = b - a
+    n = np.prod(ext, axis=1)
+    box = np.repeat(np.arange(len(n)), n)
+    k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    e1, e2 = ext[box, 1], ext[box, 2]
+    i = a[box, 0] + k // (e1 * e2)
+    j = a[box, 1] + (k // e2) % e1
+    m = a[box, 2] + k % e2
+    return offset[box] + (i * shape[box, 1] + j) * shape[box, 2] + m
+
+
+def _leaf_masks_reference(volume: AMRVolume):
+    """Slow twin of :func:`_leaf_masks`: one (coarse, fine) pair at a time, a slice of the
+    coarse grid's mask (one array per grid) is cleared. Returns the list of masks and the
+    per-grid ``partly`` flags."""
     masks = [np.ones(g.shape, dtype=bool) for g in volume.grids]
     partly = np.zeros(len(masks), dtype=bool)
     levels = volume.levels
