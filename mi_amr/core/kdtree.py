@@ -338,6 +338,28 @@ class KDTree:
         hi = np.ceil((np.take(self.leaf_hi, leaf, axis=0) - o) / h + 0.5).astype(np.int64) - 1
         return np.maximum(lo, 0), np.minimum(hi, np.take(self.shape, grid, axis=0) - 1)
 
+    def _listed_pairs(self, count):
+        """The first ``count[l]`` listed grids of each leaf ``l`` with a non-empty cell window
+        in an owned leaf: ``(leaf, grid, lo, hi)``, windows as in :meth:`_windows` (int32),
+        gathered :data:`CHUNK` pairs at a time."""
+        L = self.num_leaves
+        pl = np.repeat(np.arange(L), count)
+        first = np.repeat(self.leaf_start, count)
+        at = first + np.arange(len(pl)) - np.repeat(np.cumsum(count) - count, count)
+        w_lo, w_hi = self._listed_windows
+        owned = self.leaf_owner >= 0
+        parts = []
+        for a in range(0, len(at), CHUNK):
+            leaf, pos = pl[a:a + CHUNK], at[a:a + CHUNK]
+            lo, hi = np.take(w_lo, pos, axis=0), np.take(w_hi, pos, axis=0)
+            keep = np.flatnonzero((hi >= lo).all(axis=1) & owned[leaf])
+            parts.append((leaf[keep], self.leaf_grids[pos[keep]].astype(np.int64), lo[keep],
+                          hi[keep]))
+        if not parts:
+            return (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+                    np.zeros((0, 3), dtype=np.int32), np.zeros((0, 3), dtype=np.int32))
+        return tuple(np.concatenate(column) for column in zip(*parts))
+
     # ------------------------------------------------------------------ queries
     def check(self, field: str | None = None, **kw) -> dict:
         """Check the tree's invariants (:mod:`mi_amr.core.kdcheck`): the leaves tile the root,
@@ -444,20 +466,15 @@ class KDTree:
             pl = np.flatnonzero(self.leaf_owner >= 0)
             pg = self.leaf_owner[pl]
             lo, hi = self._windows(pl, pg)
+            keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
+            pl, pg, lo, hi = pl[keep], pg[keep], lo[keep], hi[keep]
         else:
             count = self.leaf_nactive if reconstruction == "basis" else self.leaf_nsupport
-            pl = np.repeat(np.arange(L), count)
-            first = np.repeat(self.leaf_start, count)
-            at = first + np.arange(len(pl)) - np.repeat(np.cumsum(count) - count, count)
-            pg = self.leaf_grids[at].astype(np.int64)
-            lo, hi = (w[at].astype(np.int64) for w in self._listed_windows)
-        keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
-        pl, pg, lo, hi = pl[keep], pg[keep], lo[keep], hi[keep]
+            pl, pg, lo, hi = self._listed_pairs(count)
         if reconstruction == "basis":
-            values = np.concatenate([np.where(vol.leaf_mask(i), g.fields[field], np.nan).ravel()
-                                     for i, g in enumerate(vol.grids)])
+            values = np.where(vol.leaf_mask_flat(), _all_values(vol, field), np.nan)
         else:
-            values = np.concatenate([g.fields[field].ravel() for g in vol.grids])
+            values = _all_values(vol, field)
         vmin, vmax = _window_min_max(vol, values, pg, lo, hi)
         out_lo = np.full(L, np.inf)
         out_hi = np.full(L, -np.inf)
@@ -525,10 +542,14 @@ def _group(pi, gi, n) -> list:
     return np.split(gi, cuts)
 
 
+def _all_values(volume, field) -> np.ndarray:
+    """The cells of ``field`` of all grids, raveled and concatenated grid after grid."""
+    return np.concatenate([g.fields[field].reshape(-1) for g in volume.grids])
+
+
 def _grid_offsets(volume) -> np.ndarray:
     """Where each grid's cells start in the flat array of all cells, grid after grid."""
-    counts = np.prod(np.array([g.shape for g in volume.grids], dtype=np.int64), axis=1)
-    return np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return volume.cell_offsets()
 
 
 def _leaf_count_tables(volume, grids):
@@ -567,21 +588,21 @@ def _window_min_max(volume, values, grid, lo, hi):
     twin.
 
     Grids of one shape are stacked into one array; per block size a sparse table holds, per
-    cell, the extremum over the block starting there, built by halving along each axis."""
-    shapes = np.array([g.shape for g in volume.grids], dtype=np.int64)
-    offsets = _grid_offsets(volume)
+    cell, the extremum over the block starting there, built by halving along each axis. The
+    boxes are looked up :data:`CHUNK` at a time."""
+    shapes = volume._grid_columns()["shape"]
+    offsets = volume._grid_columns()["offset"]
     finite = np.isfinite(values)
     vmin_all = np.where(finite, values, np.inf).astype(np.float64)
     vmax_all = np.where(finite, values, -np.inf).astype(np.float64)
     del finite
-    k_need = (np.floor(np.log2((hi - lo + 1).max(axis=1))).astype(np.int64) if len(grid) else
-              np.zeros(0, dtype=np.int64))
+    k_need = _block_log2(lo, hi)
     out_min = np.full(len(grid), np.inf)
     out_max = np.full(len(grid), -np.inf)
-    kinds, kind_of = np.unique(shapes, axis=0, return_inverse=True)
-    kind_of = kind_of.ravel()
+    kinds, kind_of = _shape_kinds(shapes)
     for kind, shape in enumerate(kinds):
-        queries = np.flatnonzero(kind_of[grid] == kind)
+        queries = (np.flatnonzero(kind_of[grid] == kind) if len(kinds) > 1 else
+                   np.arange(len(grid)))
         if len(queries) == 0:
             continue
         members = np.flatnonzero(kind_of == kind)
@@ -590,39 +611,74 @@ def _window_min_max(volume, values, grid, lo, hi):
         cells = (offsets[members][:, None] + np.arange(int(np.prod(shape)))).ravel()
         tmin = np.take(vmin_all, cells).reshape(len(members), *shape)
         tmax = np.take(vmax_all, cells).reshape(len(members), *shape)
-        # Flat positions in the stacked tables (np.take on flat indices is several times
-        # faster than indexing a 4D array with four index arrays).
-        strides = np.array([np.prod(shape), shape[1] * shape[2], shape[2], 1], dtype=np.int64)
-        for k in range(int(k_need[queries].max()) + 1):
+        k_here = k_need[queries]
+        for k in range(int(k_here.max()) + 1):
             if k > 0:
-                step = 1 << (k - 1)
-                for axis in (1, 2, 3):
-                    n = tmin.shape[axis]
-                    if step >= n:
-                        continue
-                    head = [slice(None)] * 4
-                    tail = [slice(None)] * 4
-                    head[axis], tail[axis] = slice(0, n - step), slice(step, n)
-                    head, tail = tuple(head), tuple(tail)
-                    tmin[head] = np.minimum(tmin[head], tmin[tail])
-                    tmax[head] = np.maximum(tmax[head], tmax[tail])
-            sel = queries[k_need[queries] == k]
-            if len(sel) == 0:
-                continue
-            r = row[grid[sel]] * strides[0]
-            first = lo[sel] * strides[1:]
-            last = np.maximum(lo[sel], hi[sel] - (1 << k) + 1) * strides[1:]
-            best_min = np.full(len(sel), np.inf)
-            best_max = np.full(len(sel), -np.inf)
-            flat_min, flat_max = tmin.reshape(-1), tmax.reshape(-1)
-            for cx in (first[:, 0], last[:, 0]):
-                for cy in (first[:, 1], last[:, 1]):
-                    for cz in (first[:, 2], last[:, 2]):
-                        at = r + cx + cy + cz
-                        best_min = np.minimum(best_min, np.take(flat_min, at))
-                        best_max = np.maximum(best_max, np.take(flat_max, at))
-            out_min[sel], out_max[sel] = best_min, best_max
+                _halve_tables(tmin, tmax, 1 << (k - 1))
+            sel = queries[k_here == k] if k_here.min() != k_here.max() else queries
+            for a in range(0, len(sel), CHUNK):
+                part = sel[a:a + CHUNK]
+                out_min[part], out_max[part] = _block_lookup(
+                    tmin, tmax, row[grid[part]], lo[part], hi[part], k)
     return out_min, out_max
+
+
+def _block_log2(lo, hi) -> np.ndarray:
+    """``floor(log2(longest side))`` of each inclusive box ``[lo, hi]`` (rows), CHUNK rows at
+    a time."""
+    out = np.zeros(len(lo), dtype=np.int64)
+    for a in range(0, len(lo), CHUNK):
+        side = (hi[a:a + CHUNK] - lo[a:a + CHUNK] + 1).max(axis=1)
+        out[a:a + CHUNK] = np.floor(np.log2(side))
+    return out
+
+
+def _shape_kinds(shapes):
+    """The distinct rows of ``shapes`` (``(G, 3)`` int64, in increasing order) and the index of
+    each grid's row among them, as :func:`np.unique` with ``axis=0`` gives them."""
+    top = shapes.max(initial=0) + 1
+    key = (shapes[:, 0] * top + shapes[:, 1]) * top + shapes[:, 2]
+    keys, kind_of = np.unique(key, return_inverse=True)
+    kinds = np.stack([keys // (top * top), keys // top % top, keys % top], axis=1)
+    return kinds, kind_of.ravel()
+
+
+def _halve_tables(tmin, tmax, step) -> None:
+    """Grow the blocks of the stacked sparse tables ``tmin``/``tmax`` (grid, x, y, z) from
+    ``step`` to ``2 * step`` cells per axis, in place (blocks are cut at the grid's end)."""
+    for axis in (1, 2, 3):
+        n = tmin.shape[axis]
+        if step >= n:
+            continue
+        head = [slice(None)] * 4
+        tail = [slice(None)] * 4
+        head[axis], tail[axis] = slice(0, n - step), slice(step, n)
+        head, tail = tuple(head), tuple(tail)
+        tmin[head] = np.minimum(tmin[head], tmin[tail])
+        tmax[head] = np.maximum(tmax[head], tmax[tail])
+
+
+def _block_lookup(tmin, tmax, row, lo, hi, k):
+    """Min and max over the 8 blocks of ``2**k`` cells starting at ``lo`` or ending at ``hi``
+    (inclusive boxes, rows) of the stacked tables' grids ``row``."""
+    shape = tmin.shape[1:]
+    # Flat positions in the stacked tables (np.take on flat indices is several times faster
+    # than indexing a 4D array with four index arrays).
+    strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
+    r = row * (shape[0] * strides[0])
+    first = lo * strides
+    last = np.maximum(lo, hi - (1 << k) + 1) * strides
+    flat_min, flat_max = tmin.reshape(-1), tmax.reshape(-1)
+    best_min = np.full(len(row), np.inf)
+    best_max = np.full(len(row), -np.inf)
+    for cx in (first[:, 0], last[:, 0]):
+        for cy in (first[:, 1], last[:, 1]):
+            rxy = r + cx + cy
+            for cz in (first[:, 2], last[:, 2]):
+                at = rxy + cz
+                np.minimum(best_min, np.take(flat_min, at), out=best_min)
+                np.maximum(best_max, np.take(flat_max, at), out=best_max)
+    return best_min, best_max
 
 
 def _window_min_max_reference(volume, values, grid, lo, hi):
