@@ -185,21 +185,13 @@ class KDTree:
         """Sort each leaf's grid list with the active grids first, and summarise them."""
         L = len(self.leaf_lo)
         pg, pl = self.overlapping_leaves(self.support_lo, self.support_hi)
-        lo, hi = self._windows(pl, pg)
-        active = np.all(hi >= lo, axis=1)
-        # Grids with covered cells: is there a leaf cell in the window? (Count it from a
-        # summed-area table of the leaf mask.)
-        partly = self.volume.partly_covered()
-        sel = np.flatnonzero(active & partly[pg])
-        if len(sel):
-            sat, offsets = _leaf_count_tables(self.volume, np.flatnonzero(partly))
-            active[sel] = _box_sum(sat, offsets[pg[sel]], self.shape[pg[sel]], lo[sel], hi[sel]) > 0
+        lo, hi, active = self._active_windows(pl, pg)
         # Sort by leaf, active first, then grid: one stable sort of a combined key.
         G = len(self.grid_lo)
         order = np.argsort((pl * 2 + ~active) * G + pg, kind="stable")
         pl, pg, active = pl[order], pg[order], active[order]
         # Each listed grid's cell window in its leaf, kept for the leaf value ranges.
-        self._listed_windows = (lo[order].astype(np.int32), hi[order].astype(np.int32))
+        self._listed_windows = (np.take(lo, order, axis=0), np.take(hi, order, axis=0))
         self.leaf_grids = pg.astype(np.int32)
         self.leaf_nsupport = np.bincount(pl, minlength=L).astype(np.int64)
         self.leaf_nactive = np.bincount(pl[active], minlength=L).astype(np.int64)
@@ -211,9 +203,38 @@ class KDTree:
         self.leaf_levels = np.zeros(L, dtype=np.int64)
         self.leaf_min_h = np.full((L, 3), np.inf)
         if len(runs):
-            self.leaf_levels[has] = np.bitwise_or.reduceat(
-                np.left_shift(1, self.level[ga].astype(np.int64)), runs)
-            self.leaf_min_h[has] = np.minimum.reduceat(self.spacing[ga], runs, axis=0)
+            bits = np.left_shift(1, self.level.astype(np.int64))
+            self.leaf_levels[has] = _reduce_runs(np.bitwise_or, bits, ga, runs)
+            for a in range(3):
+                self.leaf_min_h[has, a] = _reduce_runs(
+                    np.minimum, np.ascontiguousarray(self.spacing[:, a]), ga, runs)
+
+    def _active_windows(self, leaf, grid):
+        """For (leaf, grid) pairs with overlapping supports: the cell windows of
+        :meth:`_windows` (int32) and whether the grid is active in the leaf (a non-empty
+        window holding at least one leaf cell), :data:`CHUNK` pairs at a time."""
+        P = len(leaf)
+        lo = np.empty((P, 3), dtype=np.int32)
+        hi = np.empty((P, 3), dtype=np.int32)
+        active = np.empty(P, dtype=bool)
+        # Grids with covered cells: is there a leaf cell in the window? (Count it from a
+        # summed-area table of the leaf mask.)
+        partly = self.volume.partly_covered()
+        tables = None
+        for a in range(0, P, CHUNK):
+            part = slice(a, a + CHUNK)
+            g = grid[part]
+            w_lo, w_hi = self._windows_part(leaf[part], g)
+            act = np.all(w_hi >= w_lo, axis=1)
+            sel = np.flatnonzero(act & partly[g])
+            if len(sel):
+                if tables is None:
+                    tables = _leaf_count_tables(self.volume, np.flatnonzero(partly))
+                sat, offsets = tables
+                gs = g[sel]
+                act[sel] = _box_sum(sat, offsets[gs], self.shape[gs], w_lo[sel], w_hi[sel]) > 0
+            lo[part], hi[part], active[part] = w_lo, w_hi, act
+        return lo, hi, active
 
     def _ropes(self) -> None:
         """``node_ropes[n, 2 * axis + side]``: the deepest node holding everything just beyond
@@ -554,7 +575,30 @@ def _grid_offsets(volume) -> np.ndarray:
 
 def _leaf_count_tables(volume, grids):
     """Summed-area tables of the leaf masks of ``grids`` (shape + 1 per axis), concatenated;
-    returns the tables and the offset of each grid's table (indexed by grid, -1 if absent)."""
+    returns the tables and the offset of each grid's table (indexed by grid, -1 if absent).
+    Grids of one shape are stacked and summed together; :func:`_leaf_count_tables_reference`
+    is the slow twin (one grid at a time, tables in the order of ``grids``)."""
+    shapes = volume._grid_columns()["shape"]
+    cell_start = volume._grid_columns()["offset"]
+    flat = volume.leaf_mask_flat()
+    offsets = np.full(len(volume.grids), -1, dtype=np.int64)
+    grids = np.asarray(grids, dtype=np.int64)
+    kinds, kind_of = _shape_kinds(shapes[grids])
+    tables, at = [np.zeros(0, dtype=np.int64)], 0
+    for kind, shape in enumerate(kinds):
+        members = grids[kind_of == kind]
+        cells = (cell_start[members][:, None] + np.arange(int(np.prod(shape)))).ravel()
+        mask = np.take(flat, cells).reshape(len(members), *shape)
+        sat = np.zeros((len(members),) + tuple(int(n) + 1 for n in shape), dtype=np.int64)
+        sat[:, 1:, 1:, 1:] = mask.cumsum(1).cumsum(2).cumsum(3)
+        offsets[members] = at + np.arange(len(members)) * sat[0].size
+        tables.append(sat.ravel())
+        at += sat.size
+    return np.concatenate(tables), offsets
+
+
+def _leaf_count_tables_reference(volume, grids):
+    """Slow twin of :func:`_leaf_count_tables`: one grid's table after the other."""
     tables, offsets, at = [], np.full(len(volume.grids), -1, dtype=np.int64), 0
     for i in grids:
         g = volume.grids[i]
@@ -564,6 +608,20 @@ def _leaf_count_tables(volume, grids):
         offsets[i] = at
         at += sat.size
     return np.concatenate(tables), offsets
+
+
+def _reduce_runs(ufunc, column, index, runs) -> np.ndarray:
+    """``ufunc.reduceat(column[index], runs)`` (``runs``: the increasing starts of the runs of
+    ``index``, the first at 0), over blocks of about :data:`CHUNK` rows that start at a run's
+    start, so no gather of all of ``index`` at once."""
+    cut = np.unique(np.searchsorted(runs, np.arange(0, len(index), CHUNK)))
+    cut = np.append(cut[cut < len(runs)], len(runs))
+    out = np.empty(len(runs), dtype=column.dtype)
+    for r0, r1 in zip(cut[:-1], cut[1:]):
+        begin = runs[r0]
+        end = runs[r1] if r1 < len(runs) else len(index)
+        out[r0:r1] = ufunc.reduceat(np.take(column, index[begin:end]), runs[r0:r1] - begin)
+    return out
 
 
 def _box_sum(sat, offset, shape, lo, hi):
