@@ -62,6 +62,9 @@ class KDTree:
         self._glo, self._ghi = lattice(self.grid_lo), lattice(self.grid_hi)
         step = np.round(self.spacing / self.h_fine)
         self._step_f = step
+        # Cell width of each level in finest cells, per axis.
+        self._level_h = np.array([np.round(volume.level_spacing(l) / self.h_fine)
+                                  for l in range(volume.num_levels)])
         self._slo, self._shi = self._glo - step, self._ghi + step
         # The root's middle is the lower corner of the grids: its halves, and every node below,
         # then split on the lattice of power-of-two blocks from that corner, where grid faces
@@ -118,13 +121,8 @@ class KDTree:
         pairs still useful, whether a grid face cuts the node, and the finest cell width (in
         finest cells) of the grids whose support reaches into it."""
         G, n = len(self.grid_lo), len(f_lo)
-        glo, ghi, _, _ = lattice
-        # (np.take gathers rows several times faster than fancy indexing.)
-        pl, ph = np.take(f_lo, p_node, axis=0), np.take(f_hi, p_node, axis=0)
-        gl, gh = np.take(glo, p_grid, axis=0), np.take(ghi, p_grid, axis=0)
+        overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice)
         p_level = self.level[p_grid]
-        overlap = np.all(np.minimum(gh, ph) > np.maximum(gl, pl), axis=1)
-        contains = np.all(gl <= pl, axis=1) & np.all(gh >= ph, axis=1)
         partial = overlap & ~contains
         best = np.full(n, -1, dtype=np.int64)
         np.maximum.at(best, p_node[contains], p_level[contains] * G + (G - 1 - p_grid[contains]))
@@ -138,8 +136,7 @@ class KDTree:
         p_node, p_grid, p_level = p_node[useful], p_grid[useful], p_level[useful]
         has_partial = np.zeros(n, dtype=bool)
         has_partial[p_node[partial[useful]]] = True
-        level_h = np.array([np.round(self.volume.level_spacing(l) / self.h_fine)
-                            for l in range(self.volume.num_levels)])
+        level_h = self._level_h
         finest = _scatter_max_level(n, p_node, p_level, self.volume.num_levels)
         node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
         return owner, p_node, p_grid, has_partial, node_h
@@ -545,6 +542,25 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
     p_node = np.concatenate([child_of[kn][go_left], child_of[kn][go_right] + 1])
     p_grid = np.concatenate([kg[go_left], kg[go_right]])
     return c_lo, c_hi, p_node, p_grid
+
+
+def _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice):
+    """For (node, grid) pairs: does the grid's box overlap the node's box ``[f_lo, f_hi]`` with
+    positive volume, and does it contain it (lattice coordinates)? :data:`CHUNK` pairs at a
+    time, so the gathered boxes stay small."""
+    glo, ghi, _, _ = lattice
+    overlap = np.empty(len(p_node), dtype=bool)
+    contains = np.empty(len(p_node), dtype=bool)
+    for a in range(0, len(p_node), CHUNK):
+        part = slice(a, a + CHUNK)
+        # (np.take gathers rows several times faster than fancy indexing.)
+        pl, ph = np.take(f_lo, p_node[part], axis=0), np.take(f_hi, p_node[part], axis=0)
+        gl, gh = np.take(glo, p_grid[part], axis=0), np.take(ghi, p_grid[part], axis=0)
+        cut = np.minimum(gh, ph) > np.maximum(gl, pl)
+        overlap[part] = cut[:, 0] & cut[:, 1] & cut[:, 2]
+        inside = (gl <= pl) & (gh >= ph)
+        contains[part] = inside[:, 0] & inside[:, 1] & inside[:, 2]
+    return overlap, contains
 
 
 def _scatter_max_level(n, node, level, num_levels) -> np.ndarray:

@@ -200,9 +200,9 @@ class AMRVolume:
 
     def level_spacing(self, level: int) -> np.ndarray:
         """Cell size of ``level`` per axis (world units), shape ``(3,)``."""
-        for g in self.grids:
-            if g.level == level:
-                return np.asarray(g.spacing, dtype=np.float64)
+        first = np.flatnonzero(self._grid_columns()["level"] == level)[:1]
+        if len(first):
+            return np.asarray(self.grids[first[0]].spacing, dtype=np.float64)
         raise AMRError(f"{self._label()}no level {level}; levels are 0..{self.num_levels - 1}")
 
     @property
