@@ -34,6 +34,9 @@ LEAF = 3
 # allocator's mmap threshold, so they reuse memory instead of page-faulting fresh memory
 # (which cost 5x the arithmetic on 2.8M pairs).
 CHUNK = 1 << 16
+# Boxes descended together by KDTree.overlapping_leaves: their (box, node) pairs stay a few
+# CHUNKs long however many boxes there are.
+BOX_BLOCK = 1 << 13
 
 
 class KDTree:
@@ -52,7 +55,7 @@ class KDTree:
         self.grid_lo, self.grid_hi = volume.grid_boxes()
         self.spacing = volume.spacings()
         self.level = volume.levels
-        self.shape = np.array([g.shape for g in volume.grids], dtype=np.int64)
+        self.shape = volume.shapes()
         self.support_lo = self.grid_lo - self.spacing
         self.support_hi = self.grid_hi + self.spacing
         # The build works in exact integer coordinates: cells of the finest level from the
@@ -417,27 +420,39 @@ class KDTree:
 
     def overlapping_leaves(self, lo, hi):
         """Pairs ``(box, leaf)`` for every leaf overlapping one of the open boxes ``[lo, hi]``
-        (each ``(N, 3)``, world) with positive volume, by descending the tree with all boxes at
-        once."""
+        (each ``(N, 3)``, world) with positive volume, by descending the tree with
+        :data:`BOX_BLOCK` boxes at a time (the pairs come block after block)."""
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        parts = [self._overlapping_block(lo[a:a + BOX_BLOCK], hi[a:a + BOX_BLOCK], a)
+                 for a in range(0, len(lo), BOX_BLOCK)]
+        if not parts:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        return tuple(np.concatenate(column) for column in zip(*parts))
+
+    def _overlapping_block(self, lo, hi, first):
+        """:meth:`overlapping_leaves` of one block of boxes, numbered from ``first``."""
+        lo_flat, hi_flat = lo.reshape(-1), hi.reshape(-1)
         q = np.arange(len(lo))
         node = np.zeros(len(lo), dtype=np.int64)
         done_q, done_leaf = [], []
         for _ in range(self.depth + 1):
-            code = self.node_code[node]
+            code = np.take(self.node_code, node)
             axis = code & 3
             leaf = axis == LEAF
             done_q.append(q[leaf])
             done_leaf.append(code[leaf] >> 2)
-            q, node, code, axis = q[~leaf], node[~leaf], code[~leaf], axis[~leaf]
+            inner = ~leaf
+            q, code, axis = q[inner], code[inner], axis[inner]
             if len(q) == 0:
                 break
-            split = self.node_split[node]
-            left = lo[q, axis] < split
-            right = hi[q, axis] > split
+            split = np.take(self.node_split, np.take(node, np.flatnonzero(inner)))
+            at = q * 3 + axis
+            left = np.take(lo_flat, at) < split
+            right = np.take(hi_flat, at) > split
+            child = code >> 2
             q = np.concatenate([q[left], q[right]])
-            node = np.concatenate([(code[left] >> 2), (code[right] >> 2) + 1])
-        return np.concatenate(done_q), np.concatenate(done_leaf)
+            node = np.concatenate([child[left], child[right] + 1])
+        return np.concatenate(done_q) + first, np.concatenate(done_leaf)
 
     def _candidates(self, points):
         """(point index, grid index) for every grid listed in the leaf of each point."""
@@ -644,12 +659,17 @@ def _box_sum(sat, offset, shape, lo, hi):
     """Sum of a grid's leaf mask over inclusive boxes ``[lo, hi]`` (rows), from its table."""
     n1, n2 = shape[:, 1] + 1, shape[:, 2] + 1
     empty = np.any(hi < lo, axis=1)
-    a, b = lo, hi + 1
+    a, b = lo.astype(np.int64), hi.astype(np.int64) + 1
     total = np.zeros(len(lo), dtype=np.int64)
     for cx, sx in ((b[:, 0], 1), (a[:, 0], -1)):
+        tx = cx * n1
         for cy, sy in ((b[:, 1], 1), (a[:, 1], -1)):
+            txy = (tx + cy) * n2 + offset
             for cz, sz in ((b[:, 2], 1), (a[:, 2], -1)):
-                total += sx * sy * sz * sat[offset + (cx * n1 + cy) * n2 + cz]
+                if sx * sy * sz > 0:
+                    total += np.take(sat, txy + cz)
+                else:
+                    total -= np.take(sat, txy + cz)
     return np.where(empty, 0, total)
 
 
