@@ -286,19 +286,21 @@ class KDTree:
         """For each face of ``nodes`` (6 per node), the deepest node holding its face box,
         descending from ``start`` (a node holding it); the root for faces outside the tree."""
         lo, hi, outside = self._face_boxes(nodes)
+        lo_flat, hi_flat = lo.reshape(-1), hi.reshape(-1)
         node = np.asarray(start, dtype=np.int64).copy()
         todo = np.flatnonzero(~outside)
+        at = node[todo]
         while len(todo):
-            code = self.node_code[node[todo]]
+            code = np.take(self.node_code, at)
             ax = code & 3
-            split = self._node_split[node[todo]]
+            split = np.take(self._node_split, at)
             inner = ax != LEAF
-            a = np.where(inner, ax, 0)
-            below = inner & (hi[todo, a] < split)
-            above = inner & (lo[todo, a] >= split)
-            go = below | above
-            node[todo[go]] = (code[go] >> 2) + above[go]
+            pos = todo * 3 + np.where(inner, ax, 0)
+            above = inner & (np.take(lo_flat, pos) >= split)
+            go = above | (inner & (np.take(hi_flat, pos) < split))
+            at = (code[go] >> 2) + above[go]
             todo = todo[go]
+            node[todo] = at
         node[outside] = 0
         return node
 
@@ -539,7 +541,8 @@ def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
 
 def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
     """The children of the split nodes (two each, low side first) and the pairs whose open
-    support reaches each side."""
+    support reaches each side (all low-side pairs, then all high-side ones), :data:`CHUNK`
+    pairs at a time."""
     _, _, slo, shi = lattice
     sp = np.flatnonzero(axis != LEAF)
     a, pos = axis[sp], plane[sp]
@@ -549,13 +552,22 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
     c_lo[1::2][np.arange(len(sp)), a] = pos
     child_of = np.full(len(f_lo), -1, dtype=np.int64)
     child_of[sp] = 2 * np.arange(len(sp))
-    keep = child_of[p_node] >= 0
-    kn, kg = p_node[keep], p_grid[keep]
-    ka, kpos = axis[kn], plane[kn]
-    go_left = slo[kg, ka] < kpos
-    go_right = shi[kg, ka] > kpos
-    p_node = np.concatenate([child_of[kn][go_left], child_of[kn][go_right] + 1])
-    p_grid = np.concatenate([kg[go_left], kg[go_right]])
+    slo_flat, shi_flat = slo.reshape(-1), shi.reshape(-1)
+    left, right = [], []
+    for start in range(0, len(p_node), CHUNK):
+        child = np.take(child_of, p_node[start:start + CHUNK])
+        keep = np.flatnonzero(child >= 0)
+        kn, kg, kc = np.take(p_node[start:start + CHUNK], keep), np.take(
+            p_grid[start:start + CHUNK], keep), np.take(child, keep)
+        at, kpos = kg * 3 + np.take(axis, kn), np.take(plane, kn)
+        go_left = np.take(slo_flat, at) < kpos
+        go_right = np.take(shi_flat, at) > kpos
+        left.append((kc[go_left], kg[go_left]))
+        right.append((kc[go_right] + 1, kg[go_right]))
+    if not left:
+        return c_lo, c_hi, p_node[:0], p_grid[:0]
+    p_node = np.concatenate([n for n, _ in left] + [n for n, _ in right])
+    p_grid = np.concatenate([g for _, g in left] + [g for _, g in right])
     return c_lo, c_hi, p_node, p_grid
 
 
