@@ -9,8 +9,9 @@ from hypothesis import given, settings, strategies as st
 
 from mi_amr import AMRError, AMRVolume, KDTree
 from mi_amr.synthetic import datasets
-from mi_amr.core.kdtree import (_window_min_max, _window_min_max_reference, finest_grid_bruteforce,
-                           support_grids_bruteforce)
+from mi_amr.core.kdtree import (_box_sum, _leaf_count_tables, _leaf_count_tables_reference,
+                                _window_min_max, _window_min_max_reference,
+                                finest_grid_bruteforce, support_grids_bruteforce)
 from conftest import random_grids, reference_grids
 
 def random_field(seed):
@@ -352,6 +353,26 @@ def test15b_block_extremes_equal_their_slow_twin(seed):
     want = _window_min_max_reference(vol, values, grid, lo, hi)
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test15b2_leaf_count_tables_equal_their_slow_twin(seed):
+    """Summed-area tables of the leaf masks, stacked per grid shape, give the same box sums as
+    the slow twin's tables (one grid at a time) and as summing the mask directly, for random
+    boxes (empty ones included) of the partly covered grids of random hierarchies."""
+    vol = AMRVolume.from_grids(random_grids(seed, ratios=((2, 4), (4, 2))[seed % 2]))
+    grids = np.flatnonzero(vol.partly_covered())
+    assert len(grids) > 1
+    rng = np.random.default_rng(seed)
+    grid = grids[rng.integers(len(grids), size=300)]
+    shape = vol.shapes()[grid]
+    lo = rng.integers(0, shape)
+    hi = rng.integers(-1, shape)
+    want = np.array([vol.leaf_mask(g)[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1].sum()
+                     if np.all(b >= a) else 0 for g, a, b in zip(grid, lo, hi)])
+    for tables in (_leaf_count_tables, _leaf_count_tables_reference):
+        sat, offsets = tables(vol, grids)
+        np.testing.assert_array_equal(_box_sum(sat, offsets[grid], shape, lo, hi), want)
 
 
 def test15c_ropes_equal_their_slow_twin(tree):

@@ -160,6 +160,27 @@ def test09_leaf_mask_of_random_hierarchies():
             np.testing.assert_array_equal(vol.leaf_mask(i), mask, err_msg=f"seed {seed} grid {i}")
 
 
+@pytest.mark.parametrize("box_cells, chunk_cells", [(4096, 1 << 16), (0, 1 << 16), (8, 1)])
+def test09b_leaf_masks_equal_their_slow_twin(monkeypatch, box_cells, chunk_cells):
+    """The flat leaf masks, cleared through flat cell indices in blocks (or box by box with
+    slices above MASK_BOX_CELLS), equal the slow twin's per-pair slices on random and reference
+    hierarchies, ratio 4 included."""
+    from mi_amr.core import volume as volume_module
+
+    monkeypatch.setattr(volume_module, "MASK_BOX_CELLS", box_cells)
+    monkeypatch.setattr(volume_module, "MASK_CHUNK_CELLS", chunk_cells)
+    hierarchies = [random_grids(seed, ratios=ratios) for seed in range(4)
+                   for ratios in ((2, 2), (4, 2), (2, 4))] + [reference_grids((4, 2))]
+    for grids in hierarchies:
+        vol = AMRVolume.from_grids(grids)
+        masks, partly = volume_module._leaf_masks_reference(vol)
+        np.testing.assert_array_equal(vol.partly_covered(), partly)
+        for i, mask in enumerate(masks):
+            np.testing.assert_array_equal(vol.leaf_mask(i), mask, err_msg=f"grid {i}")
+        np.testing.assert_array_equal(vol.leaf_mask_flat(),
+                                      np.concatenate([m.ravel() for m in masks]))
+
+
 def test10_value_range_global_and_per_grid():
     # f = 10 * level + x: known per-grid minima and maxima at the extreme cell centres.
     grids = reference_grids()
@@ -197,6 +218,37 @@ def test11_summary_mentions_levels_grids_cells_and_fields():
 
 
 # ---------------------------------------------------------------------- malformed records
+
+def test11b_plain_record_fast_path_equals_the_full_checks():
+    """_parse_plain (the fast path for plain records) gives the same Grid as _parse_record for
+    every form it takes, and declines (None) every other record, valid or not, which the full
+    checks then parse or refuse."""
+    from mi_amr.core.volume import _parse_plain, _parse_record
+
+    f = np.arange(8.0).reshape(2, 2, 2)
+    plain = [cube(), cube(level=3, origin=[0.5, 1, np.float64(2)], h=(0.5, 0.25, 1), n=2),
+             {"level": 1, "origin": (0, 0, 0), "spacing": np.float64(0.5),
+              "fields": {"a": f, "b": f.astype(np.float32)}},
+             Grid(2, (0.0, 1.0, 2.0), (1.0, 1.0, 1.0), (2, 2, 2), {"f": f})]
+    for g in plain:
+        fast, full = _parse_plain(g), _parse_record(g, 0, "")
+        assert fast is not None
+        assert (fast.level, fast.origin, fast.spacing, fast.shape) == \
+            (full.level, full.origin, full.spacing, full.shape)
+        assert all(type(x) is float for x in fast.origin + fast.spacing)
+        assert list(fast.fields) == list(full.fields)
+        assert all(fast.fields[n] is full.fields[n] for n in full.fields)
+    other = [cube(level=np.int64(1)), cube(origin=np.zeros(3)), cube(h=np.float32(1)),
+             cube(f=np.zeros((4, 4, 4), dtype=np.int32)), cube(f=np.zeros((4, 4, 8))[:, :, ::2]),
+             {**cube(), "fields": {"f": [[[0.0]]]}}, cube(level=True), cube(level=-1),
+             cube(origin=(0, 0)), cube(origin=(0, math.nan, 0)), cube(h=0.0), cube(h=(1, 1, -1)),
+             cube(f=np.zeros((0, 2, 2))), cube(f=np.zeros((2, 2))), cube(f=np.zeros(8, "U1")),
+             {**cube(), "fields": {}}, {"level": 0, "origin": (0, 0, 0), "spacing": 1.0},
+             cube(f=np.zeros((2, 2, 2)), g=np.zeros((2, 2, 4))), cube(**{"": np.zeros((2, 2, 2))}),
+             [("level", 0)]]
+    for g in other:
+        assert _parse_plain(g) is None
+
 
 def test12_empty_hierarchy_is_refused():
     with pytest.raises(AMRError, match="empty hierarchy"):

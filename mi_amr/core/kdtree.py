@@ -34,6 +34,9 @@ LEAF = 3
 # allocator's mmap threshold, so they reuse memory instead of page-faulting fresh memory
 # (which cost 5x the arithmetic on 2.8M pairs).
 CHUNK = 1 << 16
+# Boxes descended together by KDTree.overlapping_leaves: their (box, node) pairs stay a few
+# CHUNKs long however many boxes there are.
+BOX_BLOCK = 1 << 13
 
 
 class KDTree:
@@ -52,7 +55,7 @@ class KDTree:
         self.grid_lo, self.grid_hi = volume.grid_boxes()
         self.spacing = volume.spacings()
         self.level = volume.levels
-        self.shape = np.array([g.shape for g in volume.grids], dtype=np.int64)
+        self.shape = volume.shapes()
         self.support_lo = self.grid_lo - self.spacing
         self.support_hi = self.grid_hi + self.spacing
         # The build works in exact integer coordinates: cells of the finest level from the
@@ -62,6 +65,9 @@ class KDTree:
         self._glo, self._ghi = lattice(self.grid_lo), lattice(self.grid_hi)
         step = np.round(self.spacing / self.h_fine)
         self._step_f = step
+        # Cell width of each level in finest cells, per axis.
+        self._level_h = np.array([np.round(volume.level_spacing(l) / self.h_fine)
+                                  for l in range(volume.num_levels)])
         self._slo, self._shi = self._glo - step, self._ghi + step
         # The root's middle is the lower corner of the grids: its halves, and every node below,
         # then split on the lattice of power-of-two blocks from that corner, where grid faces
@@ -118,13 +124,8 @@ class KDTree:
         pairs still useful, whether a grid face cuts the node, and the finest cell width (in
         finest cells) of the grids whose support reaches into it."""
         G, n = len(self.grid_lo), len(f_lo)
-        glo, ghi, _, _ = lattice
-        # (np.take gathers rows several times faster than fancy indexing.)
-        pl, ph = np.take(f_lo, p_node, axis=0), np.take(f_hi, p_node, axis=0)
-        gl, gh = np.take(glo, p_grid, axis=0), np.take(ghi, p_grid, axis=0)
+        overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice)
         p_level = self.level[p_grid]
-        overlap = np.all(np.minimum(gh, ph) > np.maximum(gl, pl), axis=1)
-        contains = np.all(gl <= pl, axis=1) & np.all(gh >= ph, axis=1)
         partial = overlap & ~contains
         best = np.full(n, -1, dtype=np.int64)
         np.maximum.at(best, p_node[contains], p_level[contains] * G + (G - 1 - p_grid[contains]))
@@ -138,8 +139,7 @@ class KDTree:
         p_node, p_grid, p_level = p_node[useful], p_grid[useful], p_level[useful]
         has_partial = np.zeros(n, dtype=bool)
         has_partial[p_node[partial[useful]]] = True
-        level_h = np.array([np.round(self.volume.level_spacing(l) / self.h_fine)
-                            for l in range(self.volume.num_levels)])
+        level_h = self._level_h
         finest = _scatter_max_level(n, p_node, p_level, self.volume.num_levels)
         node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
         return owner, p_node, p_grid, has_partial, node_h
@@ -185,21 +185,13 @@ class KDTree:
         """Sort each leaf's grid list with the active grids first, and summarise them."""
         L = len(self.leaf_lo)
         pg, pl = self.overlapping_leaves(self.support_lo, self.support_hi)
-        lo, hi = self._windows(pl, pg)
-        active = np.all(hi >= lo, axis=1)
-        # Grids with covered cells: is there a leaf cell in the window? (Count it from a
-        # summed-area table of the leaf mask.)
-        partly = self.volume.partly_covered()
-        sel = np.flatnonzero(active & partly[pg])
-        if len(sel):
-            sat, offsets = _leaf_count_tables(self.volume, np.flatnonzero(partly))
-            active[sel] = _box_sum(sat, offsets[pg[sel]], self.shape[pg[sel]], lo[sel], hi[sel]) > 0
+        lo, hi, active = self._active_windows(pl, pg)
         # Sort by leaf, active first, then grid: one stable sort of a combined key.
         G = len(self.grid_lo)
         order = np.argsort((pl * 2 + ~active) * G + pg, kind="stable")
         pl, pg, active = pl[order], pg[order], active[order]
         # Each listed grid's cell window in its leaf, kept for the leaf value ranges.
-        self._listed_windows = (lo[order].astype(np.int32), hi[order].astype(np.int32))
+        self._listed_windows = (np.take(lo, order, axis=0), np.take(hi, order, axis=0))
         self.leaf_grids = pg.astype(np.int32)
         self.leaf_nsupport = np.bincount(pl, minlength=L).astype(np.int64)
         self.leaf_nactive = np.bincount(pl[active], minlength=L).astype(np.int64)
@@ -211,9 +203,38 @@ class KDTree:
         self.leaf_levels = np.zeros(L, dtype=np.int64)
         self.leaf_min_h = np.full((L, 3), np.inf)
         if len(runs):
-            self.leaf_levels[has] = np.bitwise_or.reduceat(
-                np.left_shift(1, self.level[ga].astype(np.int64)), runs)
-            self.leaf_min_h[has] = np.minimum.reduceat(self.spacing[ga], runs, axis=0)
+            bits = np.left_shift(1, self.level.astype(np.int64))
+            self.leaf_levels[has] = _reduce_runs(np.bitwise_or, bits, ga, runs)
+            for a in range(3):
+                self.leaf_min_h[has, a] = _reduce_runs(
+                    np.minimum, np.ascontiguousarray(self.spacing[:, a]), ga, runs)
+
+    def _active_windows(self, leaf, grid):
+        """For (leaf, grid) pairs with overlapping supports: the cell windows of
+        :meth:`_windows` (int32) and whether the grid is active in the leaf (a non-empty
+        window holding at least one leaf cell), :data:`CHUNK` pairs at a time."""
+        P = len(leaf)
+        lo = np.empty((P, 3), dtype=np.int32)
+        hi = np.empty((P, 3), dtype=np.int32)
+        active = np.empty(P, dtype=bool)
+        # Grids with covered cells: is there a leaf cell in the window? (Count it from a
+        # summed-area table of the leaf mask.)
+        partly = self.volume.partly_covered()
+        tables = None
+        for a in range(0, P, CHUNK):
+            part = slice(a, a + CHUNK)
+            g = grid[part]
+            w_lo, w_hi = self._windows_part(leaf[part], g)
+            act = np.all(w_hi >= w_lo, axis=1)
+            sel = np.flatnonzero(act & partly[g])
+            if len(sel):
+                if tables is None:
+                    tables = _leaf_count_tables(self.volume, np.flatnonzero(partly))
+                sat, offsets = tables
+                gs = g[sel]
+                act[sel] = _box_sum(sat, offsets[gs], self.shape[gs], w_lo[sel], w_hi[sel]) > 0
+            lo[part], hi[part], active[part] = w_lo, w_hi, act
+        return lo, hi, active
 
     def _ropes(self) -> None:
         """``node_ropes[n, 2 * axis + side]``: the deepest node holding everything just beyond
@@ -265,19 +286,21 @@ class KDTree:
         """For each face of ``nodes`` (6 per node), the deepest node holding its face box,
         descending from ``start`` (a node holding it); the root for faces outside the tree."""
         lo, hi, outside = self._face_boxes(nodes)
+        lo_flat, hi_flat = lo.reshape(-1), hi.reshape(-1)
         node = np.asarray(start, dtype=np.int64).copy()
         todo = np.flatnonzero(~outside)
+        at = node[todo]
         while len(todo):
-            code = self.node_code[node[todo]]
+            code = np.take(self.node_code, at)
             ax = code & 3
-            split = self._node_split[node[todo]]
+            split = np.take(self._node_split, at)
             inner = ax != LEAF
-            a = np.where(inner, ax, 0)
-            below = inner & (hi[todo, a] < split)
-            above = inner & (lo[todo, a] >= split)
-            go = below | above
-            node[todo[go]] = (code[go] >> 2) + above[go]
+            pos = todo * 3 + np.where(inner, ax, 0)
+            above = inner & (np.take(lo_flat, pos) >= split)
+            go = above | (inner & (np.take(hi_flat, pos) < split))
+            at = (code[go] >> 2) + above[go]
             todo = todo[go]
+            node[todo] = at
         node[outside] = 0
         return node
 
@@ -338,6 +361,28 @@ class KDTree:
         hi = np.ceil((np.take(self.leaf_hi, leaf, axis=0) - o) / h + 0.5).astype(np.int64) - 1
         return np.maximum(lo, 0), np.minimum(hi, np.take(self.shape, grid, axis=0) - 1)
 
+    def _listed_pairs(self, count):
+        """The first ``count[l]`` listed grids of each leaf ``l`` with a non-empty cell window
+        in an owned leaf: ``(leaf, grid, lo, hi)``, windows as in :meth:`_windows` (int32),
+        gathered :data:`CHUNK` pairs at a time."""
+        L = self.num_leaves
+        pl = np.repeat(np.arange(L), count)
+        first = np.repeat(self.leaf_start, count)
+        at = first + np.arange(len(pl)) - np.repeat(np.cumsum(count) - count, count)
+        w_lo, w_hi = self._listed_windows
+        owned = self.leaf_owner >= 0
+        parts = []
+        for a in range(0, len(at), CHUNK):
+            leaf, pos = pl[a:a + CHUNK], at[a:a + CHUNK]
+            lo, hi = np.take(w_lo, pos, axis=0), np.take(w_hi, pos, axis=0)
+            keep = np.flatnonzero((hi >= lo).all(axis=1) & owned[leaf])
+            parts.append((leaf[keep], self.leaf_grids[pos[keep]].astype(np.int64), lo[keep],
+                          hi[keep]))
+        if not parts:
+            return (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
+                    np.zeros((0, 3), dtype=np.int32), np.zeros((0, 3), dtype=np.int32))
+        return tuple(np.concatenate(column) for column in zip(*parts))
+
     # ------------------------------------------------------------------ queries
     def check(self, field: str | None = None, **kw) -> dict:
         """Check the tree's invariants (:mod:`mi_amr.core.kdcheck`): the leaves tile the root,
@@ -377,27 +422,39 @@ class KDTree:
 
     def overlapping_leaves(self, lo, hi):
         """Pairs ``(box, leaf)`` for every leaf overlapping one of the open boxes ``[lo, hi]``
-        (each ``(N, 3)``, world) with positive volume, by descending the tree with all boxes at
-        once."""
+        (each ``(N, 3)``, world) with positive volume, by descending the tree with
+        :data:`BOX_BLOCK` boxes at a time (the pairs come block after block)."""
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        parts = [self._overlapping_block(lo[a:a + BOX_BLOCK], hi[a:a + BOX_BLOCK], a)
+                 for a in range(0, len(lo), BOX_BLOCK)]
+        if not parts:
+            return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        return tuple(np.concatenate(column) for column in zip(*parts))
+
+    def _overlapping_block(self, lo, hi, first):
+        """:meth:`overlapping_leaves` of one block of boxes, numbered from ``first``."""
+        lo_flat, hi_flat = lo.reshape(-1), hi.reshape(-1)
         q = np.arange(len(lo))
         node = np.zeros(len(lo), dtype=np.int64)
         done_q, done_leaf = [], []
         for _ in range(self.depth + 1):
-            code = self.node_code[node]
+            code = np.take(self.node_code, node)
             axis = code & 3
             leaf = axis == LEAF
             done_q.append(q[leaf])
             done_leaf.append(code[leaf] >> 2)
-            q, node, code, axis = q[~leaf], node[~leaf], code[~leaf], axis[~leaf]
+            inner = ~leaf
+            q, code, axis = q[inner], code[inner], axis[inner]
             if len(q) == 0:
                 break
-            split = self.node_split[node]
-            left = lo[q, axis] < split
-            right = hi[q, axis] > split
+            split = np.take(self.node_split, np.take(node, np.flatnonzero(inner)))
+            at = q * 3 + axis
+            left = np.take(lo_flat, at) < split
+            right = np.take(hi_flat, at) > split
+            child = code >> 2
             q = np.concatenate([q[left], q[right]])
-            node = np.concatenate([(code[left] >> 2), (code[right] >> 2) + 1])
-        return np.concatenate(done_q), np.concatenate(done_leaf)
+            node = np.concatenate([child[left], child[right] + 1])
+        return np.concatenate(done_q) + first, np.concatenate(done_leaf)
 
     def _candidates(self, points):
         """(point index, grid index) for every grid listed in the leaf of each point."""
@@ -444,20 +501,15 @@ class KDTree:
             pl = np.flatnonzero(self.leaf_owner >= 0)
             pg = self.leaf_owner[pl]
             lo, hi = self._windows(pl, pg)
+            keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
+            pl, pg, lo, hi = pl[keep], pg[keep], lo[keep], hi[keep]
         else:
             count = self.leaf_nactive if reconstruction == "basis" else self.leaf_nsupport
-            pl = np.repeat(np.arange(L), count)
-            first = np.repeat(self.leaf_start, count)
-            at = first + np.arange(len(pl)) - np.repeat(np.cumsum(count) - count, count)
-            pg = self.leaf_grids[at].astype(np.int64)
-            lo, hi = (w[at].astype(np.int64) for w in self._listed_windows)
-        keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
-        pl, pg, lo, hi = pl[keep], pg[keep], lo[keep], hi[keep]
+            pl, pg, lo, hi = self._listed_pairs(count)
         if reconstruction == "basis":
-            values = np.concatenate([np.where(vol.leaf_mask(i), g.fields[field], np.nan).ravel()
-                                     for i, g in enumerate(vol.grids)])
+            values = np.where(vol.leaf_mask_flat(), _all_values(vol, field), np.nan)
         else:
-            values = np.concatenate([g.fields[field].ravel() for g in vol.grids])
+            values = _all_values(vol, field)
         vmin, vmax = _window_min_max(vol, values, pg, lo, hi)
         out_lo = np.full(L, np.inf)
         out_hi = np.full(L, -np.inf)
@@ -489,7 +541,8 @@ def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
 
 def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
     """The children of the split nodes (two each, low side first) and the pairs whose open
-    support reaches each side."""
+    support reaches each side (all low-side pairs, then all high-side ones), :data:`CHUNK`
+    pairs at a time."""
     _, _, slo, shi = lattice
     sp = np.flatnonzero(axis != LEAF)
     a, pos = axis[sp], plane[sp]
@@ -499,14 +552,42 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
     c_lo[1::2][np.arange(len(sp)), a] = pos
     child_of = np.full(len(f_lo), -1, dtype=np.int64)
     child_of[sp] = 2 * np.arange(len(sp))
-    keep = child_of[p_node] >= 0
-    kn, kg = p_node[keep], p_grid[keep]
-    ka, kpos = axis[kn], plane[kn]
-    go_left = slo[kg, ka] < kpos
-    go_right = shi[kg, ka] > kpos
-    p_node = np.concatenate([child_of[kn][go_left], child_of[kn][go_right] + 1])
-    p_grid = np.concatenate([kg[go_left], kg[go_right]])
+    slo_flat, shi_flat = slo.reshape(-1), shi.reshape(-1)
+    left, right = [], []
+    for start in range(0, len(p_node), CHUNK):
+        child = np.take(child_of, p_node[start:start + CHUNK])
+        keep = np.flatnonzero(child >= 0)
+        kn, kg, kc = np.take(p_node[start:start + CHUNK], keep), np.take(
+            p_grid[start:start + CHUNK], keep), np.take(child, keep)
+        at, kpos = kg * 3 + np.take(axis, kn), np.take(plane, kn)
+        go_left = np.take(slo_flat, at) < kpos
+        go_right = np.take(shi_flat, at) > kpos
+        left.append((kc[go_left], kg[go_left]))
+        right.append((kc[go_right] + 1, kg[go_right]))
+    if not left:
+        return c_lo, c_hi, p_node[:0], p_grid[:0]
+    p_node = np.concatenate([n for n, _ in left] + [n for n, _ in right])
+    p_grid = np.concatenate([g for _, g in left] + [g for _, g in right])
     return c_lo, c_hi, p_node, p_grid
+
+
+def _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice):
+    """For (node, grid) pairs: does the grid's box overlap the node's box ``[f_lo, f_hi]`` with
+    positive volume, and does it contain it (lattice coordinates)? :data:`CHUNK` pairs at a
+    time, so the gathered boxes stay small."""
+    glo, ghi, _, _ = lattice
+    overlap = np.empty(len(p_node), dtype=bool)
+    contains = np.empty(len(p_node), dtype=bool)
+    for a in range(0, len(p_node), CHUNK):
+        part = slice(a, a + CHUNK)
+        # (np.take gathers rows several times faster than fancy indexing.)
+        pl, ph = np.take(f_lo, p_node[part], axis=0), np.take(f_hi, p_node[part], axis=0)
+        gl, gh = np.take(glo, p_grid[part], axis=0), np.take(ghi, p_grid[part], axis=0)
+        cut = np.minimum(gh, ph) > np.maximum(gl, pl)
+        overlap[part] = cut[:, 0] & cut[:, 1] & cut[:, 2]
+        inside = (gl <= pl) & (gh >= ph)
+        contains[part] = inside[:, 0] & inside[:, 1] & inside[:, 2]
+    return overlap, contains
 
 
 def _scatter_max_level(n, node, level, num_levels) -> np.ndarray:
@@ -525,15 +606,42 @@ def _group(pi, gi, n) -> list:
     return np.split(gi, cuts)
 
 
+def _all_values(volume, field) -> np.ndarray:
+    """The cells of ``field`` of all grids, raveled and concatenated grid after grid."""
+    return np.concatenate([g.fields[field].reshape(-1) for g in volume.grids])
+
+
 def _grid_offsets(volume) -> np.ndarray:
     """Where each grid's cells start in the flat array of all cells, grid after grid."""
-    counts = np.prod(np.array([g.shape for g in volume.grids], dtype=np.int64), axis=1)
-    return np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return volume.cell_offsets()
 
 
 def _leaf_count_tables(volume, grids):
     """Summed-area tables of the leaf masks of ``grids`` (shape + 1 per axis), concatenated;
-    returns the tables and the offset of each grid's table (indexed by grid, -1 if absent)."""
+    returns the tables and the offset of each grid's table (indexed by grid, -1 if absent).
+    Grids of one shape are stacked and summed together; :func:`_leaf_count_tables_reference`
+    is the slow twin (one grid at a time, tables in the order of ``grids``)."""
+    shapes = volume._grid_columns()["shape"]
+    cell_start = volume._grid_columns()["offset"]
+    flat = volume.leaf_mask_flat()
+    offsets = np.full(len(volume.grids), -1, dtype=np.int64)
+    grids = np.asarray(grids, dtype=np.int64)
+    kinds, kind_of = _shape_kinds(shapes[grids])
+    tables, at = [np.zeros(0, dtype=np.int64)], 0
+    for kind, shape in enumerate(kinds):
+        members = grids[kind_of == kind]
+        cells = (cell_start[members][:, None] + np.arange(int(np.prod(shape)))).ravel()
+        mask = np.take(flat, cells).reshape(len(members), *shape)
+        sat = np.zeros((len(members),) + tuple(int(n) + 1 for n in shape), dtype=np.int64)
+        sat[:, 1:, 1:, 1:] = mask.cumsum(1).cumsum(2).cumsum(3)
+        offsets[members] = at + np.arange(len(members)) * sat[0].size
+        tables.append(sat.ravel())
+        at += sat.size
+    return np.concatenate(tables), offsets
+
+
+def _leaf_count_tables_reference(volume, grids):
+    """Slow twin of :func:`_leaf_count_tables`: one grid's table after the other."""
     tables, offsets, at = [], np.full(len(volume.grids), -1, dtype=np.int64), 0
     for i in grids:
         g = volume.grids[i]
@@ -545,16 +653,35 @@ def _leaf_count_tables(volume, grids):
     return np.concatenate(tables), offsets
 
 
+def _reduce_runs(ufunc, column, index, runs) -> np.ndarray:
+    """``ufunc.reduceat(column[index], runs)`` (``runs``: the increasing starts of the runs of
+    ``index``, the first at 0), over blocks of about :data:`CHUNK` rows that start at a run's
+    start, so no gather of all of ``index`` at once."""
+    cut = np.unique(np.searchsorted(runs, np.arange(0, len(index), CHUNK)))
+    cut = np.append(cut[cut < len(runs)], len(runs))
+    out = np.empty(len(runs), dtype=column.dtype)
+    for r0, r1 in zip(cut[:-1], cut[1:]):
+        begin = runs[r0]
+        end = runs[r1] if r1 < len(runs) else len(index)
+        out[r0:r1] = ufunc.reduceat(np.take(column, index[begin:end]), runs[r0:r1] - begin)
+    return out
+
+
 def _box_sum(sat, offset, shape, lo, hi):
     """Sum of a grid's leaf mask over inclusive boxes ``[lo, hi]`` (rows), from its table."""
     n1, n2 = shape[:, 1] + 1, shape[:, 2] + 1
     empty = np.any(hi < lo, axis=1)
-    a, b = lo, hi + 1
+    a, b = lo.astype(np.int64), hi.astype(np.int64) + 1
     total = np.zeros(len(lo), dtype=np.int64)
     for cx, sx in ((b[:, 0], 1), (a[:, 0], -1)):
+        tx = cx * n1
         for cy, sy in ((b[:, 1], 1), (a[:, 1], -1)):
+            txy = (tx + cy) * n2 + offset
             for cz, sz in ((b[:, 2], 1), (a[:, 2], -1)):
-                total += sx * sy * sz * sat[offset + (cx * n1 + cy) * n2 + cz]
+                if sx * sy * sz > 0:
+                    total += np.take(sat, txy + cz)
+                else:
+                    total -= np.take(sat, txy + cz)
     return np.where(empty, 0, total)
 
 
@@ -567,21 +694,21 @@ def _window_min_max(volume, values, grid, lo, hi):
     twin.
 
     Grids of one shape are stacked into one array; per block size a sparse table holds, per
-    cell, the extremum over the block starting there, built by halving along each axis."""
-    shapes = np.array([g.shape for g in volume.grids], dtype=np.int64)
-    offsets = _grid_offsets(volume)
+    cell, the extremum over the block starting there, built by halving along each axis. The
+    boxes are looked up :data:`CHUNK` at a time."""
+    shapes = volume._grid_columns()["shape"]
+    offsets = volume._grid_columns()["offset"]
     finite = np.isfinite(values)
     vmin_all = np.where(finite, values, np.inf).astype(np.float64)
     vmax_all = np.where(finite, values, -np.inf).astype(np.float64)
     del finite
-    k_need = (np.floor(np.log2((hi - lo + 1).max(axis=1))).astype(np.int64) if len(grid) else
-              np.zeros(0, dtype=np.int64))
+    k_need = _block_log2(lo, hi)
     out_min = np.full(len(grid), np.inf)
     out_max = np.full(len(grid), -np.inf)
-    kinds, kind_of = np.unique(shapes, axis=0, return_inverse=True)
-    kind_of = kind_of.ravel()
+    kinds, kind_of = _shape_kinds(shapes)
     for kind, shape in enumerate(kinds):
-        queries = np.flatnonzero(kind_of[grid] == kind)
+        queries = (np.flatnonzero(kind_of[grid] == kind) if len(kinds) > 1 else
+                   np.arange(len(grid)))
         if len(queries) == 0:
             continue
         members = np.flatnonzero(kind_of == kind)
@@ -590,39 +717,74 @@ def _window_min_max(volume, values, grid, lo, hi):
         cells = (offsets[members][:, None] + np.arange(int(np.prod(shape)))).ravel()
         tmin = np.take(vmin_all, cells).reshape(len(members), *shape)
         tmax = np.take(vmax_all, cells).reshape(len(members), *shape)
-        # Flat positions in the stacked tables (np.take on flat indices is several times
-        # faster than indexing a 4D array with four index arrays).
-        strides = np.array([np.prod(shape), shape[1] * shape[2], shape[2], 1], dtype=np.int64)
-        for k in range(int(k_need[queries].max()) + 1):
+        k_here = k_need[queries]
+        for k in range(int(k_here.max()) + 1):
             if k > 0:
-                step = 1 << (k - 1)
-                for axis in (1, 2, 3):
-                    n = tmin.shape[axis]
-                    if step >= n:
-                        continue
-                    head = [slice(None)] * 4
-                    tail = [slice(None)] * 4
-                    head[axis], tail[axis] = slice(0, n - step), slice(step, n)
-                    head, tail = tuple(head), tuple(tail)
-                    tmin[head] = np.minimum(tmin[head], tmin[tail])
-                    tmax[head] = np.maximum(tmax[head], tmax[tail])
-            sel = queries[k_need[queries] == k]
-            if len(sel) == 0:
-                continue
-            r = row[grid[sel]] * strides[0]
-            first = lo[sel] * strides[1:]
-            last = np.maximum(lo[sel], hi[sel] - (1 << k) + 1) * strides[1:]
-            best_min = np.full(len(sel), np.inf)
-            best_max = np.full(len(sel), -np.inf)
-            flat_min, flat_max = tmin.reshape(-1), tmax.reshape(-1)
-            for cx in (first[:, 0], last[:, 0]):
-                for cy in (first[:, 1], last[:, 1]):
-                    for cz in (first[:, 2], last[:, 2]):
-                        at = r + cx + cy + cz
-                        best_min = np.minimum(best_min, np.take(flat_min, at))
-                        best_max = np.maximum(best_max, np.take(flat_max, at))
-            out_min[sel], out_max[sel] = best_min, best_max
+                _halve_tables(tmin, tmax, 1 << (k - 1))
+            sel = queries[k_here == k] if k_here.min() != k_here.max() else queries
+            for a in range(0, len(sel), CHUNK):
+                part = sel[a:a + CHUNK]
+                out_min[part], out_max[part] = _block_lookup(
+                    tmin, tmax, row[grid[part]], lo[part], hi[part], k)
     return out_min, out_max
+
+
+def _block_log2(lo, hi) -> np.ndarray:
+    """``floor(log2(longest side))`` of each inclusive box ``[lo, hi]`` (rows), CHUNK rows at
+    a time."""
+    out = np.zeros(len(lo), dtype=np.int64)
+    for a in range(0, len(lo), CHUNK):
+        side = (hi[a:a + CHUNK] - lo[a:a + CHUNK] + 1).max(axis=1)
+        out[a:a + CHUNK] = np.floor(np.log2(side))
+    return out
+
+
+def _shape_kinds(shapes):
+    """The distinct rows of ``shapes`` (``(G, 3)`` int64, in increasing order) and the index of
+    each grid's row among them, as :func:`np.unique` with ``axis=0`` gives them."""
+    top = shapes.max(initial=0) + 1
+    key = (shapes[:, 0] * top + shapes[:, 1]) * top + shapes[:, 2]
+    keys, kind_of = np.unique(key, return_inverse=True)
+    kinds = np.stack([keys // (top * top), keys // top % top, keys % top], axis=1)
+    return kinds, kind_of.ravel()
+
+
+def _halve_tables(tmin, tmax, step) -> None:
+    """Grow the blocks of the stacked sparse tables ``tmin``/``tmax`` (grid, x, y, z) from
+    ``step`` to ``2 * step`` cells per axis, in place (blocks are cut at the grid's end)."""
+    for axis in (1, 2, 3):
+        n = tmin.shape[axis]
+        if step >= n:
+            continue
+        head = [slice(None)] * 4
+        tail = [slice(None)] * 4
+        head[axis], tail[axis] = slice(0, n - step), slice(step, n)
+        head, tail = tuple(head), tuple(tail)
+        tmin[head] = np.minimum(tmin[head], tmin[tail])
+        tmax[head] = np.maximum(tmax[head], tmax[tail])
+
+
+def _block_lookup(tmin, tmax, row, lo, hi, k):
+    """Min and max over the 8 blocks of ``2**k`` cells starting at ``lo`` or ending at ``hi``
+    (inclusive boxes, rows) of the stacked tables' grids ``row``."""
+    shape = tmin.shape[1:]
+    # Flat positions in the stacked tables (np.take on flat indices is several times faster
+    # than indexing a 4D array with four index arrays).
+    strides = np.array([shape[1] * shape[2], shape[2], 1], dtype=np.int64)
+    r = row * (shape[0] * strides[0])
+    first = lo * strides
+    last = np.maximum(lo, hi - (1 << k) + 1) * strides
+    flat_min, flat_max = tmin.reshape(-1), tmax.reshape(-1)
+    best_min = np.full(len(row), np.inf)
+    best_max = np.full(len(row), -np.inf)
+    for cx in (first[:, 0], last[:, 0]):
+        for cy in (first[:, 1], last[:, 1]):
+            rxy = r + cx + cy
+            for cz in (first[:, 2], last[:, 2]):
+                at = rxy + cz
+                np.minimum(best_min, np.take(flat_min, at), out=best_min)
+                np.maximum(best_max, np.take(flat_max, at), out=best_max)
+    return best_min, best_max
 
 
 def _window_min_max_reference(volume, values, grid, lo, hi):

@@ -19,6 +19,9 @@ Coordinate conventions used throughout mi_amr:
 
 from __future__ import annotations
 
+import contextlib
+import gc
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Iterable, Mapping, Sequence
@@ -37,6 +40,13 @@ LATTICE_TOLERANCE = 1e-3
 # int64 and the kd-tree scales them to the finest level (4^11 = 2^22 at most), so 2^40 leaves
 # room; beyond it the cast to integers overflows and a grid would land somewhere else.
 MAX_LATTICE_OFFSET = float(2 ** 40)
+# Leaf masks (_leaf_masks): covered boxes of up to MASK_BOX_CELLS cells are cleared together
+# through flat cell indices, in blocks of about MASK_CHUNK_CELLS cells (temporaries that stay
+# small reuse memory); bigger boxes are cleared one at a time with a slice.
+MASK_BOX_CELLS = 4096
+# Field values are checked for NaN/Inf in blocks of grids of about this many cells.
+FINITE_CHECK_CELLS = 1 << 16
+MASK_CHUNK_CELLS = 1 << 16
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,8 +115,9 @@ class AMRVolume:
         self.ratios = ratios
         self.anchor = anchor
         self._index_lo = index_lo
-        self._leaf_masks = None
+        self._leaf_flat = None   # every grid's leaf mask, flat, grid after grid (_leaf_masks)
         self._partly = None
+        self._columns = None     # per-grid arrays (_grid_columns), built once
         self._ranges = {}
 
     # ------------------------------------------------------------------ construction
@@ -132,15 +143,23 @@ class AMRVolume:
         if isinstance(grids, (str, bytes, Mapping)) or not isinstance(grids, Iterable):
             raise AMRError(f"{prefix}grids must be a sequence of grid records (mappings with "
                            f"level, origin, spacing and fields), got {type(grids).__name__}")
-        records = [_parse_record(g, i, prefix) for i, g in enumerate(grids)]
+        with _collector_paused():
+            records = [_parse_plain(g) or _parse_record(g, i, prefix)
+                       for i, g in enumerate(grids)]
         if not records:
             raise AMRError(f"{prefix}empty hierarchy: at least one level-0 grid is needed")
         _check_fields(records, prefix, allow_nonfinite)
-        ratios = _check_levels(records, prefix)
-        anchor, index_lo = _check_lattice(records, ratios, prefix)
-        _check_overlap_and_nesting(records, index_lo, ratios, prefix)
-        return cls(tuple(records), allow_nonfinite=allow_nonfinite, source=source,
-                   index_lo=index_lo, ratios=ratios, anchor=anchor)
+        columns = _record_columns(records)
+        ratios = _check_levels(records, columns, prefix)
+        anchor, index_lo = _check_lattice(records, columns, ratios, prefix)
+        _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix)
+        volume = cls(tuple(records), allow_nonfinite=allow_nonfinite, source=source,
+                     index_lo=index_lo, ratios=ratios, anchor=anchor)
+        # Levels are now known to be 0..L-1; the volume keeps the columns (_grid_columns).
+        sizes = np.prod(columns["shape"], axis=1)
+        volume._columns = {**columns, "level": columns["level"].astype(np.int32),
+                           "offset": np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)}
+        return volume
 
     def with_fields(self, new_fields: Mapping[str, Sequence[np.ndarray]]) -> "AMRVolume":
         """A volume with extra (or replaced) fields: ``{name: [array per grid]}``.
@@ -159,7 +178,7 @@ class AMRVolume:
                       for i, g in enumerate(self.grids))
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
-        out._leaf_masks, out._partly = self._leaf_masks, self._partly
+        out._leaf_flat, out._partly = self._leaf_flat, self._partly
         levels.adopt_caches(out, self)
         return out
 
@@ -173,7 +192,7 @@ class AMRVolume:
                       for g in self.grids)
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
-        out._leaf_masks, out._partly = self._leaf_masks, self._partly
+        out._leaf_flat, out._partly = self._leaf_flat, self._partly
         levels.adopt_caches(out, self)
         return out
 
@@ -197,9 +216,9 @@ class AMRVolume:
 
     def level_spacing(self, level: int) -> np.ndarray:
         """Cell size of ``level`` per axis (world units), shape ``(3,)``."""
-        for g in self.grids:
-            if g.level == level:
-                return np.asarray(g.spacing, dtype=np.float64)
+        first = np.flatnonzero(self._grid_columns()["level"] == level)[:1]
+        if len(first):
+            return np.asarray(self.grids[first[0]].spacing, dtype=np.float64)
         raise AMRError(f"{self._label()}no level {level}; levels are 0..{self.num_levels - 1}")
 
     @property
@@ -211,39 +230,71 @@ class AMRVolume:
     @property
     def levels(self) -> np.ndarray:
         """Level of every grid, shape ``(G,)``."""
-        return np.array([g.level for g in self.grids], dtype=np.int32)
+        return self._grid_columns()["level"].copy()
 
     def grid_boxes(self):
         """World-space boxes of all grids: ``(lo, hi)``, each shape ``(G, 3)``."""
-        lo = np.array([g.origin for g in self.grids], dtype=np.float64)
-        hi = lo + np.array([g.shape for g in self.grids]) * self.spacings()
+        lo = self._grid_columns()["origin"].copy()
+        hi = lo + self.shapes() * self.spacings()
         return lo, hi
 
     def spacings(self) -> np.ndarray:
         """Cell size of every grid, shape ``(G, 3)`` (world units)."""
-        return np.array([g.spacing for g in self.grids], dtype=np.float64)
+        return self._grid_columns()["spacing"].copy()
+
+    def shapes(self) -> np.ndarray:
+        """Cells per axis of every grid, shape ``(G, 3)`` int64."""
+        return self._grid_columns()["shape"].copy()
+
+    def cell_offsets(self) -> np.ndarray:
+        """Where each grid's cells start in the flat array of all cells (grid after grid, each
+        raveled in C order), shape ``(G,)`` int64."""
+        return self._grid_columns()["offset"].copy()
 
     def index_boxes(self):
         """Integer index boxes ``(lo, hi)`` of all grids, each ``(G, 3)`` int64, half-open, in
         cells of each grid's own level counted from :attr:`anchor`."""
-        shapes = np.array([g.shape for g in self.grids], dtype=np.int64)
-        return self._index_lo, self._index_lo + shapes
+        return self._index_lo, self._index_lo + self._grid_columns()["shape"]
+
+    def _grid_columns(self) -> dict:
+        """Per-grid arrays gathered from the records once (the records never change): level
+        ``(G,)`` int32, origin and spacing ``(G, 3)`` float64 (world), shape ``(G, 3)`` int64
+        and the offset of each grid's cells in the flat array of all cells ``(G,)`` int64.
+        Callers get copies (the public accessors above)."""
+        if self._columns is None:
+            shape = np.array([g.shape for g in self.grids], dtype=np.int64).reshape(-1, 3)
+            sizes = np.prod(shape, axis=1)
+            self._columns = {
+                "level": np.array([g.level for g in self.grids], dtype=np.int32),
+                "origin": np.array([g.origin for g in self.grids], dtype=np.float64),
+                "spacing": np.array([g.spacing for g in self.grids], dtype=np.float64),
+                "shape": shape,
+                "offset": np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)}
+        return self._columns
 
     def leaf_mask(self, grid: int) -> np.ndarray:
         """Boolean array of the grid's shape: True where no finer cell covers the cell."""
-        if self._leaf_masks is None:
-            self._leaf_masks, self._partly = _leaf_masks(self)
-        return self._leaf_masks[grid]
+        flat = self.leaf_mask_flat()
+        g = self.grids[grid]
+        start = int(self._grid_columns()["offset"][grid])
+        return flat[start:start + g.num_cells].reshape(g.shape)
+
+    def leaf_mask_flat(self) -> np.ndarray:
+        """Every grid's :meth:`leaf_mask`, raveled and concatenated grid after grid (offsets:
+        :meth:`cell_offsets`), one boolean array over all cells."""
+        if self._leaf_flat is None:
+            self._leaf_flat, self._partly = _leaf_masks(self)
+        return self._leaf_flat
 
     def partly_covered(self) -> np.ndarray:
         """Boolean per grid: True where some of the grid's cells are covered by a finer grid
         (its leaf mask is not all True)."""
-        if self._leaf_masks is None:
-            self._leaf_masks, self._partly = _leaf_masks(self)
+        if self._leaf_flat is None:
+            self._leaf_flat, self._partly = _leaf_masks(self)
         return self._partly
 
     def num_leaf_cells(self) -> int:
-        return sum(int(self.leaf_mask(i).sum()) for i in range(len(self.grids)))
+        return int(np.count_nonzero(self.leaf_mask_flat()))
 
     def value_range(self, field: str, grid: int | None = None):
         """``(min, max)`` of the finite values of ``field``, over all grids or one grid.
@@ -315,6 +366,75 @@ class AMRVolume:
 
 # ---------------------------------------------------------------------- validation helpers
 
+@contextlib.contextmanager
+def _collector_paused():
+    """Pause Python's cyclic garbage collector (if it runs) while records are parsed: the
+    collections that the many new Grid objects and dicts trigger traverse every object alive,
+    the caller's records included, and took a third of the parsing time for 10^5 grids. The
+    records hold no cycles, so nothing is left for the collector."""
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
+# Exact types the fast path (_parse_plain) reads as numbers; anything else takes the full checks.
+_PLAIN_NUMBERS = (float, int, np.float64)
+
+
+def _parse_plain(g) -> Grid | None:
+    """The :class:`Grid` of a record in the common plain form, or None to run the full checks
+    of :func:`_parse_record` (which then name what is wrong): a ``dict`` (or a Grid) with an
+    ``int`` level >= 0, origin and spacing as 3 finite plain numbers (spacing > 0, or one
+    number) and a ``dict`` of C-contiguous real 3-D ``ndarray`` fields of one non-empty shape.
+    Gives the same Grid as :func:`_parse_record` for those, several times faster."""
+    kind = type(g)
+    if kind is dict:
+        try:
+            level, origin, spacing, fields = g["level"], g["origin"], g["spacing"], g["fields"]
+        except KeyError:
+            return None
+    elif kind is Grid:
+        level, origin, spacing, fields = g.level, g.origin, g.spacing, g.fields
+    else:
+        return None
+    if type(level) is not int or level < 0 or type(fields) is not dict or not fields:
+        return None
+    origin = _plain3(origin)
+    spacing = _plain3((spacing,) * 3 if type(spacing) in _PLAIN_NUMBERS else spacing)
+    if origin is None or spacing is None or not min(spacing) > 0:
+        return None
+    shape = None
+    for name, arr in fields.items():
+        if (type(name) is not str or not name or type(arr) is not np.ndarray
+                or arr.dtype.kind != "f" or arr.ndim != 3 or not arr.flags.c_contiguous):
+            return None
+        if shape is None:
+            shape = arr.shape
+            if min(shape) == 0:
+                return None
+        elif arr.shape != shape:
+            return None
+    return Grid(level, origin, spacing, shape, dict(fields))
+
+
+def _plain3(value) -> tuple | None:
+    """``value`` as 3 finite floats when it is a tuple or list of 3 plain numbers, else None."""
+    if (type(value) is not tuple and type(value) is not list) or len(value) != 3:
+        return None
+    x, y, z = value
+    if (type(x) not in _PLAIN_NUMBERS or type(y) not in _PLAIN_NUMBERS
+            or type(z) not in _PLAIN_NUMBERS):
+        return None
+    out = (float(x), float(y), float(z))
+    if not (math.isfinite(out[0]) and math.isfinite(out[1]) and math.isfinite(out[2])):
+        return None
+    return out
+
+
 def _parse_record(g, index: int, prefix: str) -> Grid:
     """Turn one user mapping into a :class:`Grid`, checking types and shapes."""
     where = f"{prefix}grid {index}"
@@ -384,30 +504,73 @@ def _float3(value, what: str, positive: bool) -> tuple:
     return out
 
 
+def _record_columns(records) -> dict:
+    """Per-record arrays for the checks: level ``(G,)`` (int64, or object for absurd levels the
+    checks then refuse), origin and spacing ``(G, 3)`` float64 (world), shape ``(G, 3)``
+    int64."""
+    def rows(key, dtype):
+        flat = itertools.chain.from_iterable(getattr(g, key) for g in records)
+        return np.fromiter(flat, dtype=dtype, count=3 * len(records)).reshape(-1, 3)
+
+    return {"level": np.array([g.level for g in records]),
+            "origin": rows("origin", np.float64), "spacing": rows("spacing", np.float64),
+            "shape": rows("shape", np.int64)}
+
+
 def _check_fields(records, prefix: str, allow_nonfinite: bool) -> None:
+    """Every grid holds the fields of grid 0, all finite unless ``allow_nonfinite``. Grids are
+    checked in blocks of about :data:`FINITE_CHECK_CELLS` cells, the values of a block at once;
+    a block with a bad grid is checked again grid by grid (:func:`_check_grid_fields`), so the
+    first bad grid is reported as a one-by-one check would."""
     names = list(records[0].fields)
-    for i, g in enumerate(records):
-        if set(g.fields) != set(names):
-            lacking = sorted(set(names) - set(g.fields))
-            extra = sorted(set(g.fields) - set(names))
-            detail = (f"missing field(s) {lacking}" if lacking else "") + \
-                     ("; " if lacking and extra else "") + \
-                     (f"has extra field(s) {extra}" if extra else "")
-            raise AMRError(f"{prefix}{g.describe(i)}: {detail}; every grid must hold the same "
-                           f"fields as grid 0 ({names})")
-        if not allow_nonfinite:
-            for name, arr in g.fields.items():
-                bad = arr.size - int(np.count_nonzero(np.isfinite(arr)))
-                if bad:
-                    raise AMRError(f"{prefix}{g.describe(i)}: field '{name}' has {bad} non-finite "
-                                   f"value(s) (NaN/Inf); clean the data or pass "
-                                   f"allow_nonfinite=True to treat them as missing")
+    wanted = set(names)
+    start = 0
+    while start < len(records):
+        stop, cells = start, 0
+        while stop < len(records) and cells < FINITE_CHECK_CELLS:
+            n = records[stop].shape
+            cells += n[0] * n[1] * n[2]
+            stop += 1
+        block = records[start:stop]
+        same = [g.fields.keys() == wanted for g in block]
+        clean = same.index(False) if False in same else len(block)
+        arrays = [a for g in block[:clean] for a in g.fields.values()]
+        if clean < len(block) or not (allow_nonfinite or _all_finite(arrays)):
+            for i in range(start, stop):
+                _check_grid_fields(records[i], i, names, prefix, allow_nonfinite)
+        start = stop
 
 
-def _check_levels(records, prefix: str) -> tuple:
+def _all_finite(arrays) -> bool:
+    """Whether every value of ``arrays`` is finite; the small arrays are tested together."""
+    small = [a.reshape(-1) for a in arrays if a.size < FINITE_CHECK_CELLS]
+    if small and not np.isfinite(np.concatenate(small)).all():
+        return False
+    return all(np.isfinite(a).all() for a in arrays if a.size >= FINITE_CHECK_CELLS)
+
+
+def _check_grid_fields(g, i: int, names, prefix: str, allow_nonfinite: bool) -> None:
+    """One grid of :func:`_check_fields`: the fields of grid 0 (``names``), finite values."""
+    if set(g.fields) != set(names):
+        lacking = sorted(set(names) - set(g.fields))
+        extra = sorted(set(g.fields) - set(names))
+        detail = (f"missing field(s) {lacking}" if lacking else "") + \
+                 ("; " if lacking and extra else "") + \
+                 (f"has extra field(s) {extra}" if extra else "")
+        raise AMRError(f"{prefix}{g.describe(i)}: {detail}; every grid must hold the same "
+                       f"fields as grid 0 ({names})")
+    if not allow_nonfinite:
+        for name, arr in g.fields.items():
+            bad = arr.size - int(np.count_nonzero(np.isfinite(arr)))
+            if bad:
+                raise AMRError(f"{prefix}{g.describe(i)}: field '{name}' has {bad} non-finite "
+                               f"value(s) (NaN/Inf); clean the data or pass "
+                               f"allow_nonfinite=True to treat them as missing")
+
+
+def _check_levels(records, columns, prefix: str) -> tuple:
     """Levels 0..L-1 all present, one spacing per level, integer ratios 2 or 4 between them."""
-    levels = np.array([g.level for g in records])
-    spacings = np.array([g.spacing for g in records])
+    levels, spacings = columns["level"], columns["spacing"]
     present = np.unique(levels)
     if present[0] != 0:
         raise AMRError(f"{prefix}no level-0 grid: the coarsest level must be 0, got levels "
@@ -438,12 +601,10 @@ def _check_levels(records, prefix: str) -> tuple:
     return tuple(ratios)
 
 
-def _check_lattice(records, ratios, prefix: str):
+def _check_lattice(records, columns, ratios, prefix: str):
     """Every grid starts and ends on a cell face of the level above (level 0: of level 0)."""
-    levels = np.array([g.level for g in records])
-    origins = np.array([g.origin for g in records])
-    spacings = np.array([g.spacing for g in records])
-    shapes = np.array([g.shape for g in records], dtype=np.int64)
+    levels, origins = columns["level"], columns["origin"]
+    spacings, shapes = columns["spacing"], columns["shape"]
     first0 = int(np.flatnonzero(levels == 0)[0])
     anchor = origins[first0]
     ratio = np.array((1,) + tuple(ratios), dtype=np.int64)[levels]
@@ -476,9 +637,8 @@ def _check_lattice(records, ratios, prefix: str):
     return anchor, rounded.astype(np.int64) * ratio[:, None]
 
 
-def _check_overlap_and_nesting(records, index_lo, ratios, prefix: str) -> None:
-    levels = np.array([g.level for g in records])
-    shapes = np.array([g.shape for g in records], dtype=np.int64)
+def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str) -> None:
+    levels, shapes = columns["level"], columns["shape"]
     index_hi = index_lo + shapes
     for level in range(len(ratios) + 1):
         ids = np.flatnonzero(levels == level)
@@ -508,8 +668,61 @@ def _check_overlap_and_nesting(records, index_lo, ratios, prefix: str) -> None:
 
 
 def _leaf_masks(volume: AMRVolume):
-    """Per grid, True where no cell of the next finer level covers the cell; and per grid,
-    whether any of its cells is covered."""
+    """Every grid's leaf mask (True where no cell of the next finer level covers the cell),
+    flat over all cells grid after grid (see :meth:`AMRVolume.cell_offsets`); and per grid,
+    whether any of its cells is covered. :func:`_leaf_masks_reference` is the slow twin.
+
+    The covered index boxes (cells of the coarse grid, from its lower corner) of all (coarse,
+    fine) pairs of a level are cleared at once through their flat cell indices; boxes of more
+    than :data:`MASK_BOX_CELLS` cells are cleared one by one with a slice."""
+    shapes = volume._grid_columns()["shape"]
+    offsets = volume._grid_columns()["offset"]
+    flat = np.ones(int(np.prod(shapes, axis=1).sum()), dtype=bool)
+    partly = np.zeros(len(shapes), dtype=bool)
+    levels = volume._grid_columns()["level"]
+    lo, hi = volume.index_boxes()
+    for level, ratio in enumerate(volume.ratios):
+        coarse = np.flatnonzero(levels == level)
+        fine = np.flatnonzero(levels == level + 1)
+        flo, fhi = lo[fine] // ratio, hi[fine] // ratio
+        ca, fb = overlap_pairs(lo[coarse], hi[coarse], flo, fhi)
+        c = coarse[ca]
+        a = np.maximum(lo[c], flo[fb]) - lo[c]
+        b = np.minimum(hi[c], fhi[fb]) - lo[c]
+        partly[c] = True
+        cells = np.prod(b - a, axis=1)
+        for q in np.flatnonzero(cells > MASK_BOX_CELLS):
+            n = shapes[c[q]]
+            mask = flat[offsets[c[q]]:offsets[c[q]] + int(np.prod(n))].reshape(n)
+            mask[a[q, 0]:b[q, 0], a[q, 1]:b[q, 1], a[q, 2]:b[q, 2]] = False
+        small = np.flatnonzero(cells <= MASK_BOX_CELLS)
+        # Blocks of pairs with at most about CHUNK cells between them keep temporaries small.
+        block = max(1, MASK_CHUNK_CELLS // max(1, int(cells[small].max(initial=1))))
+        for start in range(0, len(small), block):
+            q = small[start:start + block]
+            flat[_box_cell_indices(offsets[c[q]], shapes[c[q]], a[q], b[q])] = False
+    return flat, partly
+
+
+def _box_cell_indices(offset, shape, a, b) -> np.ndarray:
+    """Flat indices (into the array of all cells) of the cells of the half-open index boxes
+    ``[a, b)`` (rows, cells of each box's grid) of grids with the given cell ``offset`` and
+    ``shape`` (rows)."""
+    ext = b - a
+    n = np.prod(ext, axis=1)
+    box = np.repeat(np.arange(len(n)), n)
+    k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    e1, e2 = ext[box, 1], ext[box, 2]
+    i = a[box, 0] + k // (e1 * e2)
+    j = a[box, 1] + (k // e2) % e1
+    m = a[box, 2] + k % e2
+    return offset[box] + (i * shape[box, 1] + j) * shape[box, 2] + m
+
+
+def _leaf_masks_reference(volume: AMRVolume):
+    """Slow twin of :func:`_leaf_masks`: one (coarse, fine) pair at a time, a slice of the
+    coarse grid's mask (one array per grid) is cleared. Returns the list of masks and the
+    per-grid ``partly`` flags."""
     masks = [np.ones(g.shape, dtype=bool) for g in volume.grids]
     partly = np.zeros(len(masks), dtype=bool)
     levels = volume.levels
