@@ -5,10 +5,16 @@ All spacings here are powers of two, so grid faces, cell centres and hat-support
 exact binary fractions and "a point exactly on a face" means exactly.
 """
 
+import os
+
 import numpy as np
 import pytest
 
-from mi_amr import AMRVolume
+# No test reads or writes the user's snapshot folder (~/.cache/mi_amr), and none depends on what
+# an earlier run left there; tests/test_snapshot.py points it at a temporary folder.
+os.environ["MI_AMR_CACHE"] = "off"
+
+from mi_amr import AMRVolume  # noqa: E402
 
 
 def grid(level, lo, hi, h, fn=None, names=("f",)):

@@ -392,7 +392,7 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     from tqdm import tqdm
 
     from mi_amr.synthetic import datasets
-    from mi_amr.kernels import prepared
+    from mi_amr.kernels import prepared, snapshot
     from mi_amr.readers import load
 
     mi.set_variant(variant)
@@ -433,6 +433,7 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     for what, res, make in tqdm(cases, desc="scaling", unit="case"):
         value, scene_file = make()
         prepared._CACHE.clear()  # every load from the file, as a user's first load would be
+        snapshot.ENABLED = False        # and none read back from a snapshot
         t0 = time.perf_counter()
         scene = load_scene(scene_file, resx=res, resy=res, spp=1)
         load_s = time.perf_counter() - t0

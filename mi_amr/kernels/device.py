@@ -111,10 +111,12 @@ class DeviceVolume:
     """Device copy of ``volume`` + ``tree`` for one ``field`` (and an optional colour field).
 
     ``m`` is the backend module. Arrays are attributes (never loop state) so kernels capture
-    them as constants of the traced program.
+    them as constants of the traced program. ``bricks`` (as in :attr:`host_bricks`) skips
+    building the brick pools, when a snapshot already holds them.
     """
 
-    def __init__(self, volume, tree, field: str, color_field: str | None = None, m=None):
+    def __init__(self, volume, tree, field: str, color_field: str | None = None, m=None,
+                 bricks=None):
         self.m = m = m or dr.llvm.ad
         self.volume = volume
         self.tree = tree
@@ -151,7 +153,7 @@ class DeviceVolume:
         self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h_host))
         self.leaf_grids = u32(tree.leaf_grids)
         self.node_ropes = u32(tree.node_ropes)
-        self._ranges = {}
+        self._ranges, self.host_ranges, self.on_new_ranges = {}, {}, None
 
         # grids
         glo, _ = volume.grid_boxes()
@@ -170,7 +172,7 @@ class DeviceVolume:
         self.values = self._field_values(field)
         self.color_values = self.values if self.color_field == field else \
             self._field_values(self.color_field)
-        self._build_bricks()
+        self._set_bricks(*(bricks or self._build_bricks()))
 
     def _constants(self, volume):
         """The per-volume numbers the kernels read, as opaque one-element arrays (world units):
@@ -246,6 +248,14 @@ class DeviceVolume:
         pools = [aligned_full(count * BRICK_N ** 3, np.nan, np.float32) for _ in names]
         for level, (lo, dims, table, _) in enumerate(parts):
             fill_bricks(vol, level, names, lo, dims, table, 0, pools)
+        return parts, pools
+
+    def _set_bricks(self, parts, pools):
+        """The device arrays of :meth:`_build_bricks`'s ``(parts, pools)``: per level
+        ``(lo, dims, table, n)`` (see :func:`brick_table`) and the aligned pools of the field
+        and colour field (one pool when they are the same field). Kept as :attr:`host_bricks`
+        (Dr.Jit maps the pools' memory, so this costs nothing)."""
+        self.host_bricks = (parts, pools)
         self.brick_table = self._uints(np.concatenate([p[2] for p in parts]))
         # Per level 8 uints: lo (int32 bits) and the table offset, the table's dims and 0.
         table = np.zeros((len(parts), 2, 4), dtype=np.uint32)
@@ -254,8 +264,8 @@ class DeviceVolume:
         table[:, 1, :3] = np.array([p[1] for p in parts], dtype=np.uint32)
         self.level_table = self._uints(table.ravel())
         self.brick_values = self.m.Float(pools[0])
-        self.brick_colors = self.brick_values if len(names) == 1 else self.m.Float(pools[1])
-        self.num_bricks = count
+        self.brick_colors = self.brick_values if len(pools) == 1 else self.m.Float(pools[1])
+        self.num_bricks = sum(int(p[3]) for p in parts)
 
     def _floats(self, a):
         return device_array(self.m.Float, a, np.float32)
@@ -266,12 +276,18 @@ class DeviceVolume:
     def node_ranges(self, basis: bool):
         """Per-node value range of the field for one reconstruction, ``lo, hi`` side by side
         (computed on first use: each costs a pass over the cells). A node with no data has
-        ``(+inf, -inf)``."""
+        ``(+inf, -inf)``. The host copies are kept in :attr:`host_ranges` (a snapshot may
+        bring them), and :attr:`on_new_ranges` (if set) is told of each one computed."""
         key = "basis" if basis else "finest"
         if key not in self._ranges:
-            rlo, rhi = self.tree.node_ranges(*self.tree.leaf_ranges(self.field, key))
-            self._ranges[key] = self._floats(np.stack([rlo, rhi], axis=1).astype(np.float32)
-                                             .ravel())
+            host = self.host_ranges.get(key)
+            if host is None:
+                rlo, rhi = self.tree.node_ranges(*self.tree.leaf_ranges(self.field, key))
+                host = np.stack([rlo, rhi], axis=1).astype(np.float32).ravel()
+                self.host_ranges[key] = host
+                if self.on_new_ranges is not None:
+                    self.on_new_ranges(key, host)
+            self._ranges[key] = self._floats(host)
         return self._ranges[key]
 
 

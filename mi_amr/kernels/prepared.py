@@ -2,7 +2,9 @@
 and everything flattened onto the device. Shared by the integrator and :func:`mi_amr.trace`.
 
 Loading reads only the fields a scene uses (a derived field reads just the velocity).
-Preparing the same file twice in one process (a benchmark sweep, a movie) reuses the work.
+Preparing the same file twice in one process (a benchmark sweep, a movie) reuses the work;
+across processes (a render after the viewer, every Dask worker of a movie) a snapshot on disk
+does (:mod:`mi_amr.kernels.snapshot`).
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import drjit as dr
 
 from mi_amr import params
 from mi_amr.core.derive import DERIVED_FIELDS
+from mi_amr.kernels import snapshot
 from mi_amr.kernels.device import DeviceVolume
 from mi_amr.errors import AMRError
 from mi_amr.core.kdtree import KDTree
@@ -31,7 +34,7 @@ class PreparedVolume:
 
     ``m`` is the Dr.Jit backend module of the kernels that will read it. ``timings`` holds the
     seconds each step took (``derive``, ``tree``, ``device``; ``read`` when loaded from a file
-    by :func:`prepare_file`).
+    by :func:`prepare_file`; ``snapshot`` when read back from one, see :meth:`restore`).
     """
 
     def __init__(self, volume, field: str, color_field: str | None = None, *,
@@ -59,6 +62,22 @@ class PreparedVolume:
                                    m=m or dr.llvm.ad)
         self._lap("device", clock)
 
+    @classmethod
+    def restore(cls, snap, *, m=None) -> "PreparedVolume":
+        """The preparation held by a snapshot (what :func:`snapshot.load` returns), its kd-tree
+        and brick pools as they were saved, the device arrays mapped from them."""
+        volume, tree_state, bricks, ranges, meta = snap
+        self = cls.__new__(cls)
+        self.volume, self.field, self.color_field = volume, meta["field"], meta["color_field"]
+        self.tree = KDTree.__new__(KDTree)
+        self.tree.__dict__.update(tree_state)
+        self.tree.volume = volume
+        self.device = DeviceVolume(volume, self.tree, self.field, self.color_field,
+                                   m=m or dr.llvm.ad, bricks=bricks)
+        self.device.host_ranges.update(ranges)
+        self.timings = {}
+        return self
+
     def _lap(self, name, since, quiet=False):
         now = time.perf_counter()
         self.timings[name] = now - since
@@ -67,7 +86,8 @@ class PreparedVolume:
         return now
 
 
-_STEPS = {"derive": "  derived fields", "tree": "  kd-tree", "device": "  device arrays"}
+_STEPS = {"derive": "  derived fields", "tree": "  kd-tree", "device": "  device arrays",
+          "snapshot": "  prepared volume read back from its snapshot"}
 
 
 def _report(text: str) -> None:
@@ -101,9 +121,8 @@ def _velocity_names(available) -> list:
 
 def prepare_file(path, field: str, color_field: str | None = None, *,
                  leaf_cells: int = params.default("leaf_cells"), m=None) -> PreparedVolume:
-    """Load ``path`` (only what is needed) and prepare it; cached by file, fields and backend."""
-    from mi_amr.readers import available_fields, load
-
+    """Load ``path`` (only what is needed) and prepare it; cached by file, fields and backend
+    in this process, and on disk as a snapshot (read back instead of preparing again)."""
     path = os.path.abspath(path)
     try:
         stamp = os.stat(path).st_mtime_ns
@@ -113,6 +132,32 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
+    snap_key = snapshot.entry_key(path, field, color_field, leaf_cells) \
+        if snapshot.cache_root() is not None else None
+    t0 = time.perf_counter()
+    snap = snapshot.load(snap_key) if snap_key else None
+    if snap is not None:
+        prepared = PreparedVolume.restore(snap, m=m)
+        prepared._lap("snapshot", t0)
+    else:
+        prepared = _prepare_from_file(path, field, color_field, leaf_cells, m)
+        if snap_key:
+            t0 = time.perf_counter()
+            if snapshot.save(snap_key, prepared):
+                _report(f"  snapshot written in {time.perf_counter() - t0:.2f} s")
+    if snap_key:
+        prepared.device.on_new_ranges = lambda kind, host: snapshot.save_ranges(snap_key, kind,
+                                                                                host)
+    _CACHE[key] = prepared
+    while len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return prepared
+
+
+def _prepare_from_file(path, field, color_field, leaf_cells, m) -> PreparedVolume:
+    """Read what ``field``/``color_field`` need from ``path`` and prepare it."""
+    from mi_amr.readers import available_fields, load
+
     names = fields_to_read(field, color_field, available_fields(path))
     t0 = time.perf_counter()
     volume = load(path, fields=names)
@@ -121,7 +166,4 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
             f"{len(volume.grids):,} grids) in {read:.2f} s")
     prepared = PreparedVolume(volume, field, color_field, leaf_cells=leaf_cells, m=m)
     prepared.timings = {"read": read, **prepared.timings}
-    _CACHE[key] = prepared
-    while len(_CACHE) > _CACHE_SIZE:
-        _CACHE.popitem(last=False)
     return prepared
