@@ -375,6 +375,30 @@ def test15b2_leaf_count_tables_equal_their_slow_twin(seed):
         np.testing.assert_array_equal(_box_sum(sat, offsets[grid], shape, lo, hi), want)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test15b3_blocks_of_pairs_and_boxes_do_not_change_the_tree(monkeypatch, seed):
+    """The build, the active lists and the leaf value ranges work through (node, grid) pairs
+    CHUNK at a time and descend boxes BOX_BLOCK at a time; tiny blocks (many of them, with
+    leaves and runs of pairs cut across blocks) give the same tree and ranges as the default
+    ones."""
+    from mi_amr.core import kdtree as kdtree_module
+
+    vol = AMRVolume.from_grids(random_grids(seed, ratios=((2, 2), (4, 2), (2, 4))[seed],
+                                            fn=random_field(seed)))
+    want = KDTree(vol, leaf_cells=4)
+    monkeypatch.setattr(kdtree_module, "CHUNK", 5)
+    monkeypatch.setattr(kdtree_module, "BOX_BLOCK", 3)
+    got = KDTree(vol, leaf_cells=4)
+    for name in ("node_code", "node_split", "node_lo", "node_hi", "leaf_owner", "leaf_grids",
+                 "leaf_nsupport", "leaf_nactive", "leaf_levels", "leaf_min_h", "node_ropes"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+    for a, b in zip(got._listed_windows, want._listed_windows):
+        np.testing.assert_array_equal(a, b)
+    for reconstruction in (None, "basis", "finest"):
+        for a, b in zip(got.leaf_ranges("f", reconstruction), want.leaf_ranges("f", reconstruction)):
+            np.testing.assert_array_equal(a, b)
+
+
 def test15c_ropes_equal_their_slow_twin(tree):
     """Ropes built top-down from the parents' equal the descents of every face from the root."""
     np.testing.assert_array_equal(tree.node_ropes, tree._ropes_from_root())

@@ -346,6 +346,35 @@ def test25_every_grid_holds_the_same_fields():
         AMRVolume.from_grids([a, c])
 
 
+@pytest.mark.parametrize("block_cells", [1, 64, 1 << 16])
+def test25b_the_first_bad_grid_is_named_whatever_the_check_blocks(monkeypatch, block_cells):
+    """Fields are checked in blocks of grids (FINITE_CHECK_CELLS cells); the error still names
+    the first bad grid in order, a missing field and a NaN in any order and in any block, as
+    the grid-by-grid check (_check_grid_fields) would."""
+    from mi_amr.core import volume as volume_module
+
+    monkeypatch.setattr(volume_module, "FINITE_CHECK_CELLS", block_cells)
+    n = 40
+
+    def row(nan_at=None, lacking_at=None):
+        out = []
+        for i in range(n):
+            values = np.zeros((2, 2, 2))
+            if i == nan_at:
+                values[1, 0, 1] = math.nan
+            fields = {"f": values} if i == lacking_at else {"f": values, "g": values + 1}
+            out.append(cube(origin=(2 * i, 0, 0), n=2, **fields))
+        return out
+
+    for nan_at, lacking_at in ((7, 30), (30, 7), (31, None), (None, 31), (9, 9)):
+        first = min(i for i in (nan_at, lacking_at) if i is not None)
+        what = "missing field" if first == lacking_at else "non-finite"
+        with pytest.raises(AMRError, match=grid_label(first, 0) + f".*{what}"):
+            AMRVolume.from_grids(row(nan_at, lacking_at))
+    vol = AMRVolume.from_grids(row(nan_at=5), allow_nonfinite=True)
+    assert len(vol.grids) == n
+
+
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test26_non_finite_values_are_refused(bad):
     values = np.zeros((4, 4, 4))

@@ -484,7 +484,9 @@ def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
               f"{r['ranges_s']:.2f} | {r['leaves']:,} | {r['depth']} |" for r in rows]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "kdtree.md").write_text("\n".join(lines) + "\n")
+    from mi_amr.workflows.movie.output import write_bytes_atomic
+
+    write_bytes_atomic(out / "kdtree.md", ("\n".join(lines) + "\n").encode())
     print(f"wrote {out / 'kdtree.md'}")
     return rows
 
