@@ -24,7 +24,29 @@ def test02_the_frame_table_shows_the_time_without_shadow_rays():
     frames = [{"size": 256, "mi_amr_s": 0.5, "mesh_s": 0.1, "ratio": 5.0, "no_shadows_s": 0.3,
                "triangles": 1000}]
     loads = [{"file": "a.npz", "cells": 10, "raw_s": 0.01, "load_s": 1.0, "ratio": 100.0,
-              "steps": {"read": 0.1, "derive": 0.5, "tree": 0.2, "device": 0.1, "ranges": 0.1}}]
+              "steps": {"read": 0.1, "derive": 0.5, "tree": 0.2, "device": 0.1, "ranges": 0.1},
+              "snapshot_s": 0.05, "snapshot_ratio": 5.0}]
     table = limit_bench._table(frames, loads)
     assert "| 256x256 | 0.500 | 0.100 | 5.0x | 0.300 |" in table
     assert "| a.npz | 10 | 0.010 | 1.00 | 100x |" in table
+    assert "| 0.050 | 5.0x |" in table
+
+
+def test03_the_load_rows_time_a_snapshot_read_back_and_leave_the_setting_alone(tmp_path,
+                                                                              variant):
+    """A first load and a read back from a snapshot in a temporary folder; the process's own
+    snapshot setting (off in the tests) is as it was afterwards."""
+    import os
+
+    from mi_amr.kernels import snapshot
+    from mi_amr.synthetic import datasets
+
+    path = tmp_path / "wake.npz"
+    vol = datasets.sphere_wake("small", progress=False)
+    vol.select_fields(["vx", "vy", "vz"]).save(path)
+    (row,) = limit_bench.load_against_read([path])
+    assert row["cells"] == vol.num_cells
+    for key in ("raw_s", "load_s", "snapshot_write_s", "snapshot_s"):
+        assert math.isfinite(row[key]) and row[key] > 0, key
+    assert row["snapshot_ratio"] == pytest.approx(row["snapshot_s"] / row["raw_s"])
+    assert os.environ["MI_AMR_CACHE"] == "off" and snapshot.ENABLED

@@ -8,7 +8,8 @@ interleaved.
   ball and floor. Frames alternate between the two, so a drift of the machine hits both.
 * **Loading against reading the file.** Preparing the scene's volume (read, derive Q and speed,
   kd-tree, device arrays, leaf value ranges) against reading the same file's arrays with NumPy
-  alone.
+  alone; and the same preparation read back from its snapshot
+  (:mod:`mi_amr.kernels.snapshot`, in a temporary folder), as a second process would.
 
 Writes ``limit.md`` and ``limit.json``.
 """
@@ -17,7 +18,9 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import statistics
+import tempfile
 import time
 from pathlib import Path
 
@@ -133,13 +136,47 @@ def load_against_read(paths) -> list:
         prep.device.node_ranges(True)
         steps = dict(read=read, **prep.timings, ranges=time.perf_counter() - t1)
         load_s = time.perf_counter() - t0
-        rows.append({"file": Path(path).name, "cells": vol.num_cells, "raw_s": raw_s,
-                     "load_s": load_s, "ratio": load_s / raw_s, "steps": steps})
-        print(f"{Path(path).name}: load {load_s:.2f} s, raw read {raw_s:.3f} s "
-              f"({load_s / raw_s:.0f}x) {({k: round(v, 2) for k, v in steps.items()})}",
-              flush=True)
+        cells = vol.num_cells
         del raw, vol, prep
+        written_s, again_s = _snapshot_load(path)
+        rows.append({"file": Path(path).name, "cells": cells, "raw_s": raw_s,
+                     "load_s": load_s, "ratio": load_s / raw_s, "steps": steps,
+                     "snapshot_write_s": written_s, "snapshot_s": again_s,
+                     "snapshot_ratio": again_s / raw_s})
+        print(f"{Path(path).name}: load {load_s:.2f} s, raw read {raw_s:.3f} s "
+              f"({load_s / raw_s:.0f}x) {({k: round(v, 2) for k, v in steps.items()})}; "
+              f"from its snapshot {again_s:.3f} s ({again_s / raw_s:.1f}x)", flush=True)
     return rows
+
+
+def _snapshot_load(path):
+    """``(first, again)``: seconds of a first :func:`prepare_file` of ``path`` that writes its
+    snapshot (in a temporary folder), and of a second one in a fresh in-process cache that
+    reads it back; leaf ranges included in both."""
+    import drjit as dr
+
+    from mi_amr.kernels import prepared, snapshot
+
+    saved = os.environ.get("MI_AMR_CACHE"), snapshot.ENABLED
+    times = []
+    with tempfile.TemporaryDirectory(prefix="mi_amr-snapshots-") as folder:
+        os.environ["MI_AMR_CACHE"], snapshot.ENABLED = folder, True
+        try:
+            for _ in range(2):
+                prepared._CACHE.clear()
+                t0 = time.perf_counter()
+                prep = prepared.prepare_file(path, "q_criterion", "speed", m=dr.llvm.ad)
+                prep.device.node_ranges(True)
+                times.append(time.perf_counter() - t0)
+                del prep
+        finally:
+            prepared._CACHE.clear()
+            snapshot.ENABLED = saved[1]
+            if saved[0] is None:
+                os.environ.pop("MI_AMR_CACHE", None)
+            else:
+                os.environ["MI_AMR_CACHE"] = saved[0]
+    return times[0], times[1]
 
 
 def run_limit_bench(out_dir="out/bench", variant: str = "llvm_ad_rgb") -> dict:
@@ -183,10 +220,11 @@ def _table(frames, loads) -> str:
               f"{r['ratio']:.1f}x | {r['no_shadows_s']:.3f} |" for r in frames]
     lines += ["", f"(mesh: {frames[0]['triangles']:,} triangles, marching cubes per grid)", "",
               "| file | cells | raw read (s) | load (s) | ratio | read / derive / tree / device "
-              "/ ranges (s) |", "|---|---|---|---|---|---|"]
+              "/ ranges (s) | from its snapshot (s) | ratio |", "|---|---|---|---|---|---|---|---|"]
     for r in loads:
         s = r["steps"]
         lines.append(f"| {r['file']} | {r['cells']:,} | {r['raw_s']:.3f} | {r['load_s']:.2f} | "
                      f"{r['ratio']:.0f}x | {s['read']:.2f} / {s['derive']:.2f} / {s['tree']:.2f}"
-                     f" / {s['device']:.2f} / {s['ranges']:.2f} |")
+                     f" / {s['device']:.2f} / {s['ranges']:.2f} | {r['snapshot_s']:.3f} | "
+                     f"{r['snapshot_ratio']:.1f}x |")
     return "\n".join(lines)
