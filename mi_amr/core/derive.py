@@ -63,12 +63,16 @@ def derive(volume, *names: str, velocity=None):
             for level in range(volume.num_levels):
                 size = len(levels.level_values(volume, level, comps[0]))
                 flat[name][level] = np.empty(size, _level_dtype(volume, level, comps))
-        # One chunk's float64 gradient at a time (9 values a cell), not the whole volume's.
-        for grids, grad in gradient.level_gradients(volume, comps):
+        # A few chunks' float64 gradients at a time (9 values a cell), not the whole volume's;
+        # each thread writes its chunk's cells of the level arrays.
+        def write(grids, grad):
             level = int(level_of[grids[0]])
             start = levels.grid_offsets(volume, level)[_position(volume, level, grids[0])]
             for name, of in wanted:
                 flat[name][level][start:start + grad.shape[-1]] = of(grad)
+
+        for _ in gradient.map_chunks(volume, comps, write):
+            pass
     out = volume.with_fields({n: _per_grid(volume, arrays, comps) for n, arrays in flat.items()})
     for name, arrays in flat.items():
         for level, values in enumerate(arrays):

@@ -25,9 +25,15 @@ x, y, z).
 
 from __future__ import annotations
 
+import os
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from mi_amr.core import levels
+
+MAX_THREADS = 8     # threads of the level-wide gradient (two chunks of temporaries each)
 
 
 def level_gradients(volume, comps):
@@ -35,15 +41,56 @@ def level_gradients(volume, comps):
     of consecutive grids of one level and ``grad`` the ``(3, 3, N)`` float64 array
     ``[i][j] = d v_i / d x_j`` (per world unit) of their cells, grid after grid, each grid's
     cells in C order of its ``(nx, ny, nz)`` array."""
+    for job in _chunk_jobs(volume, comps):
+        yield _job_gradient(volume, comps, job)
+
+
+def map_chunks(volume, comps, fn, threads: int | None = None):
+    """``(grids, fn(grids, grad))`` for the chunks of :func:`level_gradients`, in the same
+    order, the chunks computed on ``threads`` threads at once (default: the CPUs this process
+    may use, at most :data:`MAX_THREADS`; NumPy lets go of the interpreter while it works).
+    At most two chunks a thread are in flight, so memory stays bounded."""
+    threads = threads or min(MAX_THREADS, len(os.sched_getaffinity(0)))
+    if threads <= 1:
+        for grids, grad in level_gradients(volume, comps):
+            yield grids, fn(grids, grad)
+        return
+
+    def work(job):
+        grids, grad = _job_gradient(volume, comps, job)
+        return grids, fn(grids, grad)
+
+    with ThreadPoolExecutor(threads) as pool:
+        pending = deque()
+        for job in _chunk_jobs(volume, comps):
+            pending.append(pool.submit(work, job))
+            if len(pending) >= 2 * threads:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
+def _chunk_jobs(volume, comps):
+    """``(level, start, stop)`` of every chunk; the level tables and flat values every chunk
+    reads (its level's, and the coarser ones interpolation reads) are cached first, so
+    threads only read them."""
     for level in range(volume.num_levels):
-        table = levels.level_index(volume, level)
-        flat = [levels.level_values(volume, level, name) for name in comps]
-        offsets = levels.grid_offsets(volume, level)
-        for start, stop in levels.grid_chunks(table):
-            cells = _ChunkCells(volume, table, start, stop)
-            lo, hi = offsets[start], offsets[start] + cells.size
-            values = [np.asarray(f[lo:hi], dtype=np.float64) for f in flat]
-            yield table.grids[start:stop], _chunk_gradient(volume, level, comps, cells, values)
+        levels.level_index(volume, level)
+        for name in comps:
+            levels.level_values(volume, level, name)
+    for level in range(volume.num_levels):
+        for start, stop in levels.grid_chunks(levels.level_index(volume, level)):
+            yield level, start, stop
+
+
+def _job_gradient(volume, comps, job):
+    level, start, stop = job
+    table = levels.level_index(volume, level)
+    cells = _ChunkCells(volume, table, start, stop)
+    lo = levels.grid_offsets(volume, level)[start]
+    values = [np.asarray(levels.level_values(volume, level, name)[lo:lo + cells.size],
+                         dtype=np.float64) for name in comps]
+    return table.grids[start:stop], _chunk_gradient(volume, level, comps, cells, values)
 
 
 class _ChunkCells:
