@@ -116,7 +116,24 @@ def _estimate(b: dict, nodes=(1, 16, 64)) -> list:
 
 
 def run_movie_bench(out_dir="out/bench") -> dict:
-    """Measure (see the module docstring); returns the figures."""
+    """Measure (see the module docstring); returns the figures. Every run, and every worker
+    process it starts, loads its data as a first render would: no snapshot read or written."""
+    import os
+
+    saved = os.environ.get("MI_AMR_CACHE")
+    os.environ["MI_AMR_CACHE"] = "off"      # worker processes inherit it
+    try:
+        return _measure(out_dir)
+    finally:
+        if saved is None:
+            os.environ.pop("MI_AMR_CACHE", None)
+        else:
+            os.environ["MI_AMR_CACHE"] = saved
+
+
+def _measure(out_dir) -> dict:
+    from mi_amr.workflows.movie.output import write_bytes_atomic
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     project.ensure_scene_data()
@@ -136,10 +153,10 @@ def run_movie_bench(out_dir="out/bench") -> dict:
     _strip(work / "0", out / "movie_strip.png")
     b = _breakdown(files, scene)
     table = _table(results, b)
-    (out / "movie.md").write_text(table + "\n")
-    (out / "movie.json").write_text(json.dumps({
+    write_bytes_atomic(out / "movie.md", (table + "\n").encode())
+    write_bytes_atomic(out / "movie.json", json.dumps({
         "runs": {f"{k[0]} / {k[1]}": {"seconds": v["seconds"], "fps": v["fps"]}
-                 for k, v in results.items()}, "time_step": b}, indent=2))
+                 for k, v in results.items()}, "time_step": b}, indent=2).encode())
     print(table)
     print(f"wrote {out / 'movie.md'} and {out / 'movie_strip.png'}")
     return {"runs": results, "time_step": b}
