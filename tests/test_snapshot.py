@@ -189,3 +189,22 @@ def test07_a_folder_that_cannot_be_written_only_costs_the_snapshot(data, tmp_pat
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert snapshot.load(snapshot.entry_key(data, "q_criterion", "speed", 64)) is None
+
+
+def test08_data_files_beside_the_named_file_are_part_of_the_key(data, cache, tmp_path,
+                                                               monkeypatch):
+    """A file named after the data file (as Enzo's ``DD0010.cpu0000`` beside ``DD0010``)
+    changes the key when it changes; an unrelated file does not. A limit that is not a number
+    is warned about."""
+    copy = tmp_path / "run.npz"
+    copy.write_bytes(data.read_bytes())
+    key = snapshot.entry_key(copy, "q_criterion", "speed", 4)
+    (tmp_path / "other.txt").write_text("x")
+    assert snapshot.entry_key(copy, "q_criterion", "speed", 4) == key
+    (tmp_path / "run.npz.cpu0000").write_text("x")
+    assert snapshot.entry_key(copy, "q_criterion", "speed", 4) != key
+    assert snapshot.entry_key(copy, "q_criterion", None, 4) != \
+        snapshot.entry_key(copy, "q_criterion", "speed", 4)
+    monkeypatch.setenv("MI_AMR_CACHE_GB", "lots")
+    with pytest.warns(UserWarning, match="MI_AMR_CACHE_GB='lots'"):
+        assert snapshot.limit_bytes() == int(snapshot.DEFAULT_LIMIT_GB * 2 ** 30)

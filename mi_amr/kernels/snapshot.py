@@ -60,12 +60,18 @@ def cache_root() -> Path | None:
 
 
 def limit_bytes() -> int:
-    """The most the snapshot folder may hold, from ``$MI_AMR_CACHE_GB``."""
+    """The most the snapshot folder may hold, from ``$MI_AMR_CACHE_GB`` (a number of
+    gigabytes; anything else is warned about and the default used)."""
+    text = os.environ.get("MI_AMR_CACHE_GB")
     try:
-        gb = float(os.environ.get("MI_AMR_CACHE_GB", DEFAULT_LIMIT_GB))
+        gb = DEFAULT_LIMIT_GB if text is None else float(text)
+        if not gb >= 0.0:
+            raise ValueError
     except ValueError:
+        warnings.warn(f"mi_amr: MI_AMR_CACHE_GB={text!r} is not a number of gigabytes >= 0; "
+                      f"using {DEFAULT_LIMIT_GB}")
         gb = DEFAULT_LIMIT_GB
-    return int(max(gb, 0.0) * 2 ** 30)
+    return int(gb * 2 ** 30)
 
 
 def entry_key(path, field: str, color_field, leaf_cells: int) -> str:
@@ -76,10 +82,17 @@ def entry_key(path, field: str, color_field, leaf_cells: int) -> str:
 
 
 def _stamp(path) -> tuple:
-    """Size and modification time of ``path``, or of every file under it (a plotfile folder)."""
+    """Size and modification time of ``path`` and of the files beside it whose names extend its
+    name (``DD0010`` and its ``DD0010.cpu0000`` ... data files, as Enzo writes them), or of
+    every file under it (a plotfile folder)."""
     if not os.path.isdir(path):
-        st = os.stat(path)
-        return ((st.st_size, st.st_mtime_ns),)
+        folder, name = os.path.split(os.path.abspath(path))
+        out = []
+        for other in sorted(os.listdir(folder)):
+            if other == name or other.startswith(name + "."):
+                st = os.stat(os.path.join(folder, other))
+                out.append((other, st.st_size, st.st_mtime_ns))
+        return tuple(out)
     out = []
     for folder, dirs, files in os.walk(path):
         dirs.sort()
