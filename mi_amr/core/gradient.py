@@ -25,15 +25,9 @@ x, y, z).
 
 from __future__ import annotations
 
-import os
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
-from mi_amr.core import levels
-
-MAX_THREADS = 8     # threads of the level-wide gradient (two chunks of temporaries each)
+from mi_amr.core import levels, parallel
 
 
 def level_gradients(volume, comps):
@@ -47,27 +41,12 @@ def level_gradients(volume, comps):
 
 def map_chunks(volume, comps, fn, threads: int | None = None):
     """``(grids, fn(grids, grad))`` for the chunks of :func:`level_gradients`, in the same
-    order, the chunks computed on ``threads`` threads at once (default: the CPUs this process
-    may use, at most :data:`MAX_THREADS`; NumPy lets go of the interpreter while it works).
-    At most two chunks a thread are in flight, so memory stays bounded."""
-    threads = threads or min(MAX_THREADS, len(os.sched_getaffinity(0)))
-    if threads <= 1:
-        for grids, grad in level_gradients(volume, comps):
-            yield grids, fn(grids, grad)
-        return
-
+    order, the chunks computed side by side (:func:`parallel.map_ordered`)."""
     def work(job):
         grids, grad = _job_gradient(volume, comps, job)
         return grids, fn(grids, grad)
 
-    with ThreadPoolExecutor(threads) as pool:
-        pending = deque()
-        for job in _chunk_jobs(volume, comps):
-            pending.append(pool.submit(work, job))
-            if len(pending) >= 2 * threads:
-                yield pending.popleft().result()
-        while pending:
-            yield pending.popleft().result()
+    yield from parallel.map_ordered(work, _chunk_jobs(volume, comps), threads)
 
 
 def _chunk_jobs(volume, comps):

@@ -1,0 +1,37 @@
+"""Running independent NumPy passes (chunks of cells, grids of one shape) on all the CPUs.
+
+NumPy lets go of the interpreter inside its array operations, so threads working on separate
+chunks run side by side. Each job must write only its own part of any shared output.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
+
+MAX_THREADS = 8     # at most this many threads: each holds its chunk's temporaries
+
+
+def thread_count() -> int:
+    """Threads to use: the CPUs this process may run on, at most :data:`MAX_THREADS`."""
+    return max(1, min(MAX_THREADS, len(os.sched_getaffinity(0))))
+
+
+def map_ordered(fn, items, threads: int | None = None):
+    """``fn(item)`` for each of ``items``, yielded in order, computed on ``threads`` threads
+    (default :func:`thread_count`) with at most two items a thread in flight, so memory stays
+    bounded however many items there are. One thread: a plain loop."""
+    threads = threads or thread_count()
+    if threads <= 1:
+        for item in items:
+            yield fn(item)
+        return
+    with ThreadPoolExecutor(threads) as pool:
+        pending = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= 2 * threads:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
