@@ -29,7 +29,7 @@ import drjit as dr
 import numpy as np
 
 from mi_amr import tolerances as tol
-from mi_amr.core import levels
+from mi_amr.core import levels, parallel
 from mi_amr.errors import AMRError
 
 NO_GRID = 0xFFFFFFFF
@@ -329,12 +329,18 @@ def fill_bricks(volume, level, names, lo, dims, table, base, pools):
     leaf = np.concatenate([volume.leaf_mask(g).ravel() for g in index.grids])
     values = [levels.level_values(volume, level, name) for name in names]
     offsets = levels.grid_offsets(volume, level)
-    for start, stop in levels.grid_chunks(index):
+
+    def one_chunk(chunk):
+        start, stop = chunk
         cells, _ = levels.box_points(index.lo[start:stop], index.hi[start:stop])
         at = slice(offsets[start], offsets[start] + len(cells))
         keep = np.flatnonzero(leaf[at])
         _scatter_chunk(pools, [v[at][keep] for v in values], cells[keep] - lo, table, dims,
                        base)
+
+    # Chunks side by side: a cell is written only by its own chunk.
+    for _ in parallel.map_ordered(one_chunk, levels.grid_chunks(index)):
+        pass
 
 
 def _scatter_chunk(pools, values, cells, table, dims, base):
