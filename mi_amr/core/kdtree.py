@@ -38,6 +38,7 @@ CHUNK = 1 << 16
 # Boxes descended together by KDTree.overlapping_leaves: their (box, node) pairs stay a few
 # CHUNKs long however many boxes there are.
 BOX_BLOCK = 1 << 13
+ROPE_BLOCK = 1 << 13   # nodes whose 6 faces descend together (threads take a block each)
 
 
 class KDTree:
@@ -221,20 +222,24 @@ class KDTree:
         # Grids with covered cells: is there a leaf cell in the window? (Count it from a
         # summed-area table of the leaf mask.)
         partly = self.volume.partly_covered()
-        tables = None
-        for a in range(0, P, CHUNK):
+        tables = _leaf_count_tables(self.volume, np.flatnonzero(partly)) \
+            if partly[grid].any() else None
+
+        def one_part(a):
             part = slice(a, a + CHUNK)
             g = grid[part]
             w_lo, w_hi = self._windows_part(leaf[part], g)
             act = np.all(w_hi >= w_lo, axis=1)
             sel = np.flatnonzero(act & partly[g])
             if len(sel):
-                if tables is None:
-                    tables = _leaf_count_tables(self.volume, np.flatnonzero(partly))
                 sat, offsets = tables
                 gs = g[sel]
                 act[sel] = _box_sum(sat, offsets[gs], self.shape[gs], w_lo[sel], w_hi[sel]) > 0
             lo[part], hi[part], active[part] = w_lo, w_hi, act
+
+        # Parts side by side, each writing its own rows.
+        for _ in parallel.map_ordered(one_part, range(0, P, CHUNK)):
+            pass
         return lo, hi, active
 
     def _ropes(self) -> None:
@@ -256,12 +261,18 @@ class KDTree:
         ropes = np.zeros((N, 6), dtype=np.int64)
         for depth in range(1, self.depth):
             nodes = np.flatnonzero(self.node_depth == depth)
+            if len(nodes) == 0:
+                continue
             p = parent[nodes]
             start = ropes[p]
             axis = code[p] & 3
             right = nodes == (code[p] >> 2) + 1
             start[np.arange(len(nodes)), 2 * axis + ~right] = 0
-            ropes[nodes] = self._descend_faces(nodes, start.ravel()).reshape(-1, 6)
+            parts = range(0, len(nodes), ROPE_BLOCK)     # side by side, in order
+            ropes[nodes] = np.concatenate(list(parallel.map_ordered(
+                lambda a: self._descend_faces(nodes[a:a + ROPE_BLOCK],
+                                              start[a:a + ROPE_BLOCK].ravel()), parts))
+                ).reshape(-1, 6)
         self._set_ropes(ropes)
 
     def _ropes_from_root(self) -> np.ndarray:
