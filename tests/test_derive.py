@@ -388,3 +388,27 @@ def test33_whole_level_gradients_match_the_grid_by_grid_twin(monkeypatch, seed, 
         vx, vy, vz = (g.fields[n] for n in comps)
         np.testing.assert_array_equal(h.fields["speed"], np.sqrt(vx * vx + vy * vy + vz * vz))
         assert h.fields["q_criterion"].dtype == dtype
+
+
+def test34_the_thread_map_keeps_order_and_bounds_what_is_in_flight():
+    """parallel.map_ordered yields in order with any number of threads, and never has more than
+    two items a thread started and not yet handed back."""
+    import threading
+
+    from mi_amr.core import parallel
+
+    started, lock = [], threading.Lock()
+
+    def work(i):
+        with lock:
+            started.append(i)
+        return i * i
+
+    for threads in (1, 2, 3):
+        started.clear()
+        out = []
+        for x in parallel.map_ordered(work, range(50), threads):
+            out.append(x)
+            assert len(started) <= len(out) + 2 * threads
+        assert out == [i * i for i in range(50)]
+    assert 1 <= parallel.thread_count() <= parallel.MAX_THREADS

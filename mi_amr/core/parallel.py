@@ -15,7 +15,9 @@ MAX_THREADS = 8     # at most this many threads: each holds its chunk's temporar
 
 def thread_count() -> int:
     """Threads to use: the CPUs this process may run on, at most :data:`MAX_THREADS`."""
-    return max(1, min(MAX_THREADS, len(os.sched_getaffinity(0))))
+    affinity = getattr(os, "sched_getaffinity", None)     # not on macOS
+    cpus = len(affinity(0)) if affinity else (os.cpu_count() or 1)
+    return max(1, min(MAX_THREADS, cpus))
 
 
 def map_ordered(fn, items, threads: int | None = None):
