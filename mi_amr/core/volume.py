@@ -708,15 +708,9 @@ def _box_cell_indices(offset, shape, a, b) -> np.ndarray:
     """Flat indices (into the array of all cells) of the cells of the half-open index boxes
     ``[a, b)`` (rows, cells of each box's grid) of grids with the given cell ``offset`` and
     ``shape`` (rows)."""
-    ext = b - a
-    n = np.prod(ext, axis=1)
-    box = np.repeat(np.arange(len(n)), n)
-    k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    e1, e2 = ext[box, 1], ext[box, 2]
-    i = a[box, 0] + k // (e1 * e2)
-    j = a[box, 1] + (k // e2) % e1
-    m = a[box, 2] + k % e2
-    return offset[box] + (i * shape[box, 1] + j) * shape[box, 2] + m
+    points, box = levels.box_points(a, b)
+    return offset[box] + (points[:, 0] * shape[box, 1] + points[:, 1]) * shape[box, 2] + \
+        points[:, 2]
 
 
 def _leaf_masks_reference(volume: AMRVolume):
