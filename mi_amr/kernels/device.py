@@ -133,6 +133,7 @@ class DeviceVolume:
         code_split[:, 0] = tree.node_code
         code_split[:, 1] = tree.node_split.astype(np.float32).view(np.uint32)
         self.node_code_split = u32(code_split)
+        self._host_code_split = code_split
         box = np.zeros((tree.num_nodes, 2, 4), dtype=np.float32)
         box[:, 0, :3] = tree.node_lo
         box[:, 1, :3] = tree.node_hi
@@ -154,6 +155,7 @@ class DeviceVolume:
         self.leaf_grids = u32(tree.leaf_grids)
         self.node_ropes = u32(tree.node_ropes)
         self._ranges, self.host_ranges, self.on_new_ranges = {}, {}, None
+        self._search = {}
 
         # grids
         glo, _ = volume.grid_boxes()
@@ -289,6 +291,19 @@ class DeviceVolume:
                     self.on_new_ranges(key, host)
             self._ranges[key] = self._floats(host)
         return self._ranges[key]
+
+    def node_search(self, basis: bool):
+        """What a step of the leaf search reads of a node, in one packet load of 4 uints: its
+        code, its split (float32 bits) and the lo and hi of its value range for one
+        reconstruction (float32 bits; see :meth:`node_ranges`)."""
+        key = "basis" if basis else "finest"
+        if key not in self._search:
+            self.node_ranges(basis)
+            table = np.empty((len(self._host_code_split), 4), dtype=np.uint32)
+            table[:, :2] = self._host_code_split
+            table[:, 2:] = self.host_ranges[key].reshape(-1, 2).view(np.uint32)
+            self._search[key] = self._uints(table.ravel())
+        return self._search[key]
 
 
 def level_bricks(volume, level, names, first):

@@ -206,7 +206,7 @@ def seek_start(dev, o, d, t, node, face, side, active) -> Seeking:
 def seek_steps(dev, cfg, o, d, t1, sk: Seeking, max_steps) -> Seeking:
     """Up to ``max_steps`` steps of the search ``sk`` (all of them for None)."""
     m = dev.m
-    ranges = dev.node_ranges(cfg.basis)
+    search = dev.node_search(cfg.basis)
     dnorm = dr.norm(d)
     node, b_lo, b_hi, t = sk.node, sk.b_lo, sk.b_hi, sk.t
     side, t_side, leaf, t_exit, face = sk.side, sk.t_side, sk.leaf, sk.t_exit, sk.face
@@ -217,10 +217,10 @@ def seek_steps(dev, cfg, o, d, t1, sk: Seeking, max_steps) -> Seeking:
     while going:
         eps = epsilon(dev, t, dnorm)
         p = dr.fma(d, t + eps, o)
-        cs = dr.gather(m.Array2u, dev.node_code_split, node, going)
+        cs = dr.gather(m.Array4u, search, node, going)
         code = cs.x
-        rng = dr.gather(m.Array2f, ranges, node, going)
-        lo, hi = rng.x, rng.y
+        lo = dr.reinterpret_array(m.Float, cs.z)
+        hi = dr.reinterpret_array(m.Float, cs.w)
         t_out, f_out = box_exit(m, b_lo, b_hi, o, d)
         empty = lnot(holds(dev, cfg, lo, hi))
         rep = dr.select(lo <= hi, 0.5 * (lo + hi), dr.nan)
