@@ -208,3 +208,16 @@ def test08_data_files_beside_the_named_file_are_part_of_the_key(data, cache, tmp
     monkeypatch.setenv("MI_AMR_CACHE_GB", "lots")
     with pytest.warns(UserWarning, match="MI_AMR_CACHE_GB='lots'"):
         assert snapshot.limit_bytes() == int(snapshot.DEFAULT_LIMIT_GB * 2 ** 30)
+
+
+def test09_a_second_writer_of_the_same_entry_leaves_the_first_one(data, cache):
+    """Two processes preparing the same data at once both write an entry: the second rename
+    fails on the existing folder, its temporary folder is removed and the entry stays good."""
+    p = prepare(data)
+    (entry,) = entries(cache)
+    before = sorted(f.name for f in (cache / entry).iterdir())
+    assert snapshot.save(entry, p)
+    assert entries(cache) == [entry]
+    assert not [d for d in cache.iterdir() if d.name.startswith(".tmp-")]
+    assert sorted(f.name for f in (cache / entry).iterdir()) == before
+    assert "snapshot" in prepare(data).timings
