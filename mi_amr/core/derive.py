@@ -58,18 +58,16 @@ def derive(volume, *names: str, velocity=None):
     wanted = [(n, f) for n, f in (("q_criterion", q_criterion),
                                   ("vorticity_magnitude", vorticity_magnitude)) if n in names]
     if wanted:
-        level_of = volume.levels
         for name, _ in wanted:
             for level in range(volume.num_levels):
                 size = len(levels.level_values(volume, level, comps[0]))
                 flat[name][level] = np.empty(size, _level_dtype(volume, level, comps))
+
         # A few chunks' float64 gradients at a time (9 values a cell), not the whole volume's;
         # each thread writes its chunk's cells of the level arrays.
-        def write(grids, grad):
-            level = int(level_of[grids[0]])
-            start = levels.grid_offsets(volume, level)[_position(volume, level, grids[0])]
+        def write(level, at, grad):
             for name, of in wanted:
-                flat[name][level][start:start + grad.shape[-1]] = of(grad)
+                flat[name][level][at:at + grad.shape[-1]] = of(grad)
 
         for _ in gradient.map_chunks(volume, comps, write):
             pass
@@ -106,11 +104,6 @@ def velocity_gradient(volume, comps) -> list:
             grads[gi] = grad[:, :, at:at + n].reshape((3, 3) + shape)
             at += n
     return grads
-
-
-def _position(volume, level, grid):
-    """Position of volume grid ``grid`` in the :class:`levels.LevelIndex` of its level."""
-    return int(np.searchsorted(levels.level_index(volume, level).grids, grid))
 
 
 def _level_dtype(volume, level, comps):

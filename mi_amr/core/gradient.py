@@ -36,15 +36,18 @@ def level_gradients(volume, comps):
     ``[i][j] = d v_i / d x_j`` (per world unit) of their cells, grid after grid, each grid's
     cells in C order of its ``(nx, ny, nz)`` array."""
     for job in _chunk_jobs(volume, comps):
-        yield _job_gradient(volume, comps, job)
+        grad, _ = _job_gradient(volume, comps, job)
+        level, start, stop = job
+        yield levels.level_index(volume, level).grids[start:stop], grad
 
 
 def map_chunks(volume, comps, fn, threads: int | None = None):
-    """``(grids, fn(grids, grad))`` for the chunks of :func:`level_gradients`, in the same
+    """``fn(level, at, grad)`` for the chunks of :func:`level_gradients` (``at``: where the
+    chunk's cells start in the level's :func:`levels.level_values`), yielded in the same
     order, the chunks computed side by side (:func:`parallel.map_ordered`)."""
     def work(job):
-        grids, grad = _job_gradient(volume, comps, job)
-        return grids, fn(grids, grad)
+        grad, at = _job_gradient(volume, comps, job)
+        return fn(job[0], at, grad)
 
     yield from parallel.map_ordered(work, _chunk_jobs(volume, comps), threads)
 
@@ -63,13 +66,13 @@ def _chunk_jobs(volume, comps):
 
 
 def _job_gradient(volume, comps, job):
+    """The gradient of chunk ``job`` and where its cells start in the level's flat values."""
     level, start, stop = job
-    table = levels.level_index(volume, level)
-    cells = _ChunkCells(volume, table, start, stop)
-    lo = levels.grid_offsets(volume, level)[start]
-    values = [np.asarray(levels.level_values(volume, level, name)[lo:lo + cells.size],
+    cells = _ChunkCells(volume, levels.level_index(volume, level), start, stop)
+    at = levels.grid_offsets(volume, level)[start]
+    values = [np.asarray(levels.level_values(volume, level, name)[at:at + cells.size],
                          dtype=np.float64) for name in comps]
-    return table.grids[start:stop], _chunk_gradient(volume, level, comps, cells, values)
+    return _chunk_gradient(volume, level, comps, cells, values), at
 
 
 class _ChunkCells:

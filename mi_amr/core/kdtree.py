@@ -237,9 +237,7 @@ class KDTree:
                 act[sel] = _box_sum(sat, offsets[gs], self.shape[gs], w_lo[sel], w_hi[sel]) > 0
             lo[part], hi[part], active[part] = w_lo, w_hi, act
 
-        # Parts side by side, each writing its own rows.
-        for _ in parallel.map_ordered(one_part, range(0, P, CHUNK)):
-            pass
+        parallel.for_each(one_part, range(0, P, CHUNK))      # each writes its own rows
         return lo, hi, active
 
     def _ropes(self) -> None:
@@ -743,9 +741,7 @@ def _window_min_max(volume, values, grid, lo, hi):
                 out_min[part], out_max[part] = _block_lookup(
                     tmin, tmax, row[grid[part]], lo[part], hi[part], k)
 
-    # Shapes side by side, each writing its own queries.
-    for _ in parallel.map_ordered(one_shape, range(len(kinds))):
-        pass
+    parallel.for_each(one_shape, range(len(kinds)))      # each writes its own queries
     return out_min, out_max
 
 

@@ -37,3 +37,10 @@ def map_ordered(fn, items, threads: int | None = None):
                 yield pending.popleft().result()
         while pending:
             yield pending.popleft().result()
+
+
+def for_each(fn, items, threads: int | None = None) -> None:
+    """``fn(item)`` for each of ``items`` side by side (as :func:`map_ordered`), for jobs that
+    write their own part of a shared output and return nothing."""
+    for _ in map_ordered(fn, items, threads):
+        pass

@@ -156,9 +156,8 @@ class AMRVolume:
         volume = cls(tuple(records), allow_nonfinite=allow_nonfinite, source=source,
                      index_lo=index_lo, ratios=ratios, anchor=anchor)
         # Levels are now known to be 0..L-1; the volume keeps the columns (_grid_columns).
-        sizes = np.prod(columns["shape"], axis=1)
         volume._columns = {**columns, "level": columns["level"].astype(np.int32),
-                           "offset": np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)}
+                           "offset": _cell_offsets(columns["shape"])}
         return volume
 
     def with_fields(self, new_fields: Mapping[str, Sequence[np.ndarray]]) -> "AMRVolume":
@@ -263,13 +262,12 @@ class AMRVolume:
         Callers get copies (the public accessors above)."""
         if self._columns is None:
             shape = np.array([g.shape for g in self.grids], dtype=np.int64).reshape(-1, 3)
-            sizes = np.prod(shape, axis=1)
             self._columns = {
                 "level": np.array([g.level for g in self.grids], dtype=np.int32),
                 "origin": np.array([g.origin for g in self.grids], dtype=np.float64),
                 "spacing": np.array([g.spacing for g in self.grids], dtype=np.float64),
                 "shape": shape,
-                "offset": np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)}
+                "offset": _cell_offsets(shape)}
         return self._columns
 
     def leaf_mask(self, grid: int) -> np.ndarray:
@@ -362,6 +360,13 @@ class AMRVolume:
 
     def _label(self) -> str:
         return f"{self.source}: " if self.source else ""
+
+
+def _cell_offsets(shape) -> np.ndarray:
+    """Where each grid's cells start in the flat array of all cells, for grid shapes
+    ``(G, 3)``: ``(G,)`` int64."""
+    sizes = np.prod(shape, axis=1)
+    return np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
 
 
 # ---------------------------------------------------------------------- validation helpers

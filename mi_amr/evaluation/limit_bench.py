@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import statistics
 import tempfile
 import time
@@ -165,10 +164,9 @@ def _snapshot_load(path):
 
     from mi_amr.kernels import prepared, snapshot
 
-    saved = os.environ.get("MI_AMR_CACHE"), snapshot.ENABLED
     times = []
-    with tempfile.TemporaryDirectory(prefix="mi_amr-snapshots-") as folder:
-        os.environ["MI_AMR_CACHE"], snapshot.ENABLED = folder, True
+    with tempfile.TemporaryDirectory(prefix="mi_amr-snapshots-") as folder, \
+            snapshot.using(folder):
         try:
             for _ in range(2):
                 prepared._CACHE.clear()
@@ -179,11 +177,6 @@ def _snapshot_load(path):
                 del prep
         finally:
             prepared._CACHE.clear()
-            snapshot.ENABLED = saved[1]
-            if saved[0] is None:
-                os.environ.pop("MI_AMR_CACHE", None)
-            else:
-                os.environ["MI_AMR_CACHE"] = saved[0]
     return times[0], times[1]
 
 

@@ -118,17 +118,10 @@ def _estimate(b: dict, nodes=(1, 16, 64)) -> list:
 def run_movie_bench(out_dir="out/bench") -> dict:
     """Measure (see the module docstring); returns the figures. Every run, and every worker
     process it starts, loads its data as a first render would: no snapshot read or written."""
-    import os
+    from mi_amr.kernels import snapshot
 
-    saved = os.environ.get("MI_AMR_CACHE")
-    os.environ["MI_AMR_CACHE"] = "off"      # worker processes inherit it
-    try:
+    with snapshot.using("off"):             # worker processes inherit it
         return _measure(out_dir)
-    finally:
-        if saved is None:
-            os.environ.pop("MI_AMR_CACHE", None)
-        else:
-            os.environ["MI_AMR_CACHE"] = saved
 
 
 def _measure(out_dir) -> dict:

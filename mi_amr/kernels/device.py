@@ -18,7 +18,8 @@ Per grid ``g``: ``grid_origin[g]`` and ``grid_inv_h[g]`` (3 floats each), ``grid
 as stored, used by the finest-level reconstruction) and ``color_values``; the basis
 reconstruction reads brick pools of *leaf* values (NaN in covered and non-finite cells, so the
 blend gives them no weight). Per kd node: its box, code and split, six ropes and the value
-range of the field inside it (one per reconstruction, see :meth:`DeviceVolume.node_ranges`);
+range of the field inside it (one per reconstruction, read with the node's code and split in
+one load: :meth:`DeviceVolume.node_search`);
 per kd leaf: its box, owner grid, range of grid ids (active ones first), the bitmask of active
 levels and its finest active cell width.
 """
@@ -154,16 +155,14 @@ class DeviceVolume:
         self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h_host))
         self.leaf_grids = u32(tree.leaf_grids)
         self.node_ropes = u32(tree.node_ropes)
-        self._ranges, self.host_ranges, self.on_new_ranges = {}, {}, None
-        self._search = {}
+        self.host_ranges, self.on_new_ranges, self._search = {}, None, {}
 
         # grids
         glo, _ = volume.grid_boxes()
         h = volume.spacings()
-        shapes = np.array([g.shape for g in volume.grids], dtype=np.int64)
-        counts = np.prod(shapes, axis=1)
-        offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        if counts.sum() >= 2 ** 32:
+        shapes = volume.shapes()
+        offsets = volume.cell_offsets()
+        if volume.num_cells >= 2 ** 32:
             raise AMRError(f"{volume.num_cells} cells: more than 2^32 cannot be indexed")
         self.grid_origin = f32(glo)
         self.grid_inv_h = f32(1.0 / h)
@@ -179,8 +178,8 @@ class DeviceVolume:
     def _constants(self, volume):
         """The per-volume numbers the kernels read, as opaque one-element arrays (world units):
         ``bounds_lo``/``bounds_hi``, ``anchor`` (the lattice origin), ``level_geom`` (per
-        level the cell size and its inverse, 4 floats each: see :func:`level_h`), ``min_h`` (the finest cell width), and from
-        it ``step_eps`` (the smallest step along a unit-speed ray) and ``layer_offset`` (how far
+        level the cell size and its inverse, 4 floats each: see :meth:`level_h`), ``min_h``
+        (the finest cell width), and from it ``step_eps`` (the smallest step along a unit-speed ray) and ``layer_offset`` (how far
         past a crossing the next layer starts). ``min_h_host`` is ``min_h`` as a Python float."""
         h = np.array([volume.level_spacing(l) for l in range(volume.num_levels)], dtype=np.float64)
         self.min_h_host = float(h.min())
@@ -275,22 +274,19 @@ class DeviceVolume:
     def _uints(self, a):
         return device_array(self.m.UInt32, a, np.uint32)
 
-    def node_ranges(self, basis: bool):
+    def node_ranges(self, basis: bool) -> np.ndarray:
         """Per-node value range of the field for one reconstruction, ``lo, hi`` side by side
-        (computed on first use: each costs a pass over the cells). A node with no data has
-        ``(+inf, -inf)``. The host copies are kept in :attr:`host_ranges` (a snapshot may
-        bring them), and :attr:`on_new_ranges` (if set) is told of each one computed."""
+        (float32, host; computed on first use: each costs a pass over the cells). A node with
+        no data has ``(+inf, -inf)``. Kept in :attr:`host_ranges` (a snapshot may bring them);
+        :attr:`on_new_ranges` (if set) is told of each one computed. The kernels read them
+        through :meth:`node_search`."""
         key = "basis" if basis else "finest"
-        if key not in self._ranges:
-            host = self.host_ranges.get(key)
-            if host is None:
-                rlo, rhi = self.tree.node_ranges(*self.tree.leaf_ranges(self.field, key))
-                host = np.stack([rlo, rhi], axis=1).astype(np.float32).ravel()
-                self.host_ranges[key] = host
-                if self.on_new_ranges is not None:
-                    self.on_new_ranges(key, host)
-            self._ranges[key] = self._floats(host)
-        return self._ranges[key]
+        if key not in self.host_ranges:
+            rlo, rhi = self.tree.node_ranges(*self.tree.leaf_ranges(self.field, key))
+            self.host_ranges[key] = np.stack([rlo, rhi], axis=1).astype(np.float32).ravel()
+            if self.on_new_ranges is not None:
+                self.on_new_ranges(key, self.host_ranges[key])
+        return self.host_ranges[key]
 
     def node_search(self, basis: bool):
         """What a step of the leaf search reads of a node, in one packet load of 4 uints: its
@@ -298,10 +294,9 @@ class DeviceVolume:
         reconstruction (float32 bits; see :meth:`node_ranges`)."""
         key = "basis" if basis else "finest"
         if key not in self._search:
-            self.node_ranges(basis)
             table = np.empty((len(self._host_code_split), 4), dtype=np.uint32)
             table[:, :2] = self._host_code_split
-            table[:, 2:] = self.host_ranges[key].reshape(-1, 2).view(np.uint32)
+            table[:, 2:] = self.node_ranges(basis).reshape(-1, 2).view(np.uint32)
             self._search[key] = self._uints(table.ravel())
         return self._search[key]
 
@@ -353,16 +348,15 @@ def fill_bricks(volume, level, names, lo, dims, table, base, pools):
         _scatter_chunk(pools, [v[at][keep] for v in values], cells[keep] - lo, table, dims,
                        base)
 
-    # Chunks side by side: a cell is written only by its own chunk.
-    for _ in parallel.map_ordered(one_chunk, levels.grid_chunks(index)):
-        pass
+    parallel.for_each(one_chunk, levels.grid_chunks(index))   # a cell: only its own chunk
 
 
 def _scatter_chunk(pools, values, cells, table, dims, base):
     """Write leaf ``values`` (one array per pool, brick number ``base`` first) of ``cells``
-    (``(N, 3)``, relative to the level's brick table) into every brick holding them: the brick of the cell and, where the
-    cell lies on a brick's lower face on some axes (and not at the table's edge), the bricks
-    below on those axes, where it is on the upper face (corners 1..7 pick the axes)."""
+    (``(N, 3)``, relative to the level's brick table) into every brick holding them: the
+    brick of the cell and, where the cell lies on a brick's lower face on some axes (and not
+    at the table's edge), the bricks below on those axes, where it is on the upper face
+    (corners 1..7 pick the axes)."""
     block = [cells[:, a] // BRICK for a in range(3)]
     offset = [cells[:, a] - block[a] * BRICK for a in range(3)]
     key = (block[0] * dims[1] + block[1]) * dims[2] + block[2]

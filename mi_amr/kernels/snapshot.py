@@ -21,6 +21,7 @@ volume prepared afresh. Nothing outside the cache folder is ever written or remo
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -57,6 +58,23 @@ def cache_root() -> Path | None:
         return Path(env).expanduser()
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "mi_amr" / "prepared"
+
+
+@contextlib.contextmanager
+def using(folder):
+    """Snapshots in ``folder`` (or none for ``"off"``) while the block runs, in this process
+    and in the processes it starts (``$MI_AMR_CACHE``, :data:`ENABLED`); restored afterwards."""
+    global ENABLED
+    saved = os.environ.get("MI_AMR_CACHE"), ENABLED
+    os.environ["MI_AMR_CACHE"], ENABLED = str(folder), True
+    try:
+        yield
+    finally:
+        ENABLED = saved[1]
+        if saved[0] is None:
+            os.environ.pop("MI_AMR_CACHE", None)
+        else:
+            os.environ["MI_AMR_CACHE"] = saved[0]
 
 
 def limit_bytes() -> int:
@@ -233,9 +251,8 @@ def _write(folder: Path, prepared) -> None:
 
 
 def _volume_state(vol) -> dict:
-    grids = vol.grids
-    return {"level": vol.levels, "origin": np.array([g.origin for g in grids]),
-            "spacing": vol.spacings(), "shape": np.array([g.shape for g in grids]),
+    return {"level": vol.levels, "origin": vol.grid_boxes()[0],
+            "spacing": vol.spacings(), "shape": vol.shapes(),
             "fields": list(vol.field_names), "allow_nonfinite": vol.allow_nonfinite,
             "source": vol.source, "index_lo": vol.index_boxes()[0], "ratios": vol.ratios,
             "anchor": vol.anchor}
