@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from mi_amr.core import gradient, levels
+from mi_amr.core.buffers import aligned_empty
 from mi_amr.errors import AMRError
 
 DERIVED_FIELDS = ("speed", "q_criterion", "vorticity_magnitude")
@@ -50,19 +51,14 @@ def derive(volume, *names: str, velocity=None):
     if unknown:
         raise AMRError(f"cannot derive {unknown}; derived fields are {list(DERIVED_FIELDS)}")
     comps = velocity_fields(volume, velocity)
-    flat = {n: [None] * volume.num_levels for n in names}
+    flat = _level_buffers(volume, names, comps)
     if "speed" in names:
         for level in range(volume.num_levels):
             vx, vy, vz = (levels.level_values(volume, level, n) for n in comps)
-            flat["speed"][level] = np.sqrt(vx * vx + vy * vy + vz * vz)
+            np.sqrt(vx * vx + vy * vy + vz * vz, out=flat["speed"][level], casting="same_kind")
     wanted = [(n, f) for n, f in (("q_criterion", q_criterion),
                                   ("vorticity_magnitude", vorticity_magnitude)) if n in names]
     if wanted:
-        for name, _ in wanted:
-            for level in range(volume.num_levels):
-                size = len(levels.level_values(volume, level, comps[0]))
-                flat[name][level] = np.empty(size, _level_dtype(volume, level, comps))
-
         # A few chunks' float64 gradients at a time (9 values a cell), not the whole volume's;
         # each thread writes its chunk's cells of the level arrays.
         def write(level, at, grad):
@@ -104,6 +100,23 @@ def velocity_gradient(volume, comps) -> list:
             grads[gi] = grad[:, :, at:at + n].reshape((3, 3) + shape)
             at += n
     return grads
+
+
+def _level_buffers(volume, names, comps) -> dict:
+    """Per name, one array per level to compute it into: consecutive slices of a single
+    aligned buffer (:mod:`mi_amr.core.buffers`), level after level, so that when the grids are
+    in level order the device maps the field's values without copying them. The dtype is that
+    of the velocity components (float64 if any level's are)."""
+    sizes = [len(levels.level_values(volume, level, comps[0]))
+             for level in range(volume.num_levels)]
+    dtype = np.result_type(*(_level_dtype(volume, level, comps)
+                             for level in range(volume.num_levels)))
+    ends = np.cumsum([0] + sizes)
+    out = {}
+    for name in names:
+        buf = aligned_empty(int(ends[-1]), dtype)
+        out[name] = [buf[a:b] for a, b in zip(ends[:-1], ends[1:])]
+    return out
 
 
 def _level_dtype(volume, level, comps):

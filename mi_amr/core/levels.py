@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mi_amr.core.buffers import joined
+
 
 DENSE_BLOCKS = 1 << 24     # blocks: up to this many, LevelIndex keeps a dense table (64 MiB)
 # Cells per pass of a level-wide computation (derived fields, brick pools): whole grids are
@@ -132,10 +134,12 @@ def level_values(volume, level: int, name: str) -> np.ndarray:
 
 def share_level_values(volume, level: int, name: str, flat: np.ndarray) -> None:
     """Make ``flat`` the cached :func:`level_values` of field ``name`` on ``level`` when every
-    grid's array of it is a view of ``flat`` (as :func:`mi_amr.derive` makes them), so no
-    copy is made; otherwise do nothing."""
+    grid's array of it is a view of ``flat``, end to end (as :func:`mi_amr.derive` makes
+    them), so no copy is made; otherwise do nothing."""
     arrays = [volume.grids[g].fields[name] for g in level_index(volume, level).grids]
-    if all(a.base is flat for a in arrays):
+    whole = joined(arrays, flat.dtype, aligned=False) if arrays else None
+    if whole is not None and whole.size == flat.size and \
+            whole.ctypes.data == flat.ctypes.data:
         volume.__dict__.setdefault("_level_values", {})[(level, name)] = (
             [id(a) for a in arrays], arrays, flat)
 

@@ -9,6 +9,7 @@ frame's time includes compilation only when the disk cache is cold: run with
 
 from __future__ import annotations
 
+import gc
 import json
 import statistics
 import time
@@ -35,6 +36,30 @@ def _frame(mi, dr, scene, seed):
                    if k.get("type") == dr.KernelType.JIT and
                    (not k.get("cache_hit", True) or k.get("cache_disk", False)))
     return seconds, compiled, img
+
+
+def reset_peak_rss() -> bool:
+    """Start measuring this process's peak resident memory afresh (Linux: writing 5 to
+    ``/proc/self/clear_refs`` resets ``VmHWM``); False where that cannot be done."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_gb():
+    """This process's peak resident memory since :func:`reset_peak_rss`, in GB (10^9 bytes;
+    ``VmHWM`` of ``/proc/self/status``), or None where there is no such file."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) * 1024 / 1e9
+    except OSError:
+        pass
+    return None
 
 
 def param_key(params, name):
@@ -434,18 +459,29 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
         value, scene_file = make()
         prepared._CACHE.clear()  # every load from the file, as a user's first load would be
         snapshot.ENABLED = False        # and none read back from a snapshot
+        gc.collect()
+        _dr().flush_malloc_cache()      # memory the cases before freed, not counted again
+        measured = reset_peak_rss()
         t0 = time.perf_counter()
         scene = load_scene(scene_file, resx=res, resy=res, spp=1)
         load_s = time.perf_counter() - t0
+        peak = peak_rss_gb() if measured else None
         _frame(mi, _dr(), scene, 0)
         times = [_frame(mi, _dr(), scene, i + 1)[0] for i in range(frames)]
         rows.append({"what": what, "value": value, "resolution": res, "load_s": load_s,
-                     "frame_s": statistics.median(times)})
+                     "peak_gb": peak, "frame_s": statistics.median(times)})
         del scene
-    lines = ["| varied | value | image | scene load (s) | warm frame (s) |", "|---|---|---|---|---|"]
+    return _scaling_table(out, rows)
+
+
+def _scaling_table(out, rows) -> list:
+    """Write :func:`scaling`'s ``scaling.md`` (and print it); returns the rows."""
+    lines = ["| varied | value | image | scene load (s) | peak resident while loading (GB) | "
+             "warm frame (s) |", "|---|---|---|---|---|---|"]
     for r in rows:
+        peak = "-" if r["peak_gb"] is None else f"{r['peak_gb']:.2f}"
         lines.append(f"| {r['what']} | {r['value']} | {r['resolution']}x{r['resolution']} | "
-                     f"{r['load_s']:.1f} | {r['frame_s']:.2f} |")
+                     f"{r['load_s']:.1f} | {peak} | {r['frame_s']:.2f} |")
     table = "\n".join(lines)
     from mi_amr.workflows.movie.output import write_bytes_atomic
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from mi_amr import tolerances as tol
 from mi_amr.core import levels, parallel
+from mi_amr.core.buffers import aligned_empty, aligned_full, joined
 from mi_amr.errors import AMRError
 
 NO_GRID = 0xFFFFFFFF
@@ -52,34 +53,16 @@ def lnot(mask):
     return ~mask if dr.is_array_v(mask) else not mask
 
 
-ALIGN = 64                # bytes: Dr.Jit's LLVM backend wants arrays this aligned
-
-
 def host_aligned(values, dtype) -> np.ndarray:
-    """``values`` flattened into a new NumPy array of ``dtype`` starting on an :data:`ALIGN`
-    byte boundary. Dr.Jit maps NumPy memory instead of copying it, and compiles other code
+    """``values`` flattened into a new NumPy array of ``dtype`` starting on an
+    :data:`~mi_amr.core.buffers.ALIGN` byte boundary. Dr.Jit maps NumPy memory instead of copying it, and compiles other code
     (unaligned loads, no packet gathers) for an array that is not aligned: with arrays at
     whatever address NumPy gave them, the same scene would compile different kernels from one
     load to the next."""
     a = np.ascontiguousarray(values, dtype=dtype).ravel()
-    out = _aligned_empty(a.size, dtype)
+    out = aligned_empty(a.size, dtype)
     out[:] = a
     return out
-
-
-def aligned_full(size: int, value, dtype) -> np.ndarray:
-    """A new flat NumPy array of ``size`` elements of ``dtype``, all ``value``, starting on an
-    :data:`ALIGN` byte boundary (see :func:`host_aligned`)."""
-    out = _aligned_empty(size, dtype)
-    out.fill(value)
-    return out
-
-
-def _aligned_empty(size: int, dtype) -> np.ndarray:
-    itemsize = np.dtype(dtype).itemsize
-    buf = np.empty(size * itemsize + ALIGN, dtype=np.uint8)
-    start = (-buf.ctypes.data) % ALIGN
-    return buf[start:start + size * itemsize].view(dtype)
 
 
 def device_array(T, values, dtype):
@@ -228,8 +211,16 @@ class DeviceVolume:
         return [self.values] + ([self.color_values] if color else [])
 
     def _field_values(self, name):
-        raw = np.concatenate([g.fields[name].ravel() for g in self.volume.grids])
-        return self._floats(raw.astype(np.float32))
+        """Field ``name`` of every grid, grid after grid, as a device array: the buffer the
+        grids' arrays are views of when there is one (:func:`mi_amr.core.buffers.joined`: no
+        copy), else a float32 copy written once."""
+        arrays = [g.fields[name] for g in self.volume.grids]
+        flat = joined(arrays, np.float32)
+        if flat is None:
+            flat = aligned_empty(sum(a.size for a in arrays), np.float32)
+            if arrays:
+                np.concatenate([a.ravel() for a in arrays], out=flat, casting="same_kind")
+        return self.m.Float(flat)
 
     def _build_bricks(self):
         """Per level, the *leaf* cells of all its grids gathered into bricks of

@@ -41,21 +41,11 @@ class PreparedVolume:
                  leaf_cells: int = params.default("leaf_cells"), m=None):
         clock = time.perf_counter()
         self.timings = {}
-        wanted = [f for f in dict.fromkeys([field, color_field]) if f is not None]
-        missing = [f for f in wanted if f not in volume.field_names]
-        derivable = [f for f in missing if f in DERIVED_FIELDS]
-        unknown = [f for f in missing if f not in DERIVED_FIELDS]
-        if unknown:
-            raise AMRError(f"{volume._label()}unknown field(s) {unknown}: the volume holds "
-                           f"{list(volume.field_names)}; derived fields are "
-                           f"{list(DERIVED_FIELDS)}")
-        if derivable:
-            from mi_amr.core.derive import derive
-            volume = derive(volume, *derivable)
-        self.volume = volume.select_fields(wanted)
+        volume, derived = needed_fields(volume, field, color_field)
+        self.volume = volume
         self.field = field
         self.color_field = color_field or field
-        clock = self._lap("derive", clock, quiet=not derivable)
+        clock = self._lap("derive", clock, quiet=not derived)
         self.tree = KDTree(self.volume, leaf_cells=leaf_cells)
         clock = self._lap("tree", clock)
         self.device = DeviceVolume(self.volume, self.tree, field, self.color_field,
@@ -93,6 +83,25 @@ _STEPS = {"derive": "  derived fields", "tree": "  kd-tree", "device": "  device
 def _report(text: str) -> None:
     if REPORT is not None:
         REPORT(text)
+
+
+def needed_fields(volume, field: str, color_field: str | None):
+    """``(volume, derived)``: ``volume`` with exactly the fields ``field`` and ``color_field``
+    (derived from the velocity where it lacks them; ``derived``: some were), arrays shared.
+    Whatever else ``volume`` held is not referenced by the result, so a caller that drops its
+    own reference frees it (the velocity a derived field was computed from)."""
+    wanted = [f for f in dict.fromkeys([field, color_field]) if f is not None]
+    missing = [f for f in wanted if f not in volume.field_names]
+    derivable = [f for f in missing if f in DERIVED_FIELDS]
+    unknown = [f for f in missing if f not in DERIVED_FIELDS]
+    if unknown:
+        raise AMRError(f"{volume._label()}unknown field(s) {unknown}: the volume holds "
+                       f"{list(volume.field_names)}; derived fields are "
+                       f"{list(DERIVED_FIELDS)}")
+    if derivable:
+        from mi_amr.core.derive import derive
+        volume = derive(volume, *derivable)
+    return volume.select_fields(wanted), bool(derivable)
 
 
 def fields_to_read(field: str, color_field: str | None, available) -> list:
@@ -164,6 +173,13 @@ def _prepare_from_file(path, field, color_field, leaf_cells, m) -> PreparedVolum
     read = time.perf_counter() - t0
     _report(f"  read {os.path.basename(path)} ({', '.join(names)}: {volume.num_cells:,} cells, "
             f"{len(volume.grids):,} grids) in {read:.2f} s")
+    # Derived here, so that the velocity read for it is freed before the kd-tree and the
+    # device arrays are built (a third of the peak memory of a large load).
+    t0 = time.perf_counter()
+    volume, derived = needed_fields(volume, field, color_field)
+    derive_s = time.perf_counter() - t0
+    if derived:
+        _report(f"{_STEPS['derive']} in {derive_s:.2f} s")
     prepared = PreparedVolume(volume, field, color_field, leaf_cells=leaf_cells, m=m)
-    prepared.timings = {"read": read, **prepared.timings}
+    prepared.timings = {"read": read, **prepared.timings, "derive": derive_s}
     return prepared

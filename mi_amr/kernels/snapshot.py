@@ -36,7 +36,7 @@ import numpy as np
 
 from mi_amr.core import levels
 from mi_amr.core.volume import AMRVolume, Grid
-from mi_amr.kernels.device import _aligned_empty
+from mi_amr.core.buffers import aligned_empty
 
 FORMAT = 1                  # bump when the layout below changes
 # False: no snapshot is read or written in this process (benchmarks of first loads set it).
@@ -163,7 +163,7 @@ def load(key: str):
 
 
 def _read(path) -> np.ndarray:
-    """A ``.npy`` file read straight into new :data:`device.ALIGN`-aligned memory."""
+    """A ``.npy`` file read straight into new :data:`~mi_amr.core.buffers.ALIGN`-aligned memory."""
     with open(path, "rb") as f:
         version = np.lib.format.read_magic(f)
         header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
@@ -171,7 +171,7 @@ def _read(path) -> np.ndarray:
         shape, fortran, dtype = header(f)
         if fortran or dtype.hasobject:
             raise ValueError(f"{path.name}: not a plain C-ordered array")
-        out = _aligned_empty(int(np.prod(shape)), dtype)
+        out = aligned_empty(int(np.prod(shape)), dtype)
         if f.readinto(memoryview(out.view(np.uint8))) != out.nbytes:
             raise ValueError(f"{path.name}: truncated")
     return out.reshape(shape)

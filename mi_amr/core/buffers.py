@@ -1,0 +1,56 @@
+"""Flat NumPy buffers that the device maps as they are: aligned allocation, and finding the one
+buffer that per-grid arrays are consecutive views of.
+
+Dr.Jit's LLVM backend maps host memory instead of copying it when the array is aligned to
+:data:`ALIGN` bytes. A field computed straight into such a buffer (one per field, grid after
+grid; :mod:`mi_amr.core.derive` makes them) is then read by the kernels without any copy, so a
+large volume holds its values once, not once per grid and once more on the device.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+ALIGN = 64                # bytes: Dr.Jit's LLVM backend wants arrays this aligned
+
+
+def aligned_empty(size: int, dtype) -> np.ndarray:
+    """A new flat array of ``size`` elements of ``dtype`` starting on an :data:`ALIGN` byte
+    boundary (contents undefined)."""
+    itemsize = np.dtype(dtype).itemsize
+    buf = np.empty(size * itemsize + ALIGN, dtype=np.uint8)
+    start = (-buf.ctypes.data) % ALIGN
+    return buf[start:start + size * itemsize].view(dtype)
+
+
+def aligned_full(size: int, value, dtype) -> np.ndarray:
+    """:func:`aligned_empty`, every element ``value``."""
+    out = aligned_empty(size, dtype)
+    out.fill(value)
+    return out
+
+
+def joined(arrays, dtype, aligned: bool = True):
+    """The flat array of ``dtype`` that ``arrays`` (C-contiguous, of that dtype) are
+    consecutive views of, in this order, end to end -- what ``np.concatenate([a.ravel() for a
+    in arrays])`` would copy -- or None when there is none (or, for ``aligned``, when it does
+    not start on an :data:`ALIGN` byte boundary)."""
+    arrays = list(arrays)
+    if not arrays:
+        return None
+    owner = arrays[0].base
+    while isinstance(owner, np.ndarray) and owner.base is not None:
+        owner = owner.base
+    if not isinstance(owner, np.ndarray) or owner.ndim != 1 or not owner.flags.c_contiguous:
+        return None
+    start = arrays[0].ctypes.data
+    at = start
+    for a in arrays:
+        if a.dtype != dtype or not a.flags.c_contiguous or a.ctypes.data != at:
+            return None
+        at += a.nbytes
+    begin, end = owner.ctypes.data, owner.ctypes.data + owner.nbytes
+    if (aligned and start % ALIGN) or start < begin or at > end:
+        return None
+    whole = owner.view(np.uint8)
+    return whole[start - begin:at - begin].view(dtype)

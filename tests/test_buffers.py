@@ -1,0 +1,81 @@
+"""A volume's values held once: per-grid arrays that are views of one aligned buffer are mapped
+by the device as they are (no copy), and a preparation keeps nothing of the velocity its
+derived fields came from."""
+
+import gc
+import weakref
+
+import drjit as dr
+import numpy as np
+
+from mi_amr.core import buffers
+from mi_amr.kernels import prepared
+from mi_amr.kernels.device import DeviceVolume
+from mi_amr.core.kdtree import KDTree
+from mi_amr.synthetic import datasets
+
+M = dr.llvm.ad
+
+
+def views(buf, sizes):
+    out, at = [], 0
+    for n in sizes:
+        out.append(buf[at:at + n].reshape(n, 1, 1))
+        at += n
+    return out
+
+
+def test01_joined_finds_the_buffer_of_consecutive_views():
+    buf = buffers.aligned_full(40, 1.5, np.float32)
+    assert buf.ctypes.data % buffers.ALIGN == 0 and np.all(buf == 1.5)
+    whole = buffers.joined(views(buf, [10, 20, 10]), np.float32)
+    assert whole is not None and whole.ctypes.data == buf.ctypes.data and whole.size == 40
+    part = buffers.joined(views(buf, [10, 20]), np.float32)
+    assert part.size == 30 and part.ctypes.data == buf.ctypes.data
+
+
+def test02_joined_refuses_what_a_copy_would_differ_from():
+    buf = buffers.aligned_empty(40, np.float32)
+    a, b, c = views(buf, [10, 20, 10])
+    assert buffers.joined([a, c], np.float32) is None                 # a gap
+    assert buffers.joined([b, a], np.float32) is None                 # out of order
+    assert buffers.joined([a, b], np.float64) is None                 # another dtype
+    assert buffers.joined([buf[::2]], np.float32) is None             # not contiguous
+    assert buffers.joined([b], np.float32) is None                    # starts unaligned (40 B)
+    assert buffers.joined([b], np.float32, aligned=False).ctypes.data == b.ctypes.data
+
+
+def test03_derived_fields_are_mapped_by_the_device_without_a_copy():
+    vol = datasets.sphere_wake("small", progress=False)
+    vol, derived = prepared.needed_fields(vol, "q_criterion", "speed")
+    assert derived and set(vol.field_names) == {"q_criterion", "speed"}
+    dev = DeviceVolume(vol, KDTree(vol), "q_criterion", "speed", m=M)
+    for name, arr in (("q_criterion", dev.values), ("speed", dev.color_values)):
+        flat = buffers.joined([g.fields[name] for g in vol.grids], np.float32)
+        assert flat is not None, name
+        host = arr.numpy()
+        assert host.ctypes.data == flat.ctypes.data, name     # the same memory
+        np.testing.assert_array_equal(
+            host, np.concatenate([g.fields[name].ravel() for g in vol.grids]))
+
+
+def test04_values_not_in_one_buffer_are_copied_once():
+    vol = datasets.sphere_wake("small", progress=False)
+    vol, _ = prepared.needed_fields(vol, "q_criterion", "speed")
+    grids = list(vol.grids)
+    for g in grids:                                # each grid's own float64 array
+        g.fields["q_criterion"] = g.fields["q_criterion"].astype(np.float64)
+    dev = DeviceVolume(vol, KDTree(vol), "q_criterion", m=M)
+    expect = np.concatenate([g.fields["q_criterion"].ravel() for g in grids]).astype(np.float32)
+    np.testing.assert_array_equal(dev.values.numpy(), expect)
+
+
+def test05_the_velocity_is_freed_once_the_caller_drops_its_volume():
+    vol = datasets.sphere_wake("small", progress=False)
+    watched = [weakref.ref(g.fields[n]) for g in vol.grids[:5] for n in ("vx", "vy", "vz")]
+    out, _ = prepared.needed_fields(vol, "q_criterion", "speed")
+    del vol
+    gc.collect()
+    assert all(w() is None for w in watched)
+    assert set(out.field_names) == {"q_criterion", "speed"}
+    assert not any(k[1] in ("vx", "vy", "vz") for k in out.__dict__.get("_level_values", {}))
