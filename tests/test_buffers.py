@@ -79,3 +79,33 @@ def test05_the_velocity_is_freed_once_the_caller_drops_its_volume():
     assert all(w() is None for w in watched)
     assert set(out.field_names) == {"q_criterion", "speed"}
     assert not any(k[1] in ("vx", "vy", "vz") for k in out.__dict__.get("_level_values", {}))
+
+
+def test06_level_values_of_a_file_read_whole_are_views_of_what_was_read(tmp_path):
+    from mi_amr.core import levels
+    from mi_amr.readers import load
+
+    path = tmp_path / "wake.npz"
+    datasets.sphere_wake("small", progress=False).save(path)
+    vol = load(path, fields=["vx"])
+    for level in range(vol.num_levels):
+        flat = levels.level_values(vol, level, "vx")
+        grids = levels.level_index(vol, level).grids
+        np.testing.assert_array_equal(
+            flat, np.concatenate([vol.grids[g].fields["vx"].ravel() for g in grids]))
+        assert np.shares_memory(flat, vol.grids[grids[0]].fields["vx"])
+
+
+def test07_level_values_follow_a_replaced_array_unless_fields_are_fixed():
+    from mi_amr.core import levels
+
+    vol = datasets.sphere_wake("small", progress=False)
+    first = levels.level_values(vol, 0, "vx").copy()
+    g = levels.level_index(vol, 0).grids[0]
+    n = vol.grids[g].num_cells
+    with levels.fields_fixed(vol):
+        vol.grids[g].fields["vx"] = vol.grids[g].fields["vx"] + 1.0
+        np.testing.assert_array_equal(levels.level_values(vol, 0, "vx"), first)
+    again = levels.level_values(vol, 0, "vx")
+    np.testing.assert_array_equal(again[:n], first[:n] + np.float32(1.0))
+    np.testing.assert_array_equal(again[n:], first[n:])

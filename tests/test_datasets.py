@@ -111,7 +111,7 @@ def test06_wake_is_deterministic_for_a_seed_and_differs_across_seeds(wake):
 
 def test07_unknown_wake_size_is_refused():
     with pytest.raises(AMRError, match=r"size must be one of \['small', 'default', 'large', "
-                       r"'xlarge'\], got 'huge'"):
+                       r"'xlarge', 'xxlarge'\], got 'huge'"):
         datasets.sphere_wake("huge", progress=False)
 
 

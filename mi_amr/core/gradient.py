@@ -35,10 +35,11 @@ def level_gradients(volume, comps):
     of consecutive grids of one level and ``grad`` the ``(3, 3, N)`` float64 array
     ``[i][j] = d v_i / d x_j`` (per world unit) of their cells, grid after grid, each grid's
     cells in C order of its ``(nx, ny, nz)`` array."""
-    for job in _chunk_jobs(volume, comps):
-        grad, _ = _job_gradient(volume, comps, job)
-        level, start, stop = job
-        yield levels.level_index(volume, level).grids[start:stop], grad
+    with levels.fields_fixed(volume):
+        for job in _chunk_jobs(volume, comps):
+            grad, _ = _job_gradient(volume, comps, job)
+            level, start, stop = job
+            yield levels.level_index(volume, level).grids[start:stop], grad
 
 
 def map_chunks(volume, comps, fn, threads: int | None = None):
@@ -49,7 +50,8 @@ def map_chunks(volume, comps, fn, threads: int | None = None):
         grad, at = _job_gradient(volume, comps, job)
         return fn(job[0], at, grad)
 
-    yield from parallel.map_ordered(work, _chunk_jobs(volume, comps), threads)
+    with levels.fields_fixed(volume):
+        yield from parallel.map_ordered(work, _chunk_jobs(volume, comps), threads)
 
 
 def _chunk_jobs(volume, comps):

@@ -718,14 +718,15 @@ def _window_min_max(volume, values, grid, lo, hi):
     out_min = np.full(len(grid), np.inf)
     out_max = np.full(len(grid), -np.inf)
     kinds, kind_of = _shape_kinds(shapes)
+    # The queries and the grids of each shape, found for all shapes in one sort each (a pass
+    # over all of them per shape made this quadratic in the number of shapes).
+    by_kind = [_runs_by_key(kind_of[grid], len(kinds)), _runs_by_key(kind_of, len(kinds))]
 
     def one_shape(kind):
         shape = kinds[kind]
-        queries = (np.flatnonzero(kind_of[grid] == kind) if len(kinds) > 1 else
-                   np.arange(len(grid)))
+        queries, members = (order[bounds[kind]:bounds[kind + 1]] for order, bounds in by_kind)
         if len(queries) == 0:
             return
-        members = np.flatnonzero(kind_of == kind)
         row = np.empty(len(shapes), dtype=np.int64)
         row[members] = np.arange(len(members))
         cells = (offsets[members][:, None] + np.arange(int(np.prod(shape)))).ravel()
@@ -753,6 +754,14 @@ def _block_log2(lo, hi) -> np.ndarray:
         side = (hi[a:a + CHUNK] - lo[a:a + CHUNK] + 1).max(axis=1)
         out[a:a + CHUNK] = np.floor(np.log2(side))
     return out
+
+
+def _runs_by_key(keys, n: int):
+    """``(order, bounds)``: the positions of ``keys`` (ints in ``[0, n)``) sorted by key, in
+    increasing position within each key, and where each key's run starts
+    (``order[bounds[k]:bounds[k + 1]]`` is ``np.flatnonzero(keys == k)``)."""
+    order = np.argsort(keys, kind="stable")
+    return order, np.searchsorted(keys[order], np.arange(n + 1))
 
 
 def _shape_kinds(shapes):

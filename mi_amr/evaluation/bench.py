@@ -411,7 +411,8 @@ def chart(rows, path):
 def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) -> list:
     """How the warm frame time of the default scene (exact, basis, shadows) grows with the image
     size, the number of grids (the same cells cut into smaller grids) and the number of cells
-    (the sphere_wake sizes, up to ``xlarge``: 46M cells, 4.5 GB resident while it loads).
+    (the sphere_wake sizes, up to ``xxlarge``: 105M cells), with the peak resident memory of
+    each load.
     Writes ``scaling.md``; returns the rows."""
     import mitsuba as mi
     from tqdm import tqdm
@@ -453,7 +454,8 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
               ("grids", 512, lambda: split(16)), ("grids", 512, lambda: split(8)),
               ("cells", 512, lambda: size("small")),
               ("cells", 512, lambda: (f"{default.num_cells:,} (default)", base)),
-              ("cells", 512, lambda: size("large")), ("cells", 512, lambda: size("xlarge"))]
+              ("cells", 512, lambda: size("large")), ("cells", 512, lambda: size("xlarge")),
+              ("cells", 512, lambda: size("xxlarge"))]
     rows = []
     for what, res, make in tqdm(cases, desc="scaling", unit="case"):
         value, scene_file = make()

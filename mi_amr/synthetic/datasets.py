@@ -30,8 +30,9 @@ SIZES = {
     "small": ((32, 16, 16), 3, (0.3, 0.45)),
     "default": ((64, 32, 32), 4, (0.2, 0.3, 0.45)),
     "large": ((128, 64, 64), 4, (0.08, 0.13, 0.2)),
-    # 46M cells, the largest shipped: its scene load peaks at 4.5 GB resident (10^8 cells: ~10 GB)
     "xlarge": ((128, 64, 64), 4, (0.055, 0.09, 0.14)),
+    # 105M cells (1.3 GB on disk), the largest: its scene load peaks at about 5.5 GB resident
+    "xxlarge": ((128, 64, 64), 4, (0.021, 0.035, 0.055)),
 }
 RATIO = 2
 BLOCKING = 4          # fine grids start and end on multiples of 4 fine cells
@@ -44,8 +45,9 @@ def sphere_wake(size: str = "default", seed: int = 0, progress: bool = True) -> 
     ball of radius :data:`mi_amr.flow.BALL_RADIUS` sits at the origin and air streams in +x).
 
     ``size`` is ``small`` (tests, about a second), ``default`` (4M cells, 4 s), ``large``
-    (27M cells, 26 s) or ``xlarge`` (46M cells, 42 s). Levels refine by 2; a level-``l`` cell is tagged for refinement where
-    ``|curl v| * h_l / U`` exceeds a threshold, so refinement follows the vortices.
+    (27M cells, 26 s), ``xlarge`` (46M cells, 42 s) or ``xxlarge`` (105M cells, 95 s). Levels
+    refine by 2; a level-``l`` cell is tagged for refinement where ``|curl v| * h_l / U``
+    exceeds a threshold, so refinement follows the vortices.
     """
     if size not in SIZES:
         raise AMRError(f"size must be one of {list(SIZES)}, got {size!r}")
