@@ -1,4 +1,4 @@
-"""``bench --limit``'s parts on tiny images: the translucent-against-opaque timing runs all three
+"""``bench --limit``'s parts on tiny images: the translucent-against-opaque timing runs all five
 scenes (and leaves the fast paths on), and the tables show every measured column. Speed itself
 is the benchmark's business, not a test's."""
 
@@ -11,13 +11,17 @@ pytest.importorskip("mitsuba")
 from mi_amr.evaluation import limit_bench  # noqa: E402
 
 
-def test01_translucent_against_opaque_times_three_scenes(scene_data_ready):
+def test01_translucent_against_opaque_times_five_scenes(scene_data_ready):
     row = limit_bench.translucent_against_opaque(frames=1, size=32, spp=1)
-    for key in ("opaque_s", "translucent_s", "translucent_slow_s", "ratio", "ratio_slow"):
+    for key in ("opaque_s", "translucent_s", "translucent_slow_s", "ratio", "ratio_slow",
+                "opaque_unshadowed_s", "translucent_unshadowed_s", "ratio_unshadowed"):
         assert math.isfinite(row[key]) and row[key] > 0, key
     assert row["ratio"] == pytest.approx(row["translucent_s"] / row["opaque_s"])
+    assert row["ratio_unshadowed"] == pytest.approx(row["translucent_unshadowed_s"] /
+                                                    row["opaque_unshadowed_s"])
     table = limit_bench._layers_table(row)
     assert f"{row['translucent_s']:.3f}" in table and f"{row['ratio_slow']:.1f}x" in table
+    assert f"{row['translucent_unshadowed_s']:.3f}" in table
 
 
 def test02_the_frame_table_shows_the_time_without_shadow_rays():

@@ -86,7 +86,7 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
     """Three translucent isovalues against one opaque one (sphere_wake.xml, 256^2, 4 spp,
     shadow rays): median warm frames, interleaved; and the translucent scene once more with
     the slow twins of its fast paths (every layer's search restarted, shadow rays composited
-    layer by layer), which is what it cost before them."""
+    layer by layer), which is what it cost before them; and both without shadow rays."""
     import drjit as dr
     import mitsuba as mi
 
@@ -97,10 +97,15 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
                           spp=spp, integrator=integrator)
 
     opaque, layered = scene(isovalue="0.05"), scene(**TRANSLUCENT)
-    times = {"opaque_s": [], "translucent_s": [], "translucent_slow_s": []}
+    # Where the difference is: the same two without shadow rays.
+    opaque_ns, layered_ns = scene(isovalue="0.05", shadows="false"), \
+        scene(shadows="false", **TRANSLUCENT)
+    runs = (("opaque_s", opaque, True), ("translucent_s", layered, True),
+            ("translucent_slow_s", layered, False), ("opaque_unshadowed_s", opaque_ns, True),
+            ("translucent_unshadowed_s", layered_ns, True))
+    times = {key: [] for key, _, _ in runs}
     for i in range(frames + 1):
-        for key, sc, fast in (("opaque_s", opaque, True), ("translucent_s", layered, True),
-                              ("translucent_slow_s", layered, False)):
+        for key, sc, fast in runs:
             sc.integrator().layer_fast_paths = fast
             t = _frame(mi, dr, sc, i)
             if i:                                    # the first round compiles
@@ -109,6 +114,7 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
     row = {k: statistics.median(v) for k, v in times.items()}
     row["ratio"] = row["translucent_s"] / row["opaque_s"]
     row["ratio_slow"] = row["translucent_slow_s"] / row["opaque_s"]
+    row["ratio_unshadowed"] = row["translucent_unshadowed_s"] / row["opaque_unshadowed_s"]
     print(f"translucent {row['translucent_s']:.3f} s (slow twins {row['translucent_slow_s']:.3f}"
           f" s), opaque {row['opaque_s']:.3f} s: {row['ratio']:.1f}x", flush=True)
     return row
@@ -211,7 +217,9 @@ def _layers_table(r) -> str:
         f"| {TRANSLUCENT_SIZE}^2, {TRANSLUCENT_SPP} spp | one opaque isovalue (s) | three "
         "translucent (s) | ratio | before the fast paths (s) | ratio |", "|---|---|---|---|---|---|",
         f"| sphere_wake, shadow rays | {r['opaque_s']:.3f} | {r['translucent_s']:.3f} | "
-        f"{r['ratio']:.1f}x | {r['translucent_slow_s']:.3f} | {r['ratio_slow']:.1f}x |"])
+        f"{r['ratio']:.1f}x | {r['translucent_slow_s']:.3f} | {r['ratio_slow']:.1f}x |",
+        f"| sphere_wake, no shadow rays | {r['opaque_unshadowed_s']:.3f} | "
+        f"{r['translucent_unshadowed_s']:.3f} | {r['ratio_unshadowed']:.1f}x | | |"])
 
 
 def _table(frames, loads) -> str:

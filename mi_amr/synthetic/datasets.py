@@ -31,7 +31,7 @@ SIZES = {
     "default": ((64, 32, 32), 4, (0.2, 0.3, 0.45)),
     "large": ((128, 64, 64), 4, (0.08, 0.13, 0.2)),
     "xlarge": ((128, 64, 64), 4, (0.055, 0.09, 0.14)),
-    # 105M cells (1.3 GB on disk), the largest: its scene load peaks at about 5.5 GB resident
+    # 105M cells (1.3 GB on disk), the largest: its scene load peaks at 4.9 GB resident
     "xxlarge": ((128, 64, 64), 4, (0.021, 0.035, 0.055)),
 }
 RATIO = 2
