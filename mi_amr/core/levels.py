@@ -253,12 +253,16 @@ def interpolate(volume, level: int, points, fields, *, complete: bool = False):
     vals = vals.reshape(len(fields), 8, len(bases))
     num = np.zeros((len(fields), len(points)))
     den = np.zeros(len(points))
+    lo_w, hi_w = 1.0 - frac, frac
     for corner in range(8):
-        w = np.prod(np.where(bits[corner] == 1, frac, 1.0 - frac), axis=1)
+        w = np.ones(len(points))
+        for a in range(3):
+            w *= hi_w[:, a] if bits[corner, a] else lo_w[:, a]
         v = vals[:, corner, which]
-        ok = np.all(np.isfinite(v), axis=0)
-        num[:, ok] += w[ok] * v[:, ok]
-        den[ok] += w[ok]
+        ok = np.isfinite(v).all(axis=0)
+        w = np.where(ok, w, 0.0)
+        num += np.where(ok, w * v, 0.0)
+        den += w
     # The weights sum to 1 up to rounding when no cell is missing.
     enough = den > 1.0 - 1e-9 if complete else den > 0
     with np.errstate(invalid="ignore", divide="ignore"):
