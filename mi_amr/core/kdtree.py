@@ -25,6 +25,7 @@ import numpy as np
 
 from mi_amr import params
 from mi_amr.core import parallel
+from mi_amr.core.buffers import joined
 from mi_amr.core.boxes import contains_points
 from mi_amr.core.points import (_as_points, _finest_of,  # noqa: F401  (twins: tests)
                                 finest_grid_bruteforce, support_grids_bruteforce)
@@ -617,8 +618,11 @@ def _group(pi, gi, n) -> list:
 
 
 def _all_values(volume, field) -> np.ndarray:
-    """The cells of ``field`` of all grids, raveled and concatenated grid after grid."""
-    return np.concatenate([g.fields[field].reshape(-1) for g in volume.grids])
+    """The cells of ``field`` of all grids, raveled and concatenated grid after grid (read
+    only: the buffer the grids' arrays are views of, when they lie end to end in one)."""
+    arrays = [g.fields[field] for g in volume.grids]
+    flat = joined(arrays, arrays[0].dtype, aligned=False)
+    return flat if flat is not None else np.concatenate([a.reshape(-1) for a in arrays])
 
 
 def _grid_offsets(volume) -> np.ndarray:
