@@ -64,7 +64,7 @@ def overlap_pairs(alo, ahi, blo, bhi, *, closed: bool = False):
 
     ka, ia = entries(a_first, a_last, a_count, np.flatnonzero(~a_big))
     kb, ib = entries(b_first, b_last, b_count, np.flatnonzero(~b_big))
-    order = np.argsort(kb, kind="stable")
+    order = np.argsort(kb)      # the order within a bin does not matter: pairs are sorted below
     kb, ib = kb[order], ib[order]
     start = np.searchsorted(kb, ka, side="left")
     n = np.searchsorted(kb, ka, side="right") - start
