@@ -221,3 +221,18 @@ def test09_a_second_writer_of_the_same_entry_leaves_the_first_one(data, cache):
     assert not [d for d in cache.iterdir() if d.name.startswith(".tmp-")]
     assert sorted(f.name for f in (cache / entry).iterdir()) == before
     assert "snapshot" in prepare(data).timings
+
+
+def test10_a_restored_field_is_held_once(data, cache):
+    """Read back, each field lies in one aligned buffer, level after level, which the device
+    maps as it is (no second copy of the values)."""
+    from mi_amr.core.buffers import joined
+
+    prepare(data)
+    restored = prepare(data)
+    assert "snapshot" in restored.timings
+    vol, dev = restored.volume, restored.device
+    for name, arr in (("q_criterion", dev.values), ("speed", dev.color_values)):
+        flat = joined([g.fields[name] for g in vol.grids], np.float32)
+        assert flat is not None, name
+        assert arr.numpy().ctypes.data == flat.ctypes.data, name

@@ -162,26 +162,51 @@ def load(key: str):
     return volume, meta["tree"], (parts, pools), ranges, meta
 
 
-def _read(path) -> np.ndarray:
-    """A ``.npy`` file read straight into new :data:`~mi_amr.core.buffers.ALIGN`-aligned memory."""
+def _read(path, into=None) -> np.ndarray:
+    """A ``.npy`` file read straight into new :data:`~mi_amr.core.buffers.ALIGN`-aligned memory,
+    or into the flat array ``into`` (which must have its size and dtype)."""
     with open(path, "rb") as f:
-        version = np.lib.format.read_magic(f)
-        header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-            np.lib.format.read_array_header_2_0
-        shape, fortran, dtype = header(f)
+        shape, fortran, dtype = _header(f)
         if fortran or dtype.hasobject:
             raise ValueError(f"{path.name}: not a plain C-ordered array")
-        out = aligned_empty(int(np.prod(shape)), dtype)
+        size = int(np.prod(shape))
+        if into is not None and (into.size != size or into.dtype != dtype):
+            raise ValueError(f"{path.name}: {size} values of {dtype}, expected {into.size} of "
+                             f"{into.dtype}")
+        out = aligned_empty(size, dtype) if into is None else into
         if f.readinto(memoryview(out.view(np.uint8))) != out.nbytes:
             raise ValueError(f"{path.name}: truncated")
     return out.reshape(shape)
 
 
+def _header(f):
+    """``(shape, fortran_order, dtype)`` of the ``.npy`` file open in ``f`` (left at its data)."""
+    version = np.lib.format.read_magic(f)
+    header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
+        np.lib.format.read_array_header_2_0
+    return header(f)
+
+
+def _field_levels(entry: Path, state: dict, name: str) -> list:
+    """Field ``name``'s per-level flat arrays, read into consecutive slices of one aligned
+    buffer (level after level), so that the device maps it as it is when the grids are in
+    level order (:func:`mi_amr.core.buffers.joined`)."""
+    num_levels = len(state["ratios"]) + 1
+    counts = np.prod(state["shape"], axis=1)
+    sizes = [int(counts[state["level"] == level].sum()) for level in range(num_levels)]
+    with open(entry / f"field0_{name}.npy", "rb") as f:
+        dtype = _header(f)[2]
+    buf = aligned_empty(sum(sizes), dtype)
+    ends = np.cumsum([0] + sizes)
+    return [_read(entry / f"field{level}_{name}.npy", into=buf[ends[level]:ends[level + 1]])
+            for level in range(num_levels)]
+
+
 def _volume(entry: Path, state: dict) -> AMRVolume:
     """The volume of a snapshot: grid records whose fields are views of the per-level flat
     arrays (which also become the volume's cached :func:`levels.level_values`)."""
-    flats = {(level, name): _read(entry / f"field{level}_{name}.npy")
-             for level in range(len(state["ratios"]) + 1) for name in state["fields"]}
+    flats = {(level, name): flat for name in state["fields"]
+             for level, flat in enumerate(_field_levels(entry, state, name))}
     fields = [dict() for _ in state["level"]]
     for level in range(len(state["ratios"]) + 1):
         ids = np.flatnonzero(state["level"] == level)
