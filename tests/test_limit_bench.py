@@ -54,3 +54,32 @@ def test03_the_load_rows_time_a_snapshot_read_back_and_leave_the_setting_alone(t
         assert math.isfinite(row[key]) and row[key] > 0, key
     assert row["snapshot_ratio"] == pytest.approx(row["snapshot_s"] / row["raw_s"])
     assert os.environ["MI_AMR_CACHE"] == "off" and snapshot.ENABLED
+
+
+def test04_the_scaling_table_shows_the_peak_memory_of_each_load(tmp_path):
+    """The peak resident memory grows when a load allocates and is measured afresh after a
+    reset; the table shows it, or a dash where it could not be measured."""
+    import sys
+
+    import numpy as np
+
+    from mi_amr.evaluation import bench
+
+    if not sys.platform.startswith("linux"):
+        assert bench.peak_rss_gb() is None
+        return
+    assert bench.reset_peak_rss()
+    before = bench.peak_rss_gb()
+    block = np.ones(2 ** 28 // 8)              # 256 MiB, written
+    grown = bench.peak_rss_gb()
+    assert grown >= before + 0.2
+    del block
+    assert bench.reset_peak_rss() and bench.peak_rss_gb() < grown
+    rows = [{"what": "cells", "value": "10 (tiny)", "resolution": 64, "load_s": 0.5,
+             "peak_gb": 1.234, "frame_s": 0.1},
+            {"what": "cells", "value": "20 (tiny)", "resolution": 64, "load_s": 0.6,
+             "peak_gb": None, "frame_s": 0.2}]
+    bench._scaling_table(tmp_path, rows)
+    table = (tmp_path / "scaling.md").read_text()
+    assert "peak resident while loading (GB)" in table
+    assert "| 0.5 | 1.23 | 0.10 |" in table and "| 0.6 | - | 0.20 |" in table
