@@ -163,3 +163,24 @@ def test05_leaf_searches_in_parts_find_what_whole_searches_find(scenes, rec, mon
         results.append((*layers(integ, o, d, resume=True), transmittance(integ, o, d, True)))
     for a, b in zip(*results):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("rec", ["basis", "finest"])
+def test06_two_levels_a_turn_take_the_steps_of_one_level_a_turn(scenes, rec, monkeypatch):
+    """A turn of the leaf search goes down through a non-empty inner node before its full step
+    (``traverse.TWO_LEVELS``); one level a turn, the slow twin, gives the same layers, bit for
+    bit, and the same shadow-ray transmittance, with the march's searches in parts as they are
+    and whole."""
+    from mi_amr.kernels import traverse
+
+    integ = scenes[rec].integrator()
+    o, d = random_rays(integ, n=3000, seed=3)
+    for steps in (traverse.SEEK_STEPS, None):
+        monkeypatch.setattr(traverse, "SEEK_STEPS", steps)
+        results = []
+        for two in (True, False):
+            monkeypatch.setattr(traverse, "TWO_LEVELS", two)
+            results.append((*layers(integ, o, d, resume=True), transmittance(integ, o, d, True)))
+        for a, b in zip(*results):
+            np.testing.assert_array_equal(a, b)
+        assert np.isfinite(results[0][0]).any()          # the rays meet layers

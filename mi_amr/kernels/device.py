@@ -19,7 +19,7 @@ as stored, used by the finest-level reconstruction) and ``color_values``; the ba
 reconstruction reads brick pools of *leaf* values (NaN in covered and non-finite cells, so the
 blend gives them no weight). Per kd node: its box, code and split, six ropes and the value
 range of the field inside it (one per reconstruction, read with the node's code and split in
-one load: :meth:`DeviceVolume.node_search`);
+one load, next to its children's: :meth:`DeviceVolume.node_search`);
 per kd leaf: its box, owner grid, range of grid ids (active ones first), the bitmask of active
 levels and its finest active cell width.
 """
@@ -35,6 +35,7 @@ from mi_amr.core.buffers import aligned_empty, aligned_full, joined
 from mi_amr.errors import AMRError
 
 NO_GRID = 0xFFFFFFFF
+NODE_RECORDS = 3          # per kd node in node_search: its own record and its two children's
 NO_BRICK = 0xFFFFFFFF
 BRICK = 8                 # cells per brick side; a brick stores BRICK + 1 (one cell of apron)
 BRICK_N = BRICK + 1
@@ -280,14 +281,23 @@ class DeviceVolume:
         return self.host_ranges[key]
 
     def node_search(self, basis: bool):
-        """What a step of the leaf search reads of a node, in one packet load of 4 uints: its
-        code, its split (float32 bits) and the lo and hi of its value range for one
-        reconstruction (float32 bits; see :meth:`node_ranges`)."""
+        """What a step of the leaf search reads of a node: :data:`NODE_RECORDS` records of 4
+        uints per node, each one packet load -- the node's own (its code, its split as float32
+        bits, and the lo and hi of its value range for one reconstruction as float32 bits; see
+        :meth:`node_ranges`), then its lower and upper child's (zeros for a leaf), so a search
+        can go down through a node to its child with the loads it started (see
+        :data:`~mi_amr.kernels.traverse.TWO_LEVELS`)."""
         key = "basis" if basis else "finest"
         if key not in self._search:
-            table = np.empty((len(self._host_code_split), 4), dtype=np.uint32)
-            table[:, :2] = self._host_code_split
-            table[:, 2:] = self.node_ranges(basis).reshape(-1, 2).view(np.uint32)
+            own = np.empty((len(self._host_code_split), 4), dtype=np.uint32)
+            own[:, :2] = self._host_code_split
+            own[:, 2:] = self.node_ranges(basis).reshape(-1, 2).view(np.uint32)
+            table = np.zeros((len(own), NODE_RECORDS, 4), dtype=np.uint32)
+            table[:, 0] = own
+            inner = np.flatnonzero((own[:, 0] & 3) != 3)
+            first = (own[inner, 0] >> 2).astype(np.int64)
+            table[inner, 1] = own[first]
+            table[inner, 2] = own[first + 1]
             self._search[key] = self._uints(table.ravel())
         return self._search[key]
 
