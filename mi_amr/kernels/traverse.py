@@ -263,8 +263,12 @@ def seek_steps(dev, cfg, o, d, t1, sk: Seeking, max_steps) -> Seeking:
         side = dr.select(skip, rep, side)
         t_side = dr.select(skip, t_out, t_side)
         t_next = dr.maximum(t_out, t + eps)
-        r_node, r_lo, r_hi = _restart(dev, o, d, t_next + epsilon(dev, t_next, dnorm), node,
-                                      f_out, skip)
+        # (A symbolic branch: a packet with no lane skipping jumps over the rope restart and
+        # its loads; side by side 1024^2 0.93-0.99 -> 0.84-0.87 s.)
+        r_node, r_lo, r_hi = m.UInt32(node), m.Array3f(b_lo), m.Array3f(b_hi)
+        if skip:
+            r_node, r_lo, r_hi = _restart(dev, o, d, t_next + epsilon(dev, t_next, dnorm), node,
+                                          f_out, skip)
 
         # --- Otherwise go down to the child holding the point.
         down = going & lnot(empty) & lnot(is_leaf)
