@@ -684,16 +684,7 @@ def _leaf_masks(volume: AMRVolume):
     offsets = volume._grid_columns()["offset"]
     flat = np.ones(int(np.prod(shapes, axis=1).sum()), dtype=bool)
     partly = np.zeros(len(shapes), dtype=bool)
-    levels = volume._grid_columns()["level"]
-    lo, hi = volume.index_boxes()
-    for level, ratio in enumerate(volume.ratios):
-        coarse = np.flatnonzero(levels == level)
-        fine = np.flatnonzero(levels == level + 1)
-        flo, fhi = lo[fine] // ratio, hi[fine] // ratio
-        ca, fb = overlap_pairs(lo[coarse], hi[coarse], flo, fhi)
-        c = coarse[ca]
-        a = np.maximum(lo[c], flo[fb]) - lo[c]
-        b = np.minimum(hi[c], fhi[fb]) - lo[c]
+    for c, a, b in _covered_boxes(volume):
         partly[c] = True
         cells = np.prod(b - a, axis=1)
         for q in np.flatnonzero(cells > MASK_BOX_CELLS):
@@ -724,19 +715,26 @@ def _leaf_masks_reference(volume: AMRVolume):
     per-grid ``partly`` flags."""
     masks = [np.ones(g.shape, dtype=bool) for g in volume.grids]
     partly = np.zeros(len(masks), dtype=bool)
-    levels = volume.levels
+    for cs, los, his in _covered_boxes(volume):
+        for c, a, b in zip(cs, los, his):
+            masks[c][a[0]:b[0], a[1]:b[1], a[2]:b[2]] = False
+            partly[c] = True
+    return masks, partly
+
+
+def _covered_boxes(volume: AMRVolume):
+    """Per level with a finer one, ``(c, a, b)``: for each (coarse grid, finer grid) pair that
+    overlaps, the coarse grid ``c`` and the half-open index box ``[a, b)`` (its own cells,
+    from its lower corner) the finer grid covers."""
+    levels = volume._grid_columns()["level"]
     lo, hi = volume.index_boxes()
     for level, ratio in enumerate(volume.ratios):
         coarse = np.flatnonzero(levels == level)
         fine = np.flatnonzero(levels == level + 1)
         flo, fhi = lo[fine] // ratio, hi[fine] // ratio
         ca, fb = overlap_pairs(lo[coarse], hi[coarse], flo, fhi)
-        for c, f in zip(coarse[ca], fb):
-            a = np.maximum(lo[c], flo[f]) - lo[c]
-            b = np.minimum(hi[c], fhi[f]) - lo[c]
-            masks[c][a[0]:b[0], a[1]:b[1], a[2]:b[2]] = False
-            partly[c] = True
-    return masks, partly
+        c = coarse[ca]
+        yield c, np.maximum(lo[c], flo[fb]) - lo[c], np.minimum(hi[c], fhi[fb]) - lo[c]
 
 
 def _finite_range(arr: np.ndarray):

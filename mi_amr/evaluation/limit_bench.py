@@ -215,7 +215,8 @@ def run_limit_bench(out_dir="out/bench", variant: str = "llvm_ad_rgb") -> dict:
 def _layers_table(r) -> str:
     return "\n".join([
         f"| {TRANSLUCENT_SIZE}^2, {TRANSLUCENT_SPP} spp | one opaque isovalue (s) | three "
-        "translucent (s) | ratio | before the fast paths (s) | ratio |", "|---|---|---|---|---|---|",
+        "translucent (s) | ratio | before the fast paths (s) | ratio |",
+        "|---|---|---|---|---|---|",
         f"| sphere_wake, shadow rays | {r['opaque_s']:.3f} | {r['translucent_s']:.3f} | "
         f"{r['ratio']:.1f}x | {r['translucent_slow_s']:.3f} | {r['ratio_slow']:.1f}x |",
         f"| sphere_wake, no shadow rays | {r['opaque_unshadowed_s']:.3f} | "

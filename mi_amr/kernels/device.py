@@ -56,10 +56,10 @@ def lnot(mask):
 
 def host_aligned(values, dtype) -> np.ndarray:
     """``values`` flattened into a new NumPy array of ``dtype`` starting on an
-    :data:`~mi_amr.core.buffers.ALIGN` byte boundary. Dr.Jit maps NumPy memory instead of copying it, and compiles other code
-    (unaligned loads, no packet gathers) for an array that is not aligned: with arrays at
-    whatever address NumPy gave them, the same scene would compile different kernels from one
-    load to the next."""
+    :data:`~mi_amr.core.buffers.ALIGN` byte boundary. Dr.Jit maps NumPy memory instead of
+    copying it, and compiles other code (unaligned loads, no packet gathers) for an array that
+    is not aligned: with arrays at whatever address NumPy gave them, the same scene would
+    compile different kernels from one load to the next."""
     a = np.ascontiguousarray(values, dtype=dtype).ravel()
     out = aligned_empty(a.size, dtype)
     out[:] = a
