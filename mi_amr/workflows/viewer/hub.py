@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import json
 import struct
+import threading
 import traceback
 from collections import deque
 from pathlib import Path
@@ -69,6 +70,8 @@ class Hub:
                                    self.from_worker, preview_scale=preview_scale, idle_s=idle_s)
         self.clients = set()
         self.loop = None
+        self._early = []                # reports that came before the event loop ran
+        self._loop_lock = threading.Lock()
         self.version = 0
         self.last_frame = None          # the newest frame sent, for a page that connects
 
@@ -188,9 +191,23 @@ class Hub:
 
     # ------------------------------------------------------------------ the render thread
     def from_worker(self, kind: str, payload: dict, data) -> None:
-        """A report from the render thread (called there): handled in the event loop."""
-        if self.loop is not None:
-            self.loop.call_soon_threadsafe(self._report, kind, payload, data)
+        """A report from the render thread (called there): handled in the event loop, or kept
+        until it runs (the first frame can be ready before the server has started)."""
+        with self._loop_lock:
+            loop = self.loop
+            if loop is None:
+                self._early.append((kind, payload, data))
+                return
+        loop.call_soon_threadsafe(self._report, kind, payload, data)
+
+    def attach(self, loop) -> None:
+        """Handle the render thread's reports in ``loop`` (the server's, from within it), the
+        ones kept before it ran first."""
+        with self._loop_lock:
+            self.loop = loop
+            early, self._early = self._early, []
+        for report in early:
+            loop.call_soon(self._report, *report)
 
     def _report(self, kind, payload, data) -> None:
         if kind == "frame":

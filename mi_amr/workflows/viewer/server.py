@@ -55,7 +55,7 @@ def create_app(hub, host: str = "127.0.0.1"):
 
     @asynccontextmanager
     async def lifespan(app):
-        hub.loop = asyncio.get_running_loop()
+        hub.attach(asyncio.get_running_loop())
         yield
         hub.worker.stop()
 
