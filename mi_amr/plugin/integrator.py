@@ -37,7 +37,7 @@ from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import prepare_file
 from mi_amr.kernels.surface import crossings
 from mi_amr.kernels.transmit import transmittance_exact
-from mi_amr.plugin import bridge, options, shading
+from mi_amr.plugin import bridge, options, shading, wavefront
 from mi_amr.plugin.aovs import NAMES as AOV_NAMES
 from mi_amr.plugin.aovs import iso_aovs
 from mi_amr.plugin.frame import VolumeFrame
@@ -46,7 +46,6 @@ from mi_amr.plugin.layers import front_to_back
 from mi_amr.plugin.scene import resolve_data_file
 from mi_amr.plugin.transfer2d import host_transfer2d
 from mi_amr.plugin.iso import IsoShader
-from mi_amr.plugin import wavefront
 
 __doc__ = __doc__.replace("{table}", params.docstring_table())
 _CLASSES = {}
@@ -97,10 +96,7 @@ class _AMRIso:
                                   host_transfer2d(opt))
         self.shader = IsoShader(self)
         self.layer_fast_paths = True
-        # Lanes of the wavefront in tiles of pixels (False: Mitsuba's scanlines, the slow twin).
-        self.tiled_lanes = True
-        self._orders = wavefront.Orders()
-        self._wavefront_lane = None
+        wavefront.attach(self)
         _warn_outside(self.prep, opt.isovalues)
 
     def _prepare(self, path):
@@ -150,13 +146,10 @@ class _AMRIso:
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """Mitsuba's render loop with the wavefront's lanes in tiles of pixels
         (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply."""
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor]
+        sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         if not wavefront.supported(sensor, spp):
             return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
-        width, height, _, _ = wavefront.film_shape(sensor, spp)
-        order = self._orders(width, height) if self.tiled_lanes else None
-        return wavefront.render(self, scene, sensor, seed, spp, order, develop, evaluate)
+        return wavefront.render(self, scene, sensor, seed, spp, develop, evaluate)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         active = mi.Bool(active)
@@ -190,10 +183,7 @@ class _AMRIso:
         frame."""
         if self.opt.jitter == "random" or not bridge.vectorised():
             return bridge.to_kernel(self.m, u)
-        lane = self._wavefront_lane
-        if lane is None or dr.width(lane) != dr.width(ray.o):
-            lane = dr.arange(mi.UInt32, dr.width(ray.o))
-        return stable_jitter(self.m, self.m.UInt32(lane))
+        return stable_jitter(self.m, self.m.UInt32(wavefront.lane_index(self, ray)))
 
     def _layer_crossing(self, o, d, t_start, t_end, jitter):
         """``(state, crossing)`` for :func:`front_to_back` along a ray in the volume (kernel

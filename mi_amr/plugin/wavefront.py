@@ -63,6 +63,24 @@ class Orders:
         return self._cache[key]
 
 
+def attach(integrator) -> None:
+    """Give ``integrator`` what :func:`render` keeps on it: ``tiled_lanes`` (True: tile order;
+    False: scanlines, the slow twin), the orders, and the scanline lane of each lane while a
+    frame is traced (:func:`lane_index`)."""
+    integrator.tiled_lanes = True
+    integrator._orders = Orders()
+    integrator._wavefront_lane = None
+
+
+def lane_index(integrator, ray):
+    """Each lane's scanline lane ``pixel * spp + sample`` (what a per-pixel hash such as the
+    stable jitter takes), for the wavefront :func:`render` is tracing; else the lane itself."""
+    lane = integrator._wavefront_lane
+    if lane is None or dr.width(lane) != dr.width(ray.o):
+        lane = dr.arange(mi.UInt32, dr.width(ray.o))
+    return lane
+
+
 def film_shape(sensor, spp: int):
     """``(width, height, spp, border)`` of the wavefront: the film's crop, grown by the
     filter's border where the film samples it, and the samples per pixel (``spp`` 0: the
@@ -84,16 +102,17 @@ def supported(sensor, spp: int) -> bool:
         width * height * spp < 2 ** 32
 
 
-def render(integrator, scene, sensor, seed, spp, order, develop=True, evaluate=True):
+def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True):
     """Render ``scene`` through ``sensor`` with ``integrator.sample``, the wavefront's pixels
-    in the order ``order`` (device ``UInt32`` array from :class:`Orders`; None: scanlines).
-    Returns the developed image as ``mi.render`` does (None unless ``develop``)."""
+    in tile order (scanlines where ``integrator.tiled_lanes`` is False). Returns the developed
+    image as ``mi.render`` does (None unless ``develop``)."""
     film = sensor.film()
-    width, _, spp, border = film_shape(sensor, spp)
+    width, height, spp, border = film_shape(sensor, spp)
+    order = integrator._orders(width, height) if integrator.tiled_lanes else None
     sampler = sensor.sampler().clone()
     sampler.set_sample_count(spp)
     sampler.set_samples_per_wavefront(spp)
-    n = dr.prod(film_shape(sensor, spp)[:3])
+    n = width * height * spp
     sampler.seed(seed, n)
     film.prepare(integrator.aov_names())
     block = film.create_block()
