@@ -50,8 +50,9 @@ def pixel_order(width: int, height: int) -> np.ndarray:
 
 
 class Orders:
-    """:func:`pixel_order` as a device array, for the last film size asked (an opaque kernel
-    input: a new film size compiles nothing)."""
+    """:func:`pixel_order` as a device array, for the last film size asked (a kernel input,
+    not a literal: a new film size compiles only what Mitsuba's image block compiles for it,
+    as in Mitsuba's loop)."""
 
     def __init__(self):
         self._cache = {}
@@ -145,7 +146,8 @@ def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True):
 def _render_lanes(integrator, scene, sensor, sampler, block, lane, width, spp, border):
     """One sample per lane, put into ``block`` (Mitsuba's ``render_sample``)."""
     film = sensor.film()
-    # The film's size and offset are opaque: another size compiles no kernel.
+    # The film's size and offset are opaque inputs (Mitsuba's image block still compiles once
+    # for a new size, as with Mitsuba's loop: tests/test_wavefront.py test05).
     width_u = dr.opaque(mi.UInt32, width)
     pixel = lane // dr.opaque(mi.UInt32, spp)
     y = pixel // width_u
