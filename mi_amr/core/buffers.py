@@ -25,6 +25,14 @@ def aligned_empty(size: int, dtype) -> np.ndarray:
     return buf[start:start + size * itemsize].view(dtype)
 
 
+def aligned_parts(sizes, dtype) -> list:
+    """Flat arrays of ``sizes`` elements of ``dtype``, consecutive slices of one new
+    :func:`aligned_empty` buffer, end to end in this order (what :func:`joined` finds again)."""
+    ends = np.cumsum([0] + [int(n) for n in sizes])
+    buf = aligned_empty(int(ends[-1]), dtype)
+    return [buf[a:b] for a, b in zip(ends[:-1], ends[1:])]
+
+
 FILL_CHUNK = 1 << 21      # elements a thread fills at a time in aligned_full
 
 

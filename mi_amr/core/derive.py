@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from mi_amr.core import gradient, levels
-from mi_amr.core.buffers import aligned_empty
+from mi_amr.core.buffers import aligned_parts
 from mi_amr.errors import AMRError
 
 DERIVED_FIELDS = ("speed", "q_criterion", "vorticity_magnitude")
@@ -111,12 +111,7 @@ def _level_buffers(volume, names, comps) -> dict:
              for level in range(volume.num_levels)]
     dtype = np.result_type(*(_level_dtype(volume, level, comps)
                              for level in range(volume.num_levels)))
-    ends = np.cumsum([0] + sizes)
-    out = {}
-    for name in names:
-        buf = aligned_empty(int(ends[-1]), dtype)
-        out[name] = [buf[a:b] for a, b in zip(ends[:-1], ends[1:])]
-    return out
+    return {name: aligned_parts(sizes, dtype) for name in names}
 
 
 def _level_dtype(volume, level, comps):

@@ -36,7 +36,7 @@ import numpy as np
 
 from mi_amr.core import levels
 from mi_amr.core.volume import AMRVolume, Grid
-from mi_amr.core.buffers import aligned_empty
+from mi_amr.core.buffers import aligned_empty, aligned_parts
 
 FORMAT = 1                  # bump when the layout below changes
 # False: no snapshot is read or written in this process (benchmarks of first loads set it).
@@ -196,10 +196,8 @@ def _field_levels(entry: Path, state: dict, name: str) -> list:
     sizes = [int(counts[state["level"] == level].sum()) for level in range(num_levels)]
     with open(entry / f"field0_{name}.npy", "rb") as f:
         dtype = _header(f)[2]
-    buf = aligned_empty(sum(sizes), dtype)
-    ends = np.cumsum([0] + sizes)
-    return [_read(entry / f"field{level}_{name}.npy", into=buf[ends[level]:ends[level + 1]])
-            for level in range(num_levels)]
+    return [_read(entry / f"field{level}_{name}.npy", into=part)
+            for level, part in enumerate(aligned_parts(sizes, dtype))]
 
 
 def _volume(entry: Path, state: dict) -> AMRVolume:
