@@ -36,6 +36,9 @@ LATTICE_SNAP = 1e-4
 # crossing it came from, so the same crossing is not found again; far below any feature that
 # the reconstruction can resolve.
 LAYER_OFFSET_CELLS = 1e-3
+# of the value change across a bracket: the sampling methods' next layer starts from a value
+# this far past the isovalue crossed (on the far side), as its previous sample.
+RESUME_REL = 1e-4
 # cells: bisection (the ``bisect`` method) stops at this interval (course report, 3.6.2).
 BISECT_TARGET = 0.005
 

@@ -551,3 +551,28 @@ def test12_rays_without_a_hit_have_no_isovalue_index(sphere):
     res = mi_amr.trace(sphere, o, d, field="f", isovalue=0.3)
     assert res.hit.tolist() == [False, True]
     assert res.iso_index.tolist() == [-1, 0]
+
+
+@pytest.mark.parametrize("method", ["uniform", "adaptive", "bisect"])
+@pytest.mark.parametrize("step_scale", [2.0, 4.0])
+def test09_nodes_skipped_before_the_first_sample_leave_their_side(method, step_scale):
+    """A ramp ``f = x`` rising through the isovalue just inside a kd leaf, past empty ones:
+    with steps of a few cells the first sample in that leaf is already across the isovalue,
+    so the crossing is bracketed by the skipped nodes' side (evaluated where the last step
+    before them falls). With no sample before them, those nodes once left no side and the
+    crossing was missed at steps of 2 cells and more (uniform). Linear interpolation is exact
+    on the ramp."""
+    from conftest import grid
+    from mi_amr.core.volume import AMRVolume
+
+    vol = AMRVolume.from_grids([grid(0, (0, 0, 0), (1, 0.5, 0.5), 1 / 32,
+                                     fn=lambda c: c[..., 0])])
+    rng = np.random.default_rng(1)
+    n = 100
+    o = np.stack([-0.5 + 0.1 * rng.random(n), 0.2 + 0.1 * rng.random(n),
+                  0.2 + 0.1 * rng.random(n)], axis=1)
+    d = np.stack([np.ones(n), 0.05 * rng.normal(size=n), 0.05 * rng.normal(size=n)], axis=1)
+    res = mi_amr.trace(vol, o, d, field="f", isovalue=0.3, method=method,
+                       step_scale=step_scale)
+    assert res.hit.all()
+    np.testing.assert_allclose(o[:, 0] + res.t * d[:, 0], 0.3, atol=1e-4)

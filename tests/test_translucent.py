@@ -184,3 +184,52 @@ def test06_two_levels_a_turn_take_the_steps_of_one_level_a_turn(scenes, rec, mon
         for a, b in zip(*results):
             np.testing.assert_array_equal(a, b)
         assert np.isfinite(results[0][0]).any()          # the rays meet layers
+
+
+@pytest.mark.parametrize("method", ["uniform", "adaptive", "bisect"])
+def test07_sampled_layers_take_every_isovalue_two_samples_straddle(method):
+    """Two samples that straddle two isovalues give a layer for each, in order, for the
+    sampling methods too: the march after a layer starts from a value just past the crossed
+    isovalue (with no value before, the second isovalue of the straddle was lost). A linear
+    ramp ``f = x`` and steps of four cells put isovalues 0.30 and 0.31 between two samples;
+    linear interpolation is exact on it."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from conftest import grid
+
+    from mi_amr.core.volume import AMRVolume
+    from mi_amr.kernels.config import MarchConfig
+    from mi_amr.kernels.device import opaque_floats
+    from mi_amr.kernels.prepared import PreparedVolume
+    from mi_amr.kernels.surface import crossings
+
+    m = dr.llvm.ad
+    vol = AMRVolume.from_grids([grid(0, (0, 0, 0), (1, 0.5, 0.5), 1 / 32,
+                                     fn=lambda c: c[..., 0])])
+    dev = PreparedVolume(vol, "f", m=m).device
+    isovalues = [0.30, 0.31, 0.6]
+    cfg = MarchConfig(method=method, basis=True, isovalues=opaque_floats(m, isovalues),
+                      step_scale=opaque_floats(m, [4.0]), num_iso=3)
+    n = 64
+    rng = np.random.default_rng(3)
+    y, z = (0.1 + 0.3 * rng.random(n) for _ in range(2))
+    o = m.Array3f(m.Float(np.zeros(n)), m.Float(y), m.Float(z))
+    d = m.Array3f(m.Float(np.ones(n)), m.Float(np.zeros(n)), m.Float(np.zeros(n)))
+    state, after = crossings(dev, cfg, o, d, m.Float(0.0), m.Float(dr.inf),
+                             m.Float(rng.random(n)), m.Bool(True), resume=False)
+    alive = m.Bool(True)
+    found = []
+    for _ in range(4):
+        c, state = after(state, alive)
+        alive &= c.hit
+        dr.eval(c.t, c.k, alive, state)
+        found.append((np.where(c.hit.numpy(), c.t.numpy(), np.inf),
+                      np.where(c.hit.numpy(), c.k.numpy().astype(int), -1)))
+    t = np.array([f[0] for f in found])
+    k = np.array([f[1] for f in found])
+    # Half a cell at either end holds the clamped outer half cell: 0.30 .. 0.6 lie inside.
+    np.testing.assert_array_equal(k[:3], np.repeat([[0], [1], [2]], n, axis=1))
+    np.testing.assert_array_equal(k[3], -1)
+    np.testing.assert_allclose(t[:3], np.repeat([[0.30], [0.31], [0.6]], n, axis=1), atol=2e-3)

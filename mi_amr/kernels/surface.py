@@ -52,6 +52,7 @@ class Crossing:
     t: Any
     k: Any           # index of the isovalue crossed
     samples: Any     # field evaluations (``exact``: cubic pieces) along the ray
+    after: Any = None  # sampling methods: a value just past the isovalue, on the far side
 
 
 def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active,
@@ -60,8 +61,10 @@ def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active,
 
     ``o``, ``d``: ray origin and direction in volume world space (``m.Array3f``); ``jitter``:
     per-ray offset in ``[0, 1)`` for the adaptive methods (ignored by ``exact`` and ``uniform``).
-    ``v_before`` (``exact`` only): the field's value just before ``t_start`` (NaN or None:
-    unknown); a jump from it across an isovalue where the search starts is a crossing.
+    ``v_before``: the field's value just before ``t_start`` (NaN or None: unknown). For
+    ``exact`` a jump from it across an isovalue where the search starts is a crossing; the
+    sampling methods take it as a sample at the march's start (an isovalue between it and the
+    first sample is crossed).
     """
     m = dev.m
     o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active)
@@ -69,7 +72,7 @@ def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active,
         v = m.Float(dr.nan) if v_before is None else m.Float(v_before)
         c, _ = _march_exact(dev, cfg, o, d, Walk.start(m, t0), v, t1, active)
         return c
-    return _march_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), active)
+    return _march_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), active, v_before)
 
 
 def crossings(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active, resume=True):
@@ -82,14 +85,15 @@ def crossings(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active, resum
     field across several isovalues (``finest`` at grid edges) is one layer per isovalue, and
     resumes its kd-tree walk where the last crossing was: the same pieces, roots and leaves as
     a new :func:`first_crossing` from just past it, which is what ``resume=False`` does (the
-    slow twin) and what the sampled methods always do (their step positions are anchored at
-    the march's start; they start again with no value before)."""
+    slow twin) and what the sampled methods always do: their step positions are anchored at
+    the march's start, and their previous sample there is a value just past the crossed
+    isovalue (``Crossing.after``), so that every isovalue two samples straddle is a layer."""
     m = dev.m
     step = dev.layer_offset / dr.norm(d)
     no_value = m.Float(dr.nan)
 
     def past(c, v):
-        return dr.select(c.hit, cfg.iso(dev, c.k), v)
+        return dr.select(c.hit, cfg.iso(dev, c.k) if c.after is None else c.after, v)
 
     if cfg.method == "exact" and resume:
         o_in, t0, t1, inside = clip_to_volume(dev, o, d, t_start, t_end, active)
@@ -290,8 +294,15 @@ class Trail:
     v_b: Any
 
     @staticmethod
-    def start(m, dt) -> "Trail":
-        return Trail(t_prev=m.Float(dr.nan), v_prev=m.Float(dr.nan), known=m.Bool(True),
+    def start(m, dt, t0=None, v_before=None) -> "Trail":
+        """No sample yet (``t_prev`` is -inf: nodes skipped before the first sample still
+        leave their side as the previous value), or the value ``v_before`` at ``t0`` as the
+        previous sample (where finite)."""
+        t_prev, v_prev = m.Float(-dr.inf), m.Float(dr.nan)
+        if v_before is not None:
+            v_prev = m.Float(v_before)
+            t_prev = dr.select(dr.isfinite(v_prev), m.Float(t0), t_prev)
+        return Trail(t_prev=t_prev, v_prev=v_prev, known=m.Bool(True),
                      forced=m.Bool(False), dt=m.Float(dt), hit=m.Bool(False),
                      k_hit=m.UInt32(0), t_a=m.Float(0.0), t_b=m.Float(0.0), v_a=m.Float(0.0),
                      v_b=m.Float(0.0))
@@ -388,14 +399,16 @@ def _straddle(dev, cfg, o, d, tr: Trail, t_s, v, take, values):
 
 
 @dr.syntax
-def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
+def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active, v_before=None):
+    """The first crossing on ``(t0, t1)`` by a sampling method; ``v_before``: the value of a
+    previous sample at ``t0`` (NaN or None: none)."""
     m = dev.m
     dnorm = dr.norm(d)
     values = dev.arrays(cfg.basis)
     rho = m.Float(0.0) if cfg.method == "uniform" else jitter
     t_anchor = m.Float(t0)
     w = Walk.start(m, t0)
-    tr = Trail.start(m, cfg.step_scale * dev.min_h / dnorm)
+    tr = Trail.start(m, cfg.step_scale * dev.min_h / dnorm, t0, v_before)
     samples = m.UInt32(0)
     sk = seek_start(dev, o, d, w.t, w.node, w.face, tr.v_prev, m.Bool(False))
     while active:
@@ -418,7 +431,11 @@ def _march_sampled(dev, cfg, o, d, t0, t1, jitter, active):
                                       dr.maximum(tr.t_a, tr.t_b)), dr.inf)
     if dr.hint(cfg.method == "bisect", mode="scalar"):
         t_hit = _bisect(dev, cfg, o, d, tr.t_a, tr.t_b, tr.v_a, tr.k_hit, tr.hit)
-    return Crossing(hit=tr.hit, t=t_hit, k=tr.k_hit, samples=samples)
+    # Just past the isovalue, towards the bracket's far sample (that sample itself where the
+    # step is lost to rounding).
+    after = dr.fma(tr.v_b - iso_hit, tol.RESUME_REL, iso_hit)
+    after = dr.select(after == iso_hit, tr.v_b, after)
+    return Crossing(hit=tr.hit, t=t_hit, k=tr.k_hit, samples=samples, after=after)
 
 
 @dr.syntax
