@@ -170,6 +170,21 @@ def wait_message(page, pattern: str, kind: str = None) -> str:
     return found.json_value()
 
 
+def settled(page, viewer, tries: int = 50) -> dict:
+    """The server's state once the page shows its refined frame and no input is still on its
+    way (the last key presses may reach the server after a first look at its state): the
+    state's version is the same before and after the page has shown it."""
+    for _ in range(tries):
+        state = viewer.state()
+        version = state["version"]
+        page.wait_for_function(
+            f"+document.querySelector('{IMAGE}').dataset.version >= {version} "
+            f"&& document.querySelector('{IMAGE}').dataset.quality === 'refined'")
+        if viewer.state()["version"] == version and shown_version(page) == version:
+            return state
+    raise AssertionError("the viewer's state did not settle")
+
+
 def page_png(page) -> bytes:
     """The bytes of the image the page shows."""
     data = page.evaluate("""async () => {
@@ -256,10 +271,7 @@ def test02_the_isovalue_slider_changes_the_image_to_a_direct_render(page, viewer
     slider.focus()
     for _ in range(40):
         slider.press("ArrowLeft")
-    state = viewer.state()
-    version = state["version"]
-    page.wait_for_function(f"+document.querySelector('{IMAGE}').dataset.version >= {version} "
-                           f"&& document.querySelector('{IMAGE}').dataset.quality === 'refined'")
+    state = settled(page, viewer)
     assert shown_version(page) > v0
     after = page_png(page)
     assert after != before
@@ -297,7 +309,7 @@ def test04_a_saved_scene_renders_to_the_pages_image(page, viewer, tmp_path):
     Saving again asks before replacing the file; declined, the file stays as it was."""
     type_into(page, "colormap", "magma")
     page.get_by_test_id("light-elevation").fill("30")
-    wait_frame(page, viewer.state()["version"] - 1)
+    settled(page, viewer)
     shown = page_png(page)
     page.get_by_test_id("save-scene").click()
     wait_message(page, "Saved the scene")
