@@ -193,10 +193,6 @@ def test07_sampled_layers_take_every_isovalue_two_samples_straddle(method):
     isovalue (with no value before, the second isovalue of the straddle was lost). A linear
     ramp ``f = x`` and steps of four cells put isovalues 0.30 and 0.31 between two samples;
     linear interpolation is exact on it."""
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).parent))
     from conftest import grid
 
     from mi_amr.core.volume import AMRVolume
