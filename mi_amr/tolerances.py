@@ -32,6 +32,11 @@ UPPER_FACE_REL = 1.2e-7
 # steps: a position this close to a point of the step lattice counts as on it (so rounding
 # does not take a step twice or skip one).
 LATTICE_SNAP = 1e-4
+# relative to a leaf's value range: the exact march's active box (the leaves that may hold a
+# crossing, :meth:`DeviceVolume.active_box`) takes the float32 ranges this much wider, so a
+# leaf whose rounded range only just misses an isovalue still lies inside it. It only makes the
+# box larger (slower, never wrong).
+ACTIVE_BOX_RANGE_REL = 1e-5
 # cells: a translucent layer, or a shadow ray leaving an isosurface, starts this far past the
 # crossing it came from, so the same crossing is not found again; far below any feature that
 # the reconstruction can resolve.

@@ -25,7 +25,9 @@ class MarchConfig:
     :class:`~mi_amr.kernels.band.BandInputs`, one band around each isovalue, or None for
     surfaces; ``transfer2d``: volume mode's
     :class:`~mi_amr.kernels.transfer2d.Transfer2DInputs`, which then replaces the bands
-    (every method)."""
+    (every method); ``active_box``: ``(lo, hi)`` opaque points (volume world) holding every
+    leaf whose range holds an isovalue (:meth:`~mi_amr.kernels.device.DeviceVolume.active_box`),
+    or None; see :func:`clip_box`."""
 
     method: str
     basis: bool
@@ -36,11 +38,28 @@ class MarchConfig:
     preintegrated: bool = False
     shading_extrema: bool = True
     transfer2d: Any = None
+    active_box: Any = None
 
     def iso(self, dev, k):
         """Isovalue ``k`` (a Python int, or a per-lane index array)."""
         m = dev.m
         return dr.gather(m.Float, self.isovalues, m.UInt32(k))
+
+
+def clip_box(cfg: MarchConfig):
+    """The box an exact march of isosurfaces may clip its rays to (besides the volume's
+    bounds): ``cfg.active_box``, where the field is continuous (the basis blend), so that it
+    crosses an isovalue only inside a leaf whose range holds it; else None. The finest level
+    jumps at grid edges, where a crossing lies between two skipped nodes, and the sampling
+    methods take the side of the nodes skipped before their first sample: neither clips."""
+    return cfg.active_box if clips(cfg) else None
+
+
+def clips(cfg: MarchConfig) -> bool:
+    """Does :func:`clip_box` use ``cfg.active_box``: the exact method on the basis blend,
+    looking for isosurfaces (no band, no 2D transfer function)?"""
+    plain = cfg.band is None and cfg.transfer2d is None
+    return cfg.method == "exact" and cfg.basis and plain
 
 
 def holds(dev, cfg: MarchConfig, r_lo, r_hi):

@@ -139,7 +139,7 @@ class DeviceVolume:
         self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h_host))
         self.leaf_grids = u32(tree.leaf_grids)
         self.node_ropes = u32(tree.node_ropes)
-        self.host_ranges, self.on_new_ranges, self._search = {}, None, {}
+        self.host_ranges, self.on_new_ranges, self._search, self._boxes = {}, None, {}, {}
 
         # grids
         glo, _ = volume.grid_boxes()
@@ -300,6 +300,43 @@ class DeviceVolume:
             table[inner, 2] = own[first + 1]
             self._search[key] = self._uints(table.ravel())
         return self._search[key]
+
+    def active_box(self, isovalues):
+        """``(lo, hi)``, opaque points (volume world): a box holding every leaf whose value
+        range (the basis blend's, :meth:`node_ranges`) may hold one of ``isovalues`` (host
+        floats), widened by a finest cell; the empty box ``(+inf, -inf)`` where no leaf does.
+        A continuous field crosses an isovalue only in such leaves, so the exact march may
+        clip its rays to this box (:func:`~mi_amr.kernels.config.clip_box`). The ranges are
+        taken :data:`~mi_amr.tolerances.ACTIVE_BOX_RANGE_REL` wider than the search reads
+        them, so a leaf whose float32 range only just misses an isovalue is kept. The last
+        :data:`ACTIVE_BOXES` boxes are kept (a frame of an unchanged isovalue costs a lookup)."""
+        iso = np.asarray(isovalues, dtype=np.float32).ravel()
+        key = iso.tobytes()
+        if key not in self._boxes:
+            lo, hi = active_box_host(self.tree, self.node_ranges(True), iso, self.min_h_host)
+            while len(self._boxes) >= ACTIVE_BOXES:
+                self._boxes.pop(next(iter(self._boxes)))
+            self._boxes[key] = (self._point(lo), self._point(hi))
+        return self._boxes[key]
+
+
+# How many active boxes (one per set of isovalues) a DeviceVolume keeps.
+ACTIVE_BOXES = 8
+
+
+def active_box_host(tree, ranges, isovalues, pad: float):
+    """:meth:`DeviceVolume.active_box` on the host: ``(lo, hi)`` float64 3-vectors from the
+    per-node ``ranges`` (``lo, hi`` side by side, float32) of ``tree``."""
+    r = np.asarray(ranges, dtype=np.float64).reshape(-1, 2)
+    leaf = (tree.node_code & 3) == 3
+    slack = tol.ACTIVE_BOX_RANGE_REL * np.maximum(np.abs(r[:, 0]), np.abs(r[:, 1]))
+    iso = np.asarray(isovalues, dtype=np.float64)
+    with np.errstate(invalid="ignore"):      # an empty range (+inf, -inf) holds nothing
+        holds = (r[:, :1] - slack[:, None] <= iso) & (iso <= r[:, 1:] + slack[:, None])
+    active = np.flatnonzero(leaf & holds.any(axis=1))
+    if len(active) == 0:
+        return np.full(3, np.inf), np.full(3, -np.inf)
+    return (tree.node_lo[active].min(axis=0) - pad, tree.node_hi[active].max(axis=0) + pad)
 
 
 def level_bricks(volume, level, names, first):

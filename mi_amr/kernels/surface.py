@@ -38,7 +38,7 @@ import drjit as dr
 from mi_amr import tolerances as tol
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
-from mi_amr.kernels.config import MarchConfig, first_between, sides_differ
+from mi_amr.kernels.config import MarchConfig, clip_box, first_between, sides_differ
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.traverse import (Walk, box_exit, clip_to_volume, epsilon, next_dual_plane,
                                      seek_part, seek_start)
@@ -67,7 +67,8 @@ def first_crossing(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active,
     first sample is crossed).
     """
     m = dev.m
-    o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active)
+    o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active,
+                                       clip_box(cfg))
     if cfg.method == "exact":
         v = m.Float(dr.nan) if v_before is None else m.Float(v_before)
         c, _ = _march_exact(dev, cfg, o, d, Walk.start(m, t0), v, t1, active)
@@ -96,7 +97,8 @@ def crossings(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, active, resum
         return dr.select(c.hit, cfg.iso(dev, c.k) if c.after is None else c.after, v)
 
     if cfg.method == "exact" and resume:
-        o_in, t0, t1, inside = clip_to_volume(dev, o, d, t_start, t_end, active)
+        o_in, t0, t1, inside = clip_to_volume(dev, o, d, t_start, t_end, active,
+                                              clip_box(cfg))
 
         def resumed(state, alive):
             w, v = state

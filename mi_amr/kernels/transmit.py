@@ -32,6 +32,7 @@ import drjit as dr
 
 from mi_amr import tolerances as tol
 from mi_amr.kernels import roots
+from mi_amr.kernels.config import clip_box
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.surface import cubic_piece
 from mi_amr.kernels.traverse import Walk, clip_to_volume, seek_part, seek_start
@@ -73,7 +74,8 @@ def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int
     isovalue), at most ``max_layers`` of them; 0 once it falls to
     :data:`~mi_amr.tolerances.T_MIN` (as front-to-back compositing gives)."""
     m = dev.m
-    o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active)
+    o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active,
+                                       clip_box(cfg))
     dnorm = dr.norm(d)
     inv_d = dr.select(d != 0.0, dr.rcp(d), dr.inf)
     values = dev.arrays(cfg.basis)

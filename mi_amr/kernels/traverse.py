@@ -326,10 +326,11 @@ def next_dual_plane(dev, levels_mask, o, d, inv_d, t_probe):
     return best
 
 
-def clip_to_volume(dev, o, d, t_start, t_end, active):
-    """The ray's stretch inside the volume's bounds: ``(o, t0, t1, active)``. A ray lying in an
-    upper face of the bounds is moved inside by a rounding step: kd points on a split plane go
-    to the upper side, which beyond the upper faces holds no data."""
+def clip_to_volume(dev, o, d, t_start, t_end, active, box=None):
+    """The ray's stretch inside the volume's bounds (and inside ``box``, ``(lo, hi)``, when
+    given: :func:`~mi_amr.kernels.config.clip_box`): ``(o, t0, t1, active)``. A ray lying in
+    an upper face of the bounds is moved inside by a rounding step: kd points on a split plane
+    go to the upper side, which beyond the upper faces holds no data."""
     m = dev.m
     lo, hi = dev.bounds_lo, dev.bounds_hi
     on_top = (d == 0.0) & (o == hi)
@@ -337,4 +338,9 @@ def clip_to_volume(dev, o, d, t_start, t_end, active):
     t_in, t_out = box_interval(lo, hi, o, d)
     t0 = dr.maximum(t_start, t_in)
     t1 = dr.minimum(t_end, t_out)
+    if box is not None:
+        b_in, b_out = box_interval(box[0], box[1], o, d)
+        # The empty box (+inf, -inf) would give every ray the whole line.
+        b_out = dr.select(dr.all(box[0] <= box[1]), b_out, -dr.inf)
+        t0, t1 = dr.maximum(t0, b_in), dr.minimum(t1, b_out)
     return o, t0, t1, m.Bool(active) & (t0 < t1)

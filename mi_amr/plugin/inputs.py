@@ -106,6 +106,7 @@ class FrameInputs:
                                f"the scene again to change how many")
         host = {name: np.asarray(v.numpy(), dtype=np.float64) for name, v in self.values.items()}
         _check(host)
+        self.host = host
         m = self.m
         self._kernel = {name: opaque_floats(m, v) for name, v in host.items() if name != "shadows"}
         self._kernel["shadows"] = opaque_bools(m, host["shadows"] != 0)

@@ -31,7 +31,7 @@ import mitsuba as mi
 from mi_amr import params
 from mi_amr.errors import AMRError
 from mi_amr.kernels.composite import composite
-from mi_amr.kernels.config import MarchConfig
+from mi_amr.kernels.config import MarchConfig, clips
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import prepare_file
@@ -96,6 +96,8 @@ class _AMRIso:
                                   host_transfer2d(opt))
         self.shader = IsoShader(self)
         self.layer_fast_paths = True
+        # False: the exact march walks the whole volume, not its active box (the slow twin).
+        self.clip_to_active = True
         wavefront.attach(self)
         _warn_outside(self.prep, opt.isovalues)
 
@@ -123,13 +125,17 @@ class _AMRIso:
         self.frame.refresh()
 
     def config(self) -> MarchConfig:
-        """What the kernels look for, with this frame's values."""
-        return MarchConfig(method=self.opt.method, basis=self.opt.reconstruction == "basis",
-                           isovalues=self.inputs["isovalue"], step_scale=self.inputs["step_scale"],
-                           num_iso=len(self.opt.isovalues), band=self.inputs.band,
-                           preintegrated=self.opt.preintegrated,
-                           shading_extrema=self.opt.shading_extrema,
-                           transfer2d=self.inputs.transfer2d)
+        """What the kernels look for, with this frame's values. Surfaces drawn by the exact
+        method on the basis blend clip their rays to the isovalues' active box."""
+        cfg = MarchConfig(method=self.opt.method, basis=self.opt.reconstruction == "basis",
+                          isovalues=self.inputs["isovalue"], step_scale=self.inputs["step_scale"],
+                          num_iso=len(self.opt.isovalues), band=self.inputs.band,
+                          preintegrated=self.opt.preintegrated,
+                          shading_extrema=self.opt.shading_extrema,
+                          transfer2d=self.inputs.transfer2d)
+        if self.opt.mode == "surface" and self.clip_to_active and clips(cfg):
+            cfg.active_box = self.dev.active_box(self.inputs.host["isovalue"])
+        return cfg
 
     def phong(self) -> shading.Phong:
         return shading.Phong(*(bridge.to_mi(self.inputs[n], mi.Float) for n in PHONG))
