@@ -324,15 +324,18 @@ def test07_segment_cubic_equals_the_point_reconstruction_inside_one_piece(hierar
     np.testing.assert_allclose(cubic_value.ravel(), slow, rtol=0, atol=2e-5 * scale)
 
 
+@pytest.mark.parametrize("dense", [True, False])
 @pytest.mark.parametrize("hierarchy", sorted(HIERARCHIES))
-def test08_brick_pools_equal_their_slow_twin(monkeypatch, hierarchy):
-    """The level-wide scatter of leaf cells into bricks (chunks of a few grids here) builds the
-    same tables and pools as the grid-by-grid, brick-by-brick slow twin, NaN for covered,
+def test08_brick_pools_equal_their_slow_twin(monkeypatch, hierarchy, dense):
+    """The device pull of leaf cells into bricks (each slot finds its cell's grid through the
+    level's dense block table, or ``dense=False`` a binary search of its sorted blocks) builds
+    the same tables and pools as the grid-by-grid, brick-by-brick slow twin, NaN for covered,
     missing and apron cells included, with two fields."""
     from mi_amr.core import levels
-    from mi_amr.kernels import device
+    from mi_amr.kernels import bricks
 
-    monkeypatch.setattr(levels, "CHUNK_CELLS", 50)
+    if not dense:
+        monkeypatch.setattr(levels, "DENSE_BLOCKS", 0)
     grids = HIERARCHIES[hierarchy]()
     for g in grids:
         f = g["fields"]["f"]
@@ -340,11 +343,12 @@ def test08_brick_pools_equal_their_slow_twin(monkeypatch, hierarchy):
     vol = AMRVolume.from_grids(grids, allow_nonfinite=True)
     first = 3
     for level in range(vol.num_levels):
-        fast = device.level_bricks(vol, level, ["f", "c"], first)
-        slow = device.level_bricks_reference(vol, level, ["f", "c"], first)
+        assert (levels.level_index(vol, level).table is not None) == dense
+        fast = bricks.level_bricks(vol, level, ["f", "c"], first)
+        slow = bricks.level_bricks_reference(vol, level, ["f", "c"], first)
         for a, b in zip(fast[:3], slow[:3]):
             np.testing.assert_array_equal(a, b)
         for a, b in zip(fast[3], slow[3]):
             np.testing.assert_array_equal(a, b)
             assert np.isnan(a).any() and np.isfinite(a).any()
-        first += len(fast[3][0]) // device.BRICK_N ** 3
+        first += len(fast[3][0]) // bricks.BRICK_N ** 3

@@ -30,15 +30,14 @@ import drjit as dr
 import numpy as np
 
 from mi_amr import tolerances as tol
-from mi_amr.core import levels, parallel
-from mi_amr.core.buffers import aligned_empty, aligned_full, joined
+from mi_amr.core import levels
+from mi_amr.core.buffers import aligned_empty, joined
+from mi_amr.kernels import bricks
+from mi_amr.kernels.bricks import BRICK, BRICK_N, NO_BRICK, brick_table  # noqa: F401
 from mi_amr.errors import AMRError
 
 NO_GRID = 0xFFFFFFFF
 NODE_RECORDS = 3          # per kd node in node_search: its own record and its two children's
-NO_BRICK = 0xFFFFFFFF
-BRICK = 8                 # cells per brick side; a brick stores BRICK + 1 (one cell of apron)
-BRICK_N = BRICK + 1
 
 
 def backend_of(float_type):
@@ -236,18 +235,15 @@ class DeviceVolume:
         for level in range(vol.num_levels):
             parts.append(brick_table(vol, level, count))
             count += parts[-1][3]
-        # One aligned pool per field for all levels, filled in place and mapped by Dr.Jit as it
-        # is (no copy: the large data of a big volume is written once).
-        pools = [aligned_full(count * BRICK_N ** 3, np.nan, np.float32) for _ in names]
-        for level, (lo, dims, table, _) in enumerate(parts):
-            fill_bricks(vol, level, names, lo, dims, table, 0, pools)
-        return parts, pools
+        return parts, bricks.build_pools(self.m, vol, names, parts, count)
 
     def _set_bricks(self, parts, pools):
         """The device arrays of :meth:`_build_bricks`'s ``(parts, pools)``: per level
-        ``(lo, dims, table, n)`` (see :func:`brick_table`) and the aligned pools of the field
-        and colour field (one pool when they are the same field). Kept as :attr:`host_bricks`
-        (Dr.Jit maps the pools' memory, so this costs nothing)."""
+        ``(lo, dims, table, n)`` (see :func:`brick_table`) and the pools of the field and
+        colour field (one pool when they are the same field): device arrays as
+        :meth:`_build_bricks` fills them, or host arrays read from a snapshot (aligned, so
+        Dr.Jit maps their memory without a copy). Kept as :attr:`host_bricks` (what a
+        snapshot writes; a device pool is copied to the host only then)."""
         self.host_bricks = (parts, pools)
         self.brick_table = self._uints(np.concatenate([p[2] for p in parts]))
         # Per level 8 uints: lo (int32 bits) and the table offset, the table's dims and 0.
@@ -337,104 +333,3 @@ def active_box_host(tree, ranges, isovalues, pad: float):
     if len(active) == 0:
         return np.full(3, np.inf), np.full(3, -np.inf)
     return (tree.node_lo[active].min(axis=0) - pad, tree.node_hi[active].max(axis=0) + pad)
-
-
-def level_bricks(volume, level, names, first):
-    """One level's part of :meth:`DeviceVolume._build_bricks`: ``(lo, dims, table, pools)``
-    (see :func:`brick_table`), ``pools`` per field of ``names`` the level's bricks'
-    ``BRICK_N^3`` float32 values each, flat (see :func:`fill_bricks`).
-    :func:`level_bricks_reference` is the slow twin (grid by grid, brick by brick)."""
-    lo, dims, table, n = brick_table(volume, level, first)
-    pools = [np.full(n * BRICK_N ** 3, np.nan, dtype=np.float32) for _ in names]
-    fill_bricks(volume, level, names, lo, dims, table, first, pools)
-    return lo, dims, table, pools
-
-
-def brick_table(volume, level, first):
-    """``(lo, dims, table, n)`` of one level's bricks: ``lo`` the level-index cell one below
-    the level's grids, ``dims`` the dense table's size in bricks, ``table`` the flat table
-    (brick numbers from ``first`` on, :data:`NO_BRICK` where unused) and ``n`` the bricks
-    used: those touched by a grid, its apron included (a dual cell may start one cell below
-    a grid)."""
-    index = levels.level_index(volume, level)
-    lo = index.lo.min(axis=0) - 1
-    dims = -(-(index.hi.max(axis=0) - lo) // BRICK)
-    used = np.zeros(int(np.prod(dims)), dtype=bool)
-    spans, _ = levels.box_points((index.lo - 1 - lo) // BRICK, (index.hi - 1 - lo) // BRICK + 1)
-    used[(spans[:, 0] * dims[1] + spans[:, 1]) * dims[2] + spans[:, 2]] = True
-    table = np.full(len(used), NO_BRICK, dtype=np.uint32)
-    n = int(used.sum())
-    table[used] = np.arange(first, first + n, dtype=np.uint32)
-    return lo, dims, table, n
-
-
-def fill_bricks(volume, level, names, lo, dims, table, base, pools):
-    """Write the level's leaf values of fields ``names`` into ``pools`` (flat float32, brick
-    number ``base`` first), each leaf cell into every brick holding it (up to 8 where it sits
-    on a brick's lower faces), chunk by chunk of whole grids. Other values are left as they
-    are (NaN)."""
-    index = levels.level_index(volume, level)
-    leaf = np.concatenate([volume.leaf_mask(g).ravel() for g in index.grids])
-    values = [levels.level_values(volume, level, name) for name in names]
-    offsets = levels.grid_offsets(volume, level)
-
-    def one_chunk(chunk):
-        start, stop = chunk
-        cells, _ = levels.box_points(index.lo[start:stop], index.hi[start:stop])
-        at = slice(offsets[start], offsets[start] + len(cells))
-        keep = np.flatnonzero(leaf[at])
-        _scatter_chunk(pools, [v[at][keep] for v in values], cells[keep] - lo, table, dims,
-                       base)
-
-    parallel.for_each(one_chunk, levels.grid_chunks(index))   # a cell: only its own chunk
-
-
-def _scatter_chunk(pools, values, cells, table, dims, base):
-    """Write leaf ``values`` (one array per pool, brick number ``base`` first) of ``cells``
-    (``(N, 3)``, relative to the level's brick table) into every brick holding them: the
-    brick of the cell and, where the cell lies on a brick's lower face on some axes (and not
-    at the table's edge), the bricks below on those axes, where it is on the upper face
-    (corners 1..7 pick the axes)."""
-    block = [cells[:, a] // BRICK for a in range(3)]
-    offset = [cells[:, a] - block[a] * BRICK for a in range(3)]
-    key = (block[0] * dims[1] + block[1]) * dims[2] + block[2]
-    within = (offset[0] * BRICK_N + offset[1]) * BRICK_N + offset[2]
-    face = sum(((offset[a] == 0) & (block[a] > 0)).astype(np.int64) << (2 - a) for a in range(3))
-    table_step, brick_step = (dims[1] * dims[2], dims[2], 1), (BRICK_N ** 2, BRICK_N, 1)
-    on_face = np.flatnonzero(face)
-    for corner in range(8):
-        sel = on_face[(face[on_face] & corner) == corner] if corner else slice(None)
-        back = [(corner >> (2 - a)) & 1 for a in range(3)]
-        k = table[key[sel] - sum(b * t for b, t in zip(back, table_step))].astype(np.int64)
-        dst = (k - base) * BRICK_N ** 3 + within[sel] + \
-            BRICK * sum(b * t for b, t in zip(back, brick_step))
-        for pool, v in zip(pools, values):
-            pool[dst] = v[sel]
-
-
-def level_bricks_reference(volume, level, names, first):
-    """Slow twin of :func:`level_bricks`: grid by grid, brick by brick, with array slices."""
-    ilo, ihi = volume.index_boxes()
-    ids = np.flatnonzero(volume.levels == level)
-    lo = ilo[ids].min(axis=0) - 1
-    dims = -(-(ihi[ids].max(axis=0) - lo) // BRICK)
-    table = np.full(tuple(dims), NO_BRICK, dtype=np.uint32)
-    spans = [((ilo[g] - 1 - lo) // BRICK, (ihi[g] - 1 - lo) // BRICK) for g in ids]
-    for a, b in spans:
-        table[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = 0
-    used = table == 0
-    n = int(used.sum())
-    table[used] = np.arange(first, first + n, dtype=np.uint32)
-    pools = [np.full((n, BRICK_N, BRICK_N, BRICK_N), np.nan, dtype=np.float32) for _ in names]
-    for g, (a, b) in zip(ids, spans):
-        arrays = [np.where(volume.leaf_mask(g), volume.grids[g].fields[nm], np.nan)
-                  for nm in names]
-        for bx, by, bz in np.ndindex(*(b - a + 1)):
-            start = lo + (a + (bx, by, bz)) * BRICK
-            c0, c1 = np.maximum(start, ilo[g]), np.minimum(start + BRICK_N, ihi[g])
-            k = table[tuple(a + (bx, by, bz))] - first
-            dst = tuple(slice(x, y) for x, y in zip(c0 - start, c1 - start))
-            src = tuple(slice(x, y) for x, y in zip(c0 - ilo[g], c1 - ilo[g]))
-            for pool, arr in zip(pools, arrays):
-                pool[k][dst] = arr[src]
-    return lo, dims, table.ravel(), [p.ravel() for p in pools]

@@ -1,0 +1,176 @@
+"""Filling the brick pools that the basis reconstruction reads, on the device.
+
+A level's cells are gathered into bricks of ``BRICK_N^3`` values (``BRICK`` cells a side and one
+of apron above, see :meth:`~mi_amr.kernels.device.DeviceVolume._build_bricks`). Each value of
+a brick is *pulled*: one kernel over the level's brick slots finds the cell a slot holds, the
+grid of the level that holds that cell (through the level's block table,
+:class:`~mi_amr.core.levels.LevelIndex`) and reads its value where the cell is a leaf cell (no
+finer cell covers it); NaN elsewhere. One pass, no per-grid or per-chunk work on the host.
+:func:`level_bricks_reference` (grid by grid, brick by brick with array
+slices) is its slow twin.
+
+Index coordinates are those of :meth:`AMRVolume.index_boxes` (cells of the level from the
+volume's anchor).
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+from mi_amr.core import levels
+
+NO_BRICK = 0xFFFFFFFF
+BRICK = 8                 # cells per brick side; a brick stores BRICK + 1 (one cell of apron)
+BRICK_N = BRICK + 1
+
+
+def build_pools(m, volume, names, parts, count):
+    """The pools (one ``m.Float`` per field of ``names``) of all levels' bricks, ``count`` in
+    all, for the levels' ``parts`` (``(lo, dims, table, n)`` each, as
+    :func:`brick_table` gives them, with brick numbers from 0 on)."""
+    leaf = m.Bool(volume.leaf_mask_flat())
+    pools = [dr.full(m.Float, dr.nan, count * BRICK_N ** 3) for _ in names]
+    for level, (lo, dims, table, _) in enumerate(parts):
+        fill_level(m, volume, level, names, lo, dims, table, 0, pools, leaf)
+    return pools
+
+
+def fill_level(m, volume, level, names, lo, dims, table, base, pools, leaf=None) -> None:
+    """Write the level's bricks into ``pools`` (one ``m.Float`` per field of ``names``, brick
+    number ``base`` at slot 0, ``BRICK_N^3`` slots a brick) for its brick table: ``lo`` (the
+    level-index cell of the table's first corner), ``dims`` and ``table`` (brick numbers,
+    ``NO_BRICK`` where unused) as :func:`brick_table` gives them.
+    ``leaf``: :meth:`AMRVolume.leaf_mask_flat` on the device, if already there."""
+    used = np.flatnonzero(table != NO_BRICK)
+    if len(used) == 0:
+        return
+    if leaf is None:
+        leaf = m.Bool(volume.leaf_mask_flat())
+    n = BRICK_N ** 3
+    slot = dr.arange(m.UInt32, len(used) * n)
+    brick, s = slot // n, slot % n
+    block = np.stack(np.unravel_index(used, tuple(int(x) for x in dims)), axis=1) * BRICK + lo
+    corner = m.Array3i(*(dr.gather(m.Int32, _ints(m, block[:, a]), brick) for a in range(3)))
+    cell = corner + m.Array3i(m.Int32(s // (BRICK_N * BRICK_N)), m.Int32(s // BRICK_N % BRICK_N),
+                              m.Int32(s % BRICK_N))
+    grid, found = _find(m, levels.level_index(volume, level), cell)
+    at, is_leaf = _cell_index(m, volume, level, grid, cell, found, leaf)
+    dst = dr.gather(m.UInt32, _uints(m, table[used].astype(np.int64) - base), brick) * n + s
+    for pool, name in zip(pools, names):
+        values = levels.level_values(volume, level, name)
+        T = m.Float64 if values.dtype == np.float64 else m.Float
+        v = m.Float(dr.gather(T, T(np.ascontiguousarray(values)), at, is_leaf))
+        dr.scatter(pool, dr.select(is_leaf, v, dr.nan), dst)
+    dr.eval(*pools)
+
+
+def _find(m, index: "levels.LevelIndex", cell):
+    """``(grid, found)``: the position in ``index.grids`` of the grid holding each level cell
+    ``cell`` (``m.Array3i``), through the level's dense block table or, where the level has
+    none (a sparse level over a large box), a binary search of its sorted block keys."""
+    shift = _opaque(m, int(index.block).bit_length() - 1)
+    rel = (cell >> shift) - m.Array3i(*(_opaque(m, x) for x in index.origin))
+    dims = [_opaque(m, x) for x in index.dims]
+    inside = dr.all((rel >= 0) & (rel < m.Array3i(*dims)))
+    key = m.UInt32((rel.x * dims[1] + rel.y) * dims[2] + rel.z)
+    if len(index.keys) == 0:
+        return m.Int32(0), m.Bool(False)
+    if index.table is not None:
+        grid = dr.gather(m.Int32, _ints(m, index.table), key, inside)
+        return grid, inside & (grid >= 0)
+    keys = _uints(m, index.keys)
+    at = dr.binary_search(0, len(index.keys) - 1,
+                          lambda i: dr.gather(m.UInt32, keys, i, inside) < key)
+    hit = inside & (dr.gather(m.UInt32, keys, at, inside) == key)
+    return dr.gather(m.Int32, _ints(m, index.owner), at, hit), hit
+
+
+def _cell_index(m, volume, level, grid, cell, found, leaf):
+    """``(at, is_leaf)``: where each found cell lies in :func:`levels.level_values` of the
+    level, and whether it is a leaf cell (``leaf``: :meth:`AMRVolume.leaf_mask_flat`)."""
+    index = levels.level_index(volume, level)
+    cols = [_ints(m, index.lo[:, a]) for a in range(3)]
+    size = index.hi - index.lo
+    local = cell - m.Array3i(*(dr.gather(m.Int32, c, grid, found) for c in cols))
+    ny = dr.gather(m.Int32, _ints(m, size[:, 1]), grid, found)
+    nz = dr.gather(m.Int32, _ints(m, size[:, 2]), grid, found)
+    within = m.UInt32((local.x * ny + local.y) * nz + local.z)
+    at = dr.gather(m.UInt32, _uints(m, index.offsets), grid, found) + within
+    start = volume.cell_offsets()[index.grids]
+    flat = dr.gather(m.UInt32, _uints(m, start), grid, found) + within
+    return at, found & dr.gather(m.Bool, leaf, flat, found)
+
+
+def _opaque(m, value):
+    """An int as an opaque kernel input (so that every level and volume runs one kernel)."""
+    return dr.opaque(m.Int32, int(value))
+
+
+def _ints(m, a):
+    return m.Int32(np.ascontiguousarray(a, dtype=np.int32))
+
+
+def _uints(m, a):
+    return m.UInt32(np.ascontiguousarray(a, dtype=np.uint32))
+
+
+# ---------------------------------------------------------------------- tables, one level
+
+def level_bricks(volume, level, names, first, m=None):
+    """One level's part of :meth:`DeviceVolume._build_bricks`: ``(lo, dims, table, pools)``
+    (see :func:`brick_table`), ``pools`` per field of ``names`` the level's bricks'
+    ``BRICK_N^3`` float32 values each, flat, as NumPy arrays (filled on the backend ``m``,
+    :func:`mi_amr.kernels.bricks.fill_level`). :func:`level_bricks_reference` is the slow
+    twin (grid by grid, brick by brick)."""
+    m = m or dr.llvm.ad
+    lo, dims, table, n = brick_table(volume, level, first)
+    pools = [dr.full(m.Float, dr.nan, n * BRICK_N ** 3) for _ in names]
+    fill_level(m, volume, level, names, lo, dims, table, first, pools)
+    return lo, dims, table, [p.numpy() for p in pools]
+
+
+def brick_table(volume, level, first):
+    """``(lo, dims, table, n)`` of one level's bricks: ``lo`` the level-index cell one below
+    the level's grids, ``dims`` the dense table's size in bricks, ``table`` the flat table
+    (brick numbers from ``first`` on, :data:`NO_BRICK` where unused) and ``n`` the bricks
+    used: those touched by a grid, its apron included (a dual cell may start one cell below
+    a grid)."""
+    index = levels.level_index(volume, level)
+    lo = index.lo.min(axis=0) - 1
+    dims = -(-(index.hi.max(axis=0) - lo) // BRICK)
+    used = np.zeros(int(np.prod(dims)), dtype=bool)
+    spans, _ = levels.box_points((index.lo - 1 - lo) // BRICK, (index.hi - 1 - lo) // BRICK + 1)
+    used[(spans[:, 0] * dims[1] + spans[:, 1]) * dims[2] + spans[:, 2]] = True
+    table = np.full(len(used), NO_BRICK, dtype=np.uint32)
+    n = int(used.sum())
+    table[used] = np.arange(first, first + n, dtype=np.uint32)
+    return lo, dims, table, n
+
+
+def level_bricks_reference(volume, level, names, first):
+    """Slow twin of :func:`level_bricks`: grid by grid, brick by brick, with array slices."""
+    ilo, ihi = volume.index_boxes()
+    ids = np.flatnonzero(volume.levels == level)
+    lo = ilo[ids].min(axis=0) - 1
+    dims = -(-(ihi[ids].max(axis=0) - lo) // BRICK)
+    table = np.full(tuple(dims), NO_BRICK, dtype=np.uint32)
+    spans = [((ilo[g] - 1 - lo) // BRICK, (ihi[g] - 1 - lo) // BRICK) for g in ids]
+    for a, b in spans:
+        table[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = 0
+    used = table == 0
+    n = int(used.sum())
+    table[used] = np.arange(first, first + n, dtype=np.uint32)
+    pools = [np.full((n, BRICK_N, BRICK_N, BRICK_N), np.nan, dtype=np.float32) for _ in names]
+    for g, (a, b) in zip(ids, spans):
+        arrays = [np.where(volume.leaf_mask(g), volume.grids[g].fields[nm], np.nan)
+                  for nm in names]
+        for bx, by, bz in np.ndindex(*(b - a + 1)):
+            start = lo + (a + (bx, by, bz)) * BRICK
+            c0, c1 = np.maximum(start, ilo[g]), np.minimum(start + BRICK_N, ihi[g])
+            k = table[tuple(a + (bx, by, bz))] - first
+            dst = tuple(slice(x, y) for x, y in zip(c0 - start, c1 - start))
+            src = tuple(slice(x, y) for x, y in zip(c0 - ilo[g], c1 - ilo[g]))
+            for pool, arr in zip(pools, arrays):
+                pool[k][dst] = arr[src]
+    return lo, dims, table.ravel(), [p.ravel() for p in pools]
