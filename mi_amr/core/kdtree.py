@@ -502,32 +502,41 @@ class KDTree:
         blocks of cells covering that window, so a few cells beyond it may widen them). ``reconstruction`` narrows the cells to those that method uses:
         ``"basis"`` -- leaf cells of the leaf's active grids; ``"finest"`` -- cells of the
         owner grid; ``None`` -- every cell of every grid listed at the leaf (valid for both).
-        Leaves with no owner get the empty range ``(+inf, -inf)``."""
+        Leaves with no owner get the empty range ``(+inf, -inf)``. The windows are those of
+        :meth:`leaf_windows` (the device computes the same extremes from them,
+        :mod:`mi_amr.kernels.ranges`)."""
         vol = self.volume
-        if field not in vol.field_names:
-            raise AMRError(f"unknown field '{field}'; available: {list(vol.field_names)}")
-        if reconstruction not in (None, "basis", "finest"):
-            raise AMRError(f"reconstruction must be 'basis' or 'finest', got {reconstruction!r}")
-        L = self.num_leaves
-        if reconstruction == "finest":
-            pl = np.flatnonzero(self.leaf_owner >= 0)
-            pg = self.leaf_owner[pl]
-            lo, hi = self._windows(pl, pg)
-            keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
-            pl, pg, lo, hi = pl[keep], pg[keep], lo[keep], hi[keep]
-        else:
-            count = self.leaf_nactive if reconstruction == "basis" else self.leaf_nsupport
-            pl, pg, lo, hi = self._listed_pairs(count)
+        pl, pg, lo, hi = self.leaf_windows(field, reconstruction)
         if reconstruction == "basis":
             values = np.where(vol.leaf_mask_flat(), _all_values(vol, field), np.nan)
         else:
             values = _all_values(vol, field)
         vmin, vmax = _window_min_max(vol, values, pg, lo, hi)
-        out_lo = np.full(L, np.inf)
-        out_hi = np.full(L, -np.inf)
+        out_lo = np.full(self.num_leaves, np.inf)
+        out_hi = np.full(self.num_leaves, -np.inf)
         np.minimum.at(out_lo, pl, vmin)
         np.maximum.at(out_hi, pl, vmax)
         return out_lo, out_hi
+
+    def leaf_windows(self, field: str, reconstruction: str | None = None):
+        """What :meth:`leaf_ranges` takes the extremes over: ``(leaf, grid, lo, hi)``, per
+        (leaf, grid) pair the inclusive cell index window (``(P, 3)`` each, cells of the grid)
+        of the grid's cells whose hat support reaches the leaf, for the pairs that
+        ``reconstruction`` reads (see there); the values to take are all cells' for
+        ``"finest"`` and None, the leaf cells' for ``"basis"``."""
+        vol = self.volume
+        if field not in vol.field_names:
+            raise AMRError(f"unknown field '{field}'; available: {list(vol.field_names)}")
+        if reconstruction not in (None, "basis", "finest"):
+            raise AMRError(f"reconstruction must be 'basis' or 'finest', got {reconstruction!r}")
+        if reconstruction == "finest":
+            pl = np.flatnonzero(self.leaf_owner >= 0)
+            pg = self.leaf_owner[pl]
+            lo, hi = self._windows(pl, pg)
+            keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
+            return pl[keep], pg[keep], lo[keep], hi[keep]
+        count = self.leaf_nactive if reconstruction == "basis" else self.leaf_nsupport
+        return self._listed_pairs(count)
 
 
 # ---------------------------------------------------------------------- brute-force twins

@@ -32,7 +32,7 @@ import numpy as np
 from mi_amr import tolerances as tol
 from mi_amr.core import levels
 from mi_amr.core.buffers import aligned_empty, joined
-from mi_amr.kernels import bricks
+from mi_amr.kernels import bricks, ranges
 from mi_amr.kernels.bricks import BRICK, BRICK_N, NO_BRICK, brick_table  # noqa: F401
 from mi_amr.errors import AMRError
 
@@ -265,12 +265,20 @@ class DeviceVolume:
     def node_ranges(self, basis: bool) -> np.ndarray:
         """Per-node value range of the field for one reconstruction, ``lo, hi`` side by side
         (float32, host; computed on first use: each costs a pass over the cells). A node with
-        no data has ``(+inf, -inf)``. Kept in :attr:`host_ranges` (a snapshot may bring them);
+        no data has ``(+inf, -inf)``. The leaves' ranges are those of
+        :meth:`KDTree.leaf_ranges <mi_amr.core.kdtree.KDTree.leaf_ranges>`, taken on the device
+        (:mod:`mi_amr.kernels.ranges`). Kept in :attr:`host_ranges` (a snapshot may bring them);
         :attr:`on_new_ranges` (if set) is told of each one computed. The kernels read them
         through :meth:`node_search`."""
         key = "basis" if basis else "finest"
         if key not in self.host_ranges:
-            rlo, rhi = self.tree.node_ranges(*self.tree.leaf_ranges(self.field, key))
+            if dr.flag(dr.JitFlag.SymbolicScope):
+                # First asked for while a symbolic loop is traced, where no kernel may run:
+                # the NumPy twin (the same float32 ranges, tests/test_device_prep.py).
+                leaf = self.tree.leaf_ranges(self.field, key)
+            else:
+                leaf = ranges.leaf_ranges(self.m, self.tree, self.values, self.field, key)
+            rlo, rhi = self.tree.node_ranges(*leaf)
             self.host_ranges[key] = np.stack([rlo, rhi], axis=1).astype(np.float32).ravel()
             if self.on_new_ranges is not None:
                 self.on_new_ranges(key, self.host_ranges[key])

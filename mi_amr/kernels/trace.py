@@ -67,6 +67,7 @@ def trace(volume, origins, directions, *, field: str, isovalue,
     scale = opaque_floats(m, [step_scale])
     cfg = MarchConfig(method=method, basis=reconstruction == "basis", isovalues=iso,
                       step_scale=scale, num_iso=len(isovalues))
+    dev.node_search(cfg.basis)           # the leaf ranges, before the march is traced
     o = _array3(m, origins)
     d = _array3(m, directions)
     rho = stable_jitter(m, dr.arange(m.UInt32, n)) if jitter is None else \

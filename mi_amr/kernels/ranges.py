@@ -1,0 +1,86 @@
+"""The kd leaves' value ranges, on the device.
+
+:meth:`KDTree.leaf_ranges <mi_amr.core.kdtree.KDTree.leaf_ranges>` (NumPy) takes, for each
+(leaf, grid) pair of :meth:`~mi_amr.core.kdtree.KDTree.leaf_windows`, the min and max of the
+finite values of the grid's cells in the pair's window widened to power-of-two blocks, then per
+leaf the extremes over its pairs. Here one kernel walks each pair's widened window cell by cell
+(a lane a pair) and the per-leaf extremes are scattered with atomic min and max. The values are
+the field as the kernels read it (float32; rounding to float32 keeps the order of values, so the
+extremes are the float32 roundings of the NumPy ones), and the result is float32.
+
+Index coordinates are cells of the pair's grid, ``[i, j, k]`` = x, y, z, C order.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+
+def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None):
+    """``(lo, hi)`` float32 NumPy arrays, one entry per leaf of ``tree``, as
+    :meth:`~mi_amr.core.kdtree.KDTree.leaf_ranges` gives them (rounded to float32);
+    ``values``: the field's values of all cells, grid after grid, as a device ``m.Float``.
+    Leaves with no pair get ``(+inf, -inf)``."""
+    vol = tree.volume
+    pl, pg, lo, hi = tree.leaf_windows(field, reconstruction)
+    out_lo = dr.full(m.Float, dr.inf, tree.num_leaves)
+    out_hi = dr.full(m.Float, -dr.inf, tree.num_leaves)
+    if len(pl):
+        shape = vol.shapes()[pg]
+        top = block_tops(lo, hi, shape)
+        leaf = m.Bool(vol.leaf_mask_flat()) if reconstruction == "basis" else None
+        start = vol.cell_offsets()[pg]
+        vmin, vmax = _window_extremes(m, values, leaf, start, shape, lo, top)
+        at = m.UInt32(np.ascontiguousarray(pl, dtype=np.uint32))
+        dr.scatter_reduce(dr.ReduceOp.Min, out_lo, vmin, at)
+        dr.scatter_reduce(dr.ReduceOp.Max, out_hi, vmax, at)
+    dr.eval(out_lo, out_hi)
+    return out_lo.numpy().copy(), out_hi.numpy().copy()
+
+
+def block_tops(lo, hi, shape):
+    """The exclusive upper corners of the windows ``[lo, hi]`` (inclusive, ``(P, 3)``) widened
+    as :func:`~mi_amr.core.kdtree._window_min_max` widens them: to the blocks of ``2**k`` cells
+    a side (``2**k`` the largest power of two not longer than the window's longest side) that
+    start at ``lo`` or end at ``hi``, cut at the grid's end (``shape``, ``(P, 3)``). The lower
+    corner stays ``lo``."""
+    side = (hi - lo + 1).max(axis=1)
+    block = (1 << np.floor(np.log2(side)).astype(np.int64))[:, None]
+    return np.minimum(np.maximum(lo, hi - block + 1) + block, shape)
+
+
+@dr.syntax
+def _window_extremes(m, values, leaf, start, shape, lo, top):
+    """Per window (a lane each) the min and max of the finite ``values`` (of leaf cells where
+    ``leaf`` is given) in the box ``[lo, top)`` of the grid whose cells start at ``start``
+    (its ``shape``); ``(+inf, -inf)`` where there are none."""
+    def ints(a):
+        return m.Int32(np.ascontiguousarray(a, dtype=np.int32))
+
+    b_lo = m.Array3i(*(ints(lo[:, a]) for a in range(3)))
+    b_top = m.Array3i(*(ints(top[:, a]) for a in range(3)))
+    ny, nz = ints(shape[:, 1]), ints(shape[:, 2])
+    base = m.UInt32(np.ascontiguousarray(start, dtype=np.uint32))
+    x, y, z = m.Int32(b_lo.x), m.Int32(b_lo.y), m.Int32(b_lo.z)
+    vmin = dr.full(m.Float, dr.inf, len(start))
+    vmax = dr.full(m.Float, -dr.inf, len(start))
+    active = dr.all(b_lo < b_top)
+    while active:
+        at = base + m.UInt32((x * ny + y) * nz + z)
+        v = dr.gather(m.Float, values, at, active)
+        take = active & dr.isfinite(v)
+        if dr.hint(leaf is not None, mode="scalar"):
+            take &= dr.gather(m.Bool, leaf, at, active)
+        vmin = dr.select(take, dr.minimum(vmin, v), vmin)
+        vmax = dr.select(take, dr.maximum(vmax, v), vmax)
+        # The next cell in C order of the box.
+        z += 1
+        wrap_z = z >= b_top.z
+        z = dr.select(wrap_z, b_lo.z, z)
+        y = dr.select(wrap_z, y + 1, y)
+        wrap_y = wrap_z & (y >= b_top.y)
+        y = dr.select(wrap_y, b_lo.y, y)
+        x = dr.select(wrap_y, x + 1, x)
+        active &= x < b_top.x
+    return vmin, vmax

@@ -1,0 +1,80 @@
+"""What the device prepares from the host's data model equals its NumPy twin: the kd leaves'
+value ranges (:mod:`mi_amr.kernels.ranges`, one lane per (leaf, grid) window) against
+:meth:`KDTree.leaf_ranges` rounded to float32, for every reconstruction, on hierarchies with
+missing values; and the node ranges the search reads. (The brick pools' twin is
+``tests/test_reconstruct.py`` test08.)"""
+
+import numpy as np
+import pytest
+
+dr = pytest.importorskip("drjit")
+
+from mi_amr import AMRVolume, KDTree  # noqa: E402
+from mi_amr.kernels import ranges  # noqa: E402
+from test_kdtree import HIERARCHIES  # noqa: E402
+
+
+def with_missing(grids, seed):
+    """The hierarchy with a tenth of its cells NaN and a few +-inf."""
+    rng = np.random.default_rng(seed)
+    for g in grids:
+        f = g["fields"]["f"]
+        f[rng.random(f.shape) < 0.1] = np.nan
+        f[rng.random(f.shape) < 0.01] = np.inf * np.sign(rng.normal())
+    return grids
+
+
+@pytest.mark.parametrize("hierarchy", sorted(HIERARCHIES))
+def test01_device_leaf_ranges_are_the_numpy_ones(hierarchy):
+    m = dr.llvm.ad
+    vol = AMRVolume.from_grids(with_missing(HIERARCHIES[hierarchy](), 7), allow_nonfinite=True)
+    tree = KDTree(vol, leaf_cells=4)
+    values = m.Float(np.concatenate([g.fields["f"].ravel() for g in vol.grids])
+                     .astype(np.float32))
+    for reconstruction in (None, "basis", "finest"):
+        want = tree.leaf_ranges("f", reconstruction)
+        got = ranges.leaf_ranges(m, tree, values, "f", reconstruction)
+        for a, b in zip(got, want):
+            assert a.dtype == np.float32
+            np.testing.assert_array_equal(a, b.astype(np.float32))
+        assert np.isfinite(got[0]).mean() > 0.5       # most leaves have a range
+        assert np.any(got[0] == np.inf)               # leaves without an owner have none
+
+
+def test02_windows_widen_to_the_blocks_of_the_numpy_twin():
+    """A 3-cell window widens to blocks of 2 that start at its low end or end at its high end
+    (3 cells: no change); a 3 x 1 x 1 window to 2 cells on the short axes, cut at the grid."""
+    lo = np.array([[0, 0, 0], [2, 5, 7]])
+    hi = np.array([[2, 2, 2], [4, 5, 7]])
+    shape = np.array([[8, 8, 8], [8, 6, 8]])
+    np.testing.assert_array_equal(ranges.block_tops(lo, hi, shape), [[3, 3, 3], [5, 6, 8]])
+
+
+@pytest.mark.parametrize("basis", [True, False])
+def test03_node_ranges_the_search_reads_are_the_numpy_ones(basis):
+    from mi_amr.kernels.prepared import PreparedVolume
+
+    vol = AMRVolume.from_grids(with_missing(HIERARCHIES["random1"](), 8), allow_nonfinite=True)
+    dev = PreparedVolume(vol, "f", m=dr.llvm.ad).device
+    key = "basis" if basis else "finest"
+    lo, hi = dev.tree.node_ranges(*dev.tree.leaf_ranges("f", key))
+    want = np.stack([lo, hi], axis=1).astype(np.float32).ravel()
+    np.testing.assert_array_equal(dev.node_ranges(basis), want)
+
+
+def test04_ranges_first_asked_for_inside_a_traced_loop_are_the_same():
+    """No kernel may run while a symbolic loop is traced: there the NumPy twin gives them."""
+    from mi_amr.kernels.prepared import PreparedVolume
+
+    m = dr.llvm.ad
+    vol = AMRVolume.from_grids(with_missing(HIERARCHIES["ratio2"](), 9), allow_nonfinite=True)
+    outside = PreparedVolume(vol, "f", m=m).device.node_ranges(True)
+    dev = PreparedVolume(vol, "f", m=m).device
+    got = []
+
+    def body(i):
+        got.append(dev.node_ranges(True))
+        return (i + 1,)
+
+    dr.while_loop((m.UInt32(0),), lambda i: i < 2, body)
+    np.testing.assert_array_equal(got[0], outside)
