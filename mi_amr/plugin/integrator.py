@@ -96,8 +96,7 @@ class _AMRIso:
                                   host_transfer2d(opt))
         self.shader = IsoShader(self)
         self.layer_fast_paths = True
-        # False: the exact march walks the whole volume, not its active box (the slow twin).
-        self.clip_to_active = True
+        self.clip_to_active = True      # False: the whole volume, not the active box (twin)
         wavefront.attach(self)
         _warn_outside(self.prep, opt.isovalues)
 
@@ -105,9 +104,7 @@ class _AMRIso:
         self.prep = prepare_file(path, self.opt.field, self.opt.color_field,
                                  leaf_cells=self.opt.leaf_cells, m=self.m)
         self.dev = self.prep.device
-        # The value ranges the leaf search reads, now (on the device) rather than while the
-        # first frame is traced.
-        self.dev.node_search(self.opt.reconstruction == "basis")
+        self.dev.node_search(self.opt.reconstruction == "basis")    # not while tracing a frame
 
     def load_volume(self, path) -> None:
         """Show the data file ``path`` instead (the next step of a time series): it must hold
