@@ -25,28 +25,27 @@ BRICK = 8                 # cells per brick side; a brick stores BRICK + 1 (one 
 BRICK_N = BRICK + 1
 
 
-def build_pools(m, volume, names, parts, count):
-    """The pools (one ``m.Float`` per field of ``names``) of all levels' bricks, ``count`` in
-    all, for the levels' ``parts`` (``(lo, dims, table, n)`` each, as
-    :func:`brick_table` gives them, with brick numbers from 0 on)."""
+def build_pools(m, volume, arrays, parts, count):
+    """The pools (one ``m.Float`` per field) of all levels' bricks, ``count`` in all, for the
+    levels' ``parts`` (``(lo, dims, table, n)`` each, as :func:`brick_table` gives them, with
+    brick numbers from 0 on). ``arrays``: each field's values of all cells on the device
+    (float32, grid after grid: :meth:`AMRVolume.cell_offsets`), which the slots gather from."""
     leaf = m.Bool(volume.leaf_mask_flat())
-    pools = [dr.full(m.Float, dr.nan, count * BRICK_N ** 3) for _ in names]
+    pools = [dr.full(m.Float, dr.nan, count * BRICK_N ** 3) for _ in arrays]
     for level, (lo, dims, table, _) in enumerate(parts):
-        fill_level(m, volume, level, names, lo, dims, table, 0, pools, leaf)
+        fill_level(m, volume, level, arrays, lo, dims, table, 0, pools, leaf)
     return pools
 
 
-def fill_level(m, volume, level, names, lo, dims, table, base, pools, leaf=None) -> None:
-    """Write the level's bricks into ``pools`` (one ``m.Float`` per field of ``names``, brick
-    number ``base`` at slot 0, ``BRICK_N^3`` slots a brick) for its brick table: ``lo`` (the
-    level-index cell of the table's first corner), ``dims`` and ``table`` (brick numbers,
-    ``NO_BRICK`` where unused) as :func:`brick_table` gives them.
-    ``leaf``: :meth:`AMRVolume.leaf_mask_flat` on the device, if already there."""
+def fill_level(m, volume, level, arrays, lo, dims, table, base, pools, leaf) -> None:
+    """Write the level's bricks into ``pools`` (one ``m.Float`` per array of ``arrays``, see
+    :func:`build_pools`; brick number ``base`` at slot 0, ``BRICK_N^3`` slots a brick) for its
+    brick table: ``lo`` (the level-index cell of the table's first corner), ``dims`` and
+    ``table`` (brick numbers, ``NO_BRICK`` where unused) as :func:`brick_table` gives them.
+    ``leaf``: :meth:`AMRVolume.leaf_mask_flat` on the device."""
     used = np.flatnonzero(table != NO_BRICK)
     if len(used) == 0:
         return
-    if leaf is None:
-        leaf = m.Bool(volume.leaf_mask_flat())
     n = BRICK_N ** 3
     slot = dr.arange(m.UInt32, len(used) * n)
     brick, s = slot // n, slot % n
@@ -55,12 +54,11 @@ def fill_level(m, volume, level, names, lo, dims, table, base, pools, leaf=None)
     cell = corner + m.Array3i(m.Int32(s // (BRICK_N * BRICK_N)), m.Int32(s // BRICK_N % BRICK_N),
                               m.Int32(s % BRICK_N))
     grid, found = _find(m, levels.level_index(volume, level), cell)
-    at, is_leaf = _cell_index(m, volume, level, grid, cell, found, leaf)
+    at = _cell_index(m, volume, level, grid, cell, found)
+    is_leaf = found & dr.gather(m.Bool, leaf, at, found)
     dst = dr.gather(m.UInt32, _uints(m, table[used].astype(np.int64) - base), brick) * n + s
-    for pool, name in zip(pools, names):
-        values = levels.level_values(volume, level, name)
-        T = m.Float64 if values.dtype == np.float64 else m.Float
-        v = m.Float(dr.gather(T, T(np.ascontiguousarray(values)), at, is_leaf))
+    for pool, values in zip(pools, arrays):
+        v = dr.gather(m.Float, values, at, is_leaf)
         dr.scatter(pool, dr.select(is_leaf, v, dr.nan), dst)
     dr.eval(*pools)
 
@@ -86,20 +84,18 @@ def _find(m, index: "levels.LevelIndex", cell):
     return dr.gather(m.Int32, _ints(m, index.owner), at, hit), hit
 
 
-def _cell_index(m, volume, level, grid, cell, found, leaf):
-    """``(at, is_leaf)``: where each found cell lies in :func:`levels.level_values` of the
-    level, and whether it is a leaf cell (``leaf``: :meth:`AMRVolume.leaf_mask_flat`)."""
+def _cell_index(m, volume, level, grid, cell, found):
+    """Where each found cell (a level cell, in the level's grid ``grid``) lies among the cells
+    of all grids (:meth:`AMRVolume.cell_offsets`)."""
     index = levels.level_index(volume, level)
     cols = [_ints(m, index.lo[:, a]) for a in range(3)]
     size = index.hi - index.lo
     local = cell - m.Array3i(*(dr.gather(m.Int32, c, grid, found) for c in cols))
     ny = dr.gather(m.Int32, _ints(m, size[:, 1]), grid, found)
     nz = dr.gather(m.Int32, _ints(m, size[:, 2]), grid, found)
-    within = m.UInt32((local.x * ny + local.y) * nz + local.z)
-    at = dr.gather(m.UInt32, _uints(m, index.offsets), grid, found) + within
-    start = volume.cell_offsets()[index.grids]
-    flat = dr.gather(m.UInt32, _uints(m, start), grid, found) + within
-    return at, found & dr.gather(m.Bool, leaf, flat, found)
+    start = _uints(m, volume.cell_offsets()[index.grids])
+    return dr.gather(m.UInt32, start, grid, found) + m.UInt32((local.x * ny + local.y) * nz +
+                                                              local.z)
 
 
 def _opaque(m, value):
@@ -125,8 +121,11 @@ def level_bricks(volume, level, names, first, m=None):
     twin (grid by grid, brick by brick)."""
     m = m or dr.llvm.ad
     lo, dims, table, n = brick_table(volume, level, first)
+    arrays = [m.Float(np.concatenate([g.fields[name].ravel() for g in volume.grids])
+                      .astype(np.float32)) for name in names]
     pools = [dr.full(m.Float, dr.nan, n * BRICK_N ** 3) for _ in names]
-    fill_level(m, volume, level, names, lo, dims, table, first, pools)
+    fill_level(m, volume, level, arrays, lo, dims, table, first, pools,
+               m.Bool(volume.leaf_mask_flat()))
     return lo, dims, table, [p.numpy() for p in pools]
 
 

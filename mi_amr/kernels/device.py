@@ -235,7 +235,8 @@ class DeviceVolume:
         for level in range(vol.num_levels):
             parts.append(brick_table(vol, level, count))
             count += parts[-1][3]
-        return parts, bricks.build_pools(self.m, vol, names, parts, count)
+        arrays = [self.values] + ([self.color_values] if len(names) > 1 else [])
+        return parts, bricks.build_pools(self.m, vol, arrays, parts, count)
 
     def _set_bricks(self, parts, pools):
         """The device arrays of :meth:`_build_bricks`'s ``(parts, pools)``: per level
