@@ -78,3 +78,17 @@ def test04_ranges_first_asked_for_inside_a_traced_loop_are_the_same():
 
     dr.while_loop((m.UInt32(0),), lambda i: i < 2, body)
     np.testing.assert_array_equal(got[0], outside)
+
+
+def test05_ranges_in_many_launches_are_the_same(monkeypatch):
+    m = dr.llvm.ad
+    vol = AMRVolume.from_grids(with_missing(HIERARCHIES["random0"](), 10), allow_nonfinite=True)
+    tree = KDTree(vol, leaf_cells=4)
+    values = m.Float(np.concatenate([g.fields["f"].ravel() for g in vol.grids])
+                     .astype(np.float32))
+    want = ranges.leaf_ranges(m, tree, values, "f", "basis")
+    monkeypatch.setattr(ranges, "CHUNK_PAIRS", 7)
+    got = ranges.leaf_ranges(m, tree, values, "f", "basis")
+    assert len(tree.leaf_windows("f", "basis")[0]) > 70
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)

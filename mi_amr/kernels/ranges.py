@@ -17,6 +17,11 @@ import drjit as dr
 import numpy as np
 
 
+# Pairs per kernel launch: bounds the host's per-pair temporaries (about 100 bytes a pair) and
+# their device copies, whatever the number of pairs (10^8 cells have about 10^7).
+CHUNK_PAIRS = 1 << 21
+
+
 def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None):
     """``(lo, hi)`` float32 NumPy arrays, one entry per leaf of ``tree``, as
     :meth:`~mi_amr.core.kdtree.KDTree.leaf_ranges` gives them (rounded to float32);
@@ -26,15 +31,17 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None):
     pl, pg, lo, hi = tree.leaf_windows(field, reconstruction)
     out_lo = dr.full(m.Float, dr.inf, tree.num_leaves)
     out_hi = dr.full(m.Float, -dr.inf, tree.num_leaves)
-    if len(pl):
-        shape = vol.shapes()[pg]
-        top = block_tops(lo, hi, shape)
-        leaf = m.Bool(vol.leaf_mask_flat()) if reconstruction == "basis" else None
-        start = vol.cell_offsets()[pg]
-        vmin, vmax = _window_extremes(m, values, leaf, start, shape, lo, top)
-        at = m.UInt32(np.ascontiguousarray(pl, dtype=np.uint32))
+    leaf = m.Bool(vol.leaf_mask_flat()) if reconstruction == "basis" and len(pl) else None
+    for a in range(0, len(pl), CHUNK_PAIRS):
+        part = slice(a, a + CHUNK_PAIRS)
+        shape = vol.shapes()[pg[part]]
+        top = block_tops(lo[part], hi[part], shape)
+        start = vol.cell_offsets()[pg[part]]
+        vmin, vmax = _window_extremes(m, values, leaf, start, shape, lo[part], top)
+        at = m.UInt32(np.ascontiguousarray(pl[part], dtype=np.uint32))
         dr.scatter_reduce(dr.ReduceOp.Min, out_lo, vmin, at)
         dr.scatter_reduce(dr.ReduceOp.Max, out_hi, vmax, at)
+        dr.eval(out_lo, out_hi)
     dr.eval(out_lo, out_hi)
     return out_lo.numpy().copy(), out_hi.numpy().copy()
 
