@@ -92,3 +92,23 @@ def test05_ranges_in_many_launches_are_the_same(monkeypatch):
     assert len(tree.leaf_windows("f", "basis")[0]) > 70
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
+
+
+def test06_a_volume_of_another_structure_compiles_no_kernel():
+    """The brick fill and the ranges read sizes, tables and offsets as kernel inputs, so a
+    volume with other grids, levels of one grid and a different number of leaves runs the
+    kernels the first one compiled (a scatter into the leaves' ranges compiled their number
+    in; a one-entry table compiled a broadcast)."""
+    from conftest import kernels_compiled
+    from mi_amr.kernels.prepared import PreparedVolume
+
+    m = dr.llvm.ad
+
+    def prepare(name, seed):
+        vol = AMRVolume.from_grids(with_missing(HIERARCHIES[name](), seed), allow_nonfinite=True)
+        dev = PreparedVolume(vol, "f", m=m).device
+        return dev.node_ranges(True), dev.node_ranges(False)
+
+    prepare("random2", 11)
+    _, compiled = kernels_compiled(lambda: prepare("ratio4-2", 12))
+    assert compiled == 0

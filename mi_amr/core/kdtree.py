@@ -522,7 +522,8 @@ class KDTree:
         """What :meth:`leaf_ranges` takes the extremes over: ``(leaf, grid, lo, hi)``, per
         (leaf, grid) pair the inclusive cell index window (``(P, 3)`` each, cells of the grid)
         of the grid's cells whose hat support reaches the leaf, for the pairs that
-        ``reconstruction`` reads (see there); the values to take are all cells' for
+        ``reconstruction`` reads (see there), leaf after leaf (a leaf's pairs one after the
+        other, leaves in increasing order); the values to take are all cells' for
         ``"finest"`` and None, the leaf cells' for ``"basis"``."""
         vol = self.volume
         if field not in vol.field_names:

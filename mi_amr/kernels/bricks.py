@@ -19,6 +19,7 @@ import drjit as dr
 import numpy as np
 
 from mi_amr.core import levels
+from mi_amr.kernels.arrays import device_array, device_table
 
 NO_BRICK = 0xFFFFFFFF
 BRICK = 8                 # cells per brick side; a brick stores BRICK + 1 (one cell of apron)
@@ -30,7 +31,7 @@ def build_pools(m, volume, arrays, parts, count):
     levels' ``parts`` (``(lo, dims, table, n)`` each, as :func:`brick_table` gives them, with
     brick numbers from 0 on). ``arrays``: each field's values of all cells on the device
     (float32, grid after grid: :meth:`AMRVolume.cell_offsets`), which the slots gather from."""
-    leaf = m.Bool(volume.leaf_mask_flat())
+    leaf = device_array(m.Bool, volume.leaf_mask_flat(), np.bool_)
     pools = [dr.full(m.Float, dr.nan, count * BRICK_N ** 3) for _ in arrays]
     for level, (lo, dims, table, _) in enumerate(parts):
         fill_level(m, volume, level, arrays, lo, dims, table, 0, pools, leaf)
@@ -104,11 +105,11 @@ def _opaque(m, value):
 
 
 def _ints(m, a):
-    return m.Int32(np.ascontiguousarray(a, dtype=np.int32))
+    return device_table(m.Int32, a, np.int32)
 
 
 def _uints(m, a):
-    return m.UInt32(np.ascontiguousarray(a, dtype=np.uint32))
+    return device_table(m.UInt32, a, np.uint32)
 
 
 # ---------------------------------------------------------------------- tables, one level
@@ -121,11 +122,12 @@ def level_bricks(volume, level, names, first, m=None):
     twin (grid by grid, brick by brick)."""
     m = m or dr.llvm.ad
     lo, dims, table, n = brick_table(volume, level, first)
-    arrays = [m.Float(np.concatenate([g.fields[name].ravel() for g in volume.grids])
-                      .astype(np.float32)) for name in names]
+    arrays = [device_array(m.Float, np.concatenate([g.fields[name].ravel()
+                                                   for g in volume.grids]), np.float32)
+              for name in names]
     pools = [dr.full(m.Float, dr.nan, n * BRICK_N ** 3) for _ in names]
     fill_level(m, volume, level, arrays, lo, dims, table, first, pools,
-               m.Bool(volume.leaf_mask_flat()))
+               device_array(m.Bool, volume.leaf_mask_flat(), np.bool_))
     return lo, dims, table, [p.numpy() for p in pools]
 
 

@@ -33,6 +33,7 @@ from mi_amr import tolerances as tol
 from mi_amr.core import levels
 from mi_amr.core.buffers import aligned_empty, joined
 from mi_amr.kernels import bricks, ranges
+from mi_amr.kernels.arrays import device_array, host_aligned  # noqa: F401  (re-exported)
 from mi_amr.kernels.bricks import BRICK, BRICK_N, NO_BRICK, brick_table  # noqa: F401
 from mi_amr.errors import AMRError
 
@@ -51,23 +52,6 @@ def lnot(mask):
     """Logical not of a Dr.Jit mask or of a plain bool (the masks of Mitsuba's scalar
     variants, where ``~True`` would be the integer -2)."""
     return ~mask if dr.is_array_v(mask) else not mask
-
-
-def host_aligned(values, dtype) -> np.ndarray:
-    """``values`` flattened into a new NumPy array of ``dtype`` starting on an
-    :data:`~mi_amr.core.buffers.ALIGN` byte boundary. Dr.Jit maps NumPy memory instead of
-    copying it, and compiles other code (unaligned loads, no packet gathers) for an array that
-    is not aligned: with arrays at whatever address NumPy gave them, the same scene would
-    compile different kernels from one load to the next."""
-    a = np.ascontiguousarray(values, dtype=dtype).ravel()
-    out = aligned_empty(a.size, dtype)
-    out[:] = a
-    return out
-
-
-def device_array(T, values, dtype):
-    """A Dr.Jit array of type ``T`` holding ``values`` (see :func:`host_aligned`)."""
-    return T(host_aligned(values, dtype))
 
 
 def opaque_floats(m, values):

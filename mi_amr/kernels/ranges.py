@@ -4,7 +4,8 @@
 (leaf, grid) pair of :meth:`~mi_amr.core.kdtree.KDTree.leaf_windows`, the min and max of the
 finite values of the grid's cells in the pair's window widened to power-of-two blocks, then per
 leaf the extremes over its pairs. Here one kernel walks each pair's widened window cell by cell
-(a lane a pair) and the per-leaf extremes are scattered with atomic min and max. The values are
+(a lane a pair); the per-leaf extremes over the pairs (listed leaf after leaf) are taken on the
+host. The values are
 the field as the kernels read it (float32; rounding to float32 keeps the order of values, so the
 extremes are the float32 roundings of the NumPy ones), and the result is float32.
 
@@ -15,6 +16,8 @@ from __future__ import annotations
 
 import drjit as dr
 import numpy as np
+
+from mi_amr.kernels.arrays import device_array
 
 
 # Pairs per kernel launch: bounds the host's per-pair temporaries (about 100 bytes a pair) and
@@ -29,21 +32,27 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None):
     Leaves with no pair get ``(+inf, -inf)``."""
     vol = tree.volume
     pl, pg, lo, hi = tree.leaf_windows(field, reconstruction)
-    out_lo = dr.full(m.Float, dr.inf, tree.num_leaves)
-    out_hi = dr.full(m.Float, -dr.inf, tree.num_leaves)
-    leaf = m.Bool(vol.leaf_mask_flat()) if reconstruction == "basis" and len(pl) else None
+    vmin = np.empty(len(pl), dtype=np.float32)
+    vmax = np.empty(len(pl), dtype=np.float32)
+    leaf = device_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
+        if reconstruction == "basis" and len(pl) else None
     for a in range(0, len(pl), CHUNK_PAIRS):
         part = slice(a, a + CHUNK_PAIRS)
         shape = vol.shapes()[pg[part]]
         top = block_tops(lo[part], hi[part], shape)
         start = vol.cell_offsets()[pg[part]]
-        vmin, vmax = _window_extremes(m, values, leaf, start, shape, lo[part], top)
-        at = m.UInt32(np.ascontiguousarray(pl[part], dtype=np.uint32))
-        dr.scatter_reduce(dr.ReduceOp.Min, out_lo, vmin, at)
-        dr.scatter_reduce(dr.ReduceOp.Max, out_hi, vmax, at)
-        dr.eval(out_lo, out_hi)
-    dr.eval(out_lo, out_hi)
-    return out_lo.numpy().copy(), out_hi.numpy().copy()
+        lo_part, hi_part = _window_extremes(m, values, leaf, start, shape, lo[part], top)
+        dr.eval(lo_part, hi_part)
+        vmin[part], vmax[part] = lo_part.numpy(), hi_part.numpy()
+    # Per leaf, the extremes over its pairs (listed leaf after leaf), on the host: a scatter
+    # on the device would compile its target's size (the number of leaves) into the kernel.
+    out_lo = np.full(tree.num_leaves, np.inf, dtype=np.float32)
+    out_hi = np.full(tree.num_leaves, -np.inf, dtype=np.float32)
+    if len(pl):
+        first = np.flatnonzero(np.concatenate([[True], pl[1:] != pl[:-1]]))
+        out_lo[pl[first]] = np.minimum.reduceat(vmin, first)
+        out_hi[pl[first]] = np.maximum.reduceat(vmax, first)
+    return out_lo, out_hi
 
 
 def block_tops(lo, hi, shape):
@@ -63,12 +72,12 @@ def _window_extremes(m, values, leaf, start, shape, lo, top):
     ``leaf`` is given) in the box ``[lo, top)`` of the grid whose cells start at ``start``
     (its ``shape``); ``(+inf, -inf)`` where there are none."""
     def ints(a):
-        return m.Int32(np.ascontiguousarray(a, dtype=np.int32))
+        return device_array(m.Int32, a, np.int32)
 
     b_lo = m.Array3i(*(ints(lo[:, a]) for a in range(3)))
     b_top = m.Array3i(*(ints(top[:, a]) for a in range(3)))
     ny, nz = ints(shape[:, 1]), ints(shape[:, 2])
-    base = m.UInt32(np.ascontiguousarray(start, dtype=np.uint32))
+    base = device_array(m.UInt32, start, np.uint32)
     x, y, z = m.Int32(b_lo.x), m.Int32(b_lo.y), m.Int32(b_lo.z)
     vmin = dr.full(m.Float, dr.inf, len(start))
     vmax = dr.full(m.Float, -dr.inf, len(start))
