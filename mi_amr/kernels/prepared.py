@@ -68,6 +68,16 @@ class PreparedVolume:
         self.timings = {}
         return self
 
+    def search_ready(self, basis: bool) -> None:
+        """Make the leaf search's records for a reconstruction now (its value ranges, on the
+        device: :meth:`DeviceVolume.node_ranges`), not while a frame is traced; the ranges,
+        when they were not there yet, timed as ``ranges``."""
+        clock = time.perf_counter()
+        fresh = ("basis" if basis else "finest") not in self.device.host_ranges
+        self.device.node_search(basis)
+        if fresh:
+            self._lap("ranges", clock)
+
     def _lap(self, name, since, quiet=False):
         now = time.perf_counter()
         self.timings[name] = now - since
@@ -77,6 +87,7 @@ class PreparedVolume:
 
 
 _STEPS = {"derive": "  derived fields", "tree": "  kd-tree", "device": "  device arrays",
+          "ranges": "  leaf value ranges",
           "snapshot": "  prepared volume read back from its snapshot"}
 
 

@@ -104,7 +104,7 @@ class _AMRIso:
         self.prep = prepare_file(path, self.opt.field, self.opt.color_field,
                                  leaf_cells=self.opt.leaf_cells, m=self.m)
         self.dev = self.prep.device
-        self.dev.node_search(self.opt.reconstruction == "basis")    # not while tracing a frame
+        self.prep.search_ready(self.opt.reconstruction == "basis")
 
     def load_volume(self, path) -> None:
         """Show the data file ``path`` instead (the next step of a time series): it must hold

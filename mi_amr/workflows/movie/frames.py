@@ -58,11 +58,8 @@ class FrameRenderer:
         timings = {}
         if spec.file is not None and spec.file != self.file:
             t0 = time.perf_counter()
-            self.integ.load_volume(spec.file)
-            prep = self.integ.prep
-            t1 = time.perf_counter()
-            prep.device.node_ranges(self.integ.opt.reconstruction == "basis")
-            timings = dict(prep.timings, ranges=time.perf_counter() - t1, load=t1 - t0)
+            self.integ.load_volume(spec.file)       # its leaf ranges too (search_ready)
+            timings = dict(self.integ.prep.timings, load=time.perf_counter() - t0)
             self.file = spec.file
         p = self.params
         set_camera(p, Camera.from_dict(spec.camera or self.camera))
