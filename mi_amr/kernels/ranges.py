@@ -5,9 +5,9 @@
 finite values of the grid's cells in the pair's window widened to power-of-two blocks, then per
 leaf the extremes over its pairs. Here one kernel walks each pair's widened window cell by cell
 (a lane a pair); the per-leaf extremes over the pairs (listed leaf after leaf) are taken on the
-host. The values are
-the field as the kernels read it (float32; rounding to float32 keeps the order of values, so the
-extremes are the float32 roundings of the NumPy ones), and the result is float32.
+host. The values are the field as the kernels read it (float32; rounding to float32 keeps the
+order of values, so the extremes are the float32 roundings of the NumPy ones), and so is the
+result.
 
 Index coordinates are cells of the pair's grid, ``[i, j, k]`` = x, y, z, C order.
 """
