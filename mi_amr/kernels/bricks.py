@@ -68,13 +68,13 @@ def _find(m, index: "levels.LevelIndex", cell):
     """``(grid, found)``: the position in ``index.grids`` of the grid holding each level cell
     ``cell`` (``m.Array3i``), through the level's dense block table or, where the level has
     none (a sparse level over a large box), a binary search of its sorted block keys."""
+    if len(index.keys) == 0:
+        return m.Int32(0), m.Bool(False)
     shift = _opaque(m, int(index.block).bit_length() - 1)
     rel = (cell >> shift) - m.Array3i(*(_opaque(m, x) for x in index.origin))
     dims = [_opaque(m, x) for x in index.dims]
     inside = dr.all((rel >= 0) & (rel < m.Array3i(*dims)))
     key = m.UInt32((rel.x * dims[1] + rel.y) * dims[2] + rel.z)
-    if len(index.keys) == 0:
-        return m.Int32(0), m.Bool(False)
     if index.table is not None:
         grid = dr.gather(m.Int32, _ints(m, index.table), key, inside)
         return grid, inside & (grid >= 0)

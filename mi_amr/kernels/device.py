@@ -33,7 +33,7 @@ from mi_amr import tolerances as tol
 from mi_amr.core import levels
 from mi_amr.core.buffers import aligned_empty, joined
 from mi_amr.kernels import bricks, ranges
-from mi_amr.kernels.arrays import device_array, host_aligned  # noqa: F401  (re-exported)
+from mi_amr.kernels.arrays import device_array
 from mi_amr.kernels.bricks import BRICK, BRICK_N, NO_BRICK, brick_table  # noqa: F401
 from mi_amr.errors import AMRError
 
