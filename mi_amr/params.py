@@ -16,6 +16,7 @@ from typing import Any
 METHODS = ("exact", "bisect", "adaptive", "uniform")
 RECONSTRUCTIONS = ("basis", "finest")
 MODES = ("surface", "volume")
+LAYER_MODES = ("composite", "stochastic")
 MAX_ISOVALUES = 8
 REQUIRED = object()          # the default of a parameter that must be given
 
@@ -115,6 +116,12 @@ TABLE = (
           lo=2, hi=256),
     Param("max_layers", "integer", 8, "translucent surfaces composited per ray, at most",
           lo=1, hi=64),
+    Param("layers", "string", "composite",
+          "translucent surfaces: ``composite`` (each sample shades every layer it meets, "
+          "weighted by the light reaching it) or ``stochastic`` (one layer per sample, picked "
+          "with the probability of that weight, as Mitsuba's ``mask`` BSDF does: the same "
+          "image in expectation, noisier per sample, at about one opaque surface's cost)",
+          choices=LAYER_MODES),
 )
 BY_NAME = {p.name: p for p in TABLE}
 TRAVERSABLE = tuple(p.name for p in TABLE if p.traversable)

@@ -35,14 +35,11 @@ from mi_amr.kernels.config import MarchConfig, clips
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import prepare_file
-from mi_amr.kernels.surface import crossings
-from mi_amr.kernels.transmit import transmittance_exact
-from mi_amr.plugin import bridge, options, shading, wavefront
+from mi_amr.plugin import bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.aovs import NAMES as AOV_NAMES
 from mi_amr.plugin.aovs import iso_aovs
 from mi_amr.plugin.frame import VolumeFrame
 from mi_amr.plugin.inputs import FLAGS, PHONG, FrameInputs
-from mi_amr.plugin.layers import front_to_back
 from mi_amr.plugin.scene import resolve_data_file
 from mi_amr.plugin.transfer2d import host_transfer2d
 from mi_amr.plugin.iso import IsoShader
@@ -168,8 +165,9 @@ class _AMRIso:
         # change inside the symbolic loops below.
         light_u = [sampler.next_2d(active) for _ in scene.emitters()]
         # ---- Isosurfaces (or the band) in front of the mesh, front to back.
+        u = surfaces.pick_u(self, sampler, ray, active) if surfaces.stochastic(self) else None
         if self.opt.mode == "surface":
-            L, T = self._surfaces(scene, light_u, ray, o, d, t_mesh, jitter, active)
+            L, T = surfaces.surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, u, active)
         else:
             L, T = self._volume(scene, light_u, ray, o, d, t_mesh, jitter, active)
         # ---- What lies behind them: a mesh, an emitter, or nothing.
@@ -191,35 +189,6 @@ class _AMRIso:
             return bridge.to_kernel(self.m, u)
         return stable_jitter(self.m, self.m.UInt32(wavefront.lane_index(self, ray)))
 
-    def _layer_crossing(self, o, d, t_start, t_end, jitter):
-        """``(state, crossing)`` for :func:`front_to_back` along a ray in the volume (kernel
-        ``t_start``, ``t_end``). ``self.layer_fast_paths`` False restarts every layer's search
-        and composites shadow rays layer by layer (the slow twins, for tests)."""
-        m = self.m
-        state, after = crossings(self.dev, self.config(), o, d, t_start, t_end, jitter,
-                                 m.Bool(True), resume=self.layer_fast_paths)
-
-        def crossing(state, alive):
-            c, state = after(state, m.Bool(alive))
-            hit = bridge.to_mi(c.hit, mi.Bool) & alive
-            return hit, c, state, bridge.to_mi(c.k, mi.UInt32)
-
-        return state, crossing
-
-    def _opacity(self, k):
-        return bridge.to_mi(dr.gather(self.m.Float, self.inputs["iso_opacity"],
-                                      self.m.UInt32(k)), mi.Float)
-
-    def _surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
-        m = self.m
-        state, crossing = self._layer_crossing(o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh),
-                                               jitter)
-
-        def shade(hit, c, k):
-            return self.shader.shade(scene, light_u, ray, o, d, c, k, hit)
-
-        return front_to_back(state, crossing, self._opacity, shade, self.opt.max_layers, active)
-
     def iso_transmittance(self, ray, from_iso, active):
         """Light passing the isosurfaces (or the band) along a scene ray up to ``ray.maxt``;
         ``from_iso``: the ray leaves an isosurface (start just past it)."""
@@ -231,14 +200,7 @@ class _AMRIso:
             res = composite(self.dev, self.config(), o, d, t0, t1, m.Float(0.5), None, None,
                             m.Bool(active))
             return bridge.to_mi(res.T, mi.Float)
-        cfg = self.config()
-        if cfg.method == "exact" and self.layer_fast_paths:
-            return bridge.to_mi(transmittance_exact(
-                self.dev, cfg, self.inputs["iso_opacity"], o, d, t0, t1, self.opt.max_layers,
-                m.Bool(active)), mi.Float)
-        state, crossing = self._layer_crossing(o, d, t0, t1, m.Float(0.5))
-        _, T = front_to_back(state, crossing, self._opacity, None, self.opt.max_layers, active)
-        return T
+        return surfaces.transmittance(self, self.config(), o, d, t0, t1, active)
 
     def _volume(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
         """Front-to-back compositing of the opacity band up to the mesh hit."""

@@ -4,6 +4,13 @@ translucent surfaces; a single opaque surface is the one-layer case).
 :func:`front_to_back` is the loop; what a layer is comes from callbacks, so the loop can be
 checked without a scene or a volume. A ray stops after ``max_layers`` layers or once less than
 :data:`~mi_amr.tolerances.T_MIN` of the light gets through, and what is left then counts as 0.
+
+:func:`pick_one` is its stochastic twin (stochastic transparency, as Mitsuba's ``mask`` BSDF
+treats opacity): it shades one layer per sample, layer ``i`` with the probability
+``T_i alpha_i`` that is its weight in :func:`front_to_back`, and lets the sample through to
+what lies behind with the probability of the transmittance left. Its expected image is
+:func:`front_to_back`'s; one sample costs about one opaque surface's shading and shadow rays
+instead of one per layer, and is noisier.
 """
 
 from __future__ import annotations
@@ -42,3 +49,36 @@ def front_to_back(state, crossing, opacity, shade, max_layers: int, active):
         alive = hit & (T > tol.T_MIN) & (layer < max_layers)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
     return L, T
+
+
+@dr.syntax
+def pick_one(state, crossing, opacity, shade, max_layers: int, u, nowhere, active):
+    """``(L, T)`` of one sample: the radiance of one layer picked at random (weight 1), and
+    ``T`` = 1 where the sample passes every layer (what lies behind counts in full), else 0.
+
+    Callbacks as in :func:`front_to_back`, but ``where`` must be a Dr.Jit value (it is loop
+    state; ``nowhere``: its value before a layer is picked) and ``shade`` is called once,
+    after the loop. ``u`` (``mi.Float`` in ``[0, 1)``, one per sample) picks the first layer
+    after which the transmittance falls to ``u`` or below: layer ``i`` with probability ``T_i -
+    T_(i+1) = T_i alpha_i``; past the last layer (probability: the transmittance left) the
+    sample passes, unless that is at most :data:`~mi_amr.tolerances.T_MIN` (front to back
+    counts it as 0 there too)."""
+    T = mi.Float(1.0)
+    layer = mi.UInt32(0)
+    picked = mi.Bool(False)
+    where, k = nowhere, mi.UInt32(0)
+    alive = mi.Bool(active)
+    while alive:
+        hit, at, state, k_at = crossing(state, alive)
+        T_next = dr.select(hit, T * (1.0 - opacity(k_at)), T)
+        take = hit & (u >= T_next)
+        where = dr.select(take, at, where)
+        k = dr.select(take, k_at, k)
+        picked |= take
+        T = T_next
+        layer += 1
+        alive = hit & ~take & (T > tol.T_MIN) & (layer < max_layers)
+    L = mi.Spectrum(0.0)
+    if picked:          # a symbolic branch: packets with no layer picked skip the shading
+        L = shade(picked, where, k)
+    return L, dr.select(picked | (T <= tol.T_MIN), 0.0, 1.0)

@@ -52,6 +52,7 @@ class Options:
     aovs: bool
     leaf_cells: int
     max_layers: int
+    layers: str
 
 
 def parse(values: dict) -> Options:
@@ -81,6 +82,10 @@ def parse(values: dict) -> Options:
     _check_transfer2d(opt, values)
     if (opt.color_field is None) != (opt.colormap is None):
         raise AMRError("amr_iso: 'color_field' and 'colormap' go together; give both or neither")
+    if opt.layers != "composite" and opt.mode != "surface":
+        raise AMRError(f"amr_iso: parameter 'layers' ({opt.layers!r}) picks translucent "
+                       f"surfaces' layers; mode {opt.mode!r} composites its band, give mode "
+                       "'surface' or leave 'layers' out")
     opt.leaf_cells, opt.max_layers = int(opt.leaf_cells), int(opt.max_layers)
     return opt
 

@@ -1,0 +1,105 @@
+"""The isosurfaces along the integrator's rays: the kernels' crossing search wired into the
+layer loops of :mod:`mi_amr.plugin.layers`, shaded for camera rays and as transmittance alone
+for shadow rays.
+
+A camera ray's sample shades every layer it meets (``layers="composite"``,
+:func:`~mi_amr.plugin.layers.front_to_back`) or one of them, picked at random with the
+probability of its weight there (``layers="stochastic"``,
+:func:`~mi_amr.plugin.layers.pick_one`): the same pixels in expectation, noisier per sample.
+Shadow rays carry the exact transmittance of the layers they cross either way: a 0-or-1 sample
+of it, stopping where the light falls below a number per sample, was measured no faster on the
+report's scene (0.82 against 0.83 s a frame) and noisier.
+
+Rays are in the volume's world space (``o + t d``); scene rays come in as Mitsuba types.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mi_amr.kernels.jitter import stable_jitter
+from mi_amr.kernels.surface import Crossing, crossings
+from mi_amr.kernels.transmit import transmittance_exact
+from mi_amr.plugin import bridge, wavefront
+from mi_amr.plugin.layers import front_to_back, pick_one
+
+PICK_SEED = 0x9E3779B9      # the stable jitter's seed for picking layers (not the steps')
+
+
+def stochastic(integ) -> bool:
+    """Whether the integrator ``integ`` picks one layer per sample (``layers="stochastic"``)."""
+    return integ.opt.layers == "stochastic"
+
+
+def pick_u(integ, sampler, ray, active):
+    """The uniform number per sample that picks its layer: the sampler's next, or
+    (``jitter="stable"``) a hash of the lane, the same every frame."""
+    if integ.opt.jitter == "random" or not bridge.vectorised():
+        return sampler.next_1d(active)
+    lane = integ.m.UInt32(wavefront.lane_index(integ, ray))
+    return bridge.to_mi(stable_jitter(integ.m, lane, PICK_SEED), mi.Float)
+
+
+def layer_crossing(integ, o, d, t_start, t_end, jitter):
+    """``(state, crossing)`` for the layer loops along a ray in the volume (kernel
+    ``t_start``, ``t_end``). ``integ.layer_fast_paths`` False restarts every layer's search
+    (the slow twin, for tests)."""
+    m = integ.m
+    state, after = crossings(integ.dev, integ.config(), o, d, t_start, t_end, jitter,
+                             m.Bool(True), resume=integ.layer_fast_paths)
+
+    def crossing(state, alive):
+        c, state = after(state, m.Bool(alive))
+        hit = bridge.to_mi(c.hit, mi.Bool) & alive
+        return hit, c, state, bridge.to_mi(c.k, mi.UInt32)
+
+    return state, crossing
+
+
+def opacity(integ, k):
+    """Opacity of isovalue ``k`` (``mi.UInt32``) this frame."""
+    return bridge.to_mi(dr.gather(integ.m.Float, integ.inputs["iso_opacity"],
+                                  integ.m.UInt32(k)), mi.Float)
+
+
+def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
+    """``(L, T)``: the shaded isosurfaces in front of the mesh at ``t_mesh`` and the weight of
+    what lies behind them; ``u``: :func:`pick_u` where :func:`stochastic`, else None."""
+    m = integ.m
+    state, crossing = layer_crossing(integ, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh),
+                                     jitter)
+
+    def opacity_of(k):
+        return opacity(integ, k)
+
+    if u is None:
+        def shade(hit, c, k):
+            return integ.shader.shade(scene, light_u, ray, o, d, c, k, hit)
+
+        return front_to_back(state, crossing, opacity_of, shade, integ.opt.max_layers, active)
+
+    def crossing_t(state, alive):           # the loop keeps only where the layer is
+        hit, c, state, k = crossing(state, alive)
+        return hit, bridge.to_mi(c.t, mi.Float), state, k
+
+    def shade_at(hit, t, k):
+        c = Crossing(hit=m.Bool(hit), t=bridge.to_kernel(m, t), k=m.UInt32(k), samples=None)
+        return integ.shader.shade(scene, light_u, ray, o, d, c, k, hit)
+
+    return pick_one(state, crossing_t, opacity_of, shade_at, integ.opt.max_layers, u,
+                    mi.Float(dr.inf), active)
+
+
+def transmittance(integ, cfg, o, d, t0, t1, active):
+    """Light passing the isosurfaces on ``(t0, t1)`` (kernel values) of a ray in the volume:
+    one walk counting the crossings (``exact``), else the layers composited one by one."""
+    m = integ.m
+    if cfg.method == "exact" and integ.layer_fast_paths:
+        return bridge.to_mi(transmittance_exact(
+            integ.dev, cfg, integ.inputs["iso_opacity"], o, d, t0, t1, integ.opt.max_layers,
+            m.Bool(active)), mi.Float)
+    state, crossing = layer_crossing(integ, o, d, t0, t1, m.Float(0.5))
+    _, T = front_to_back(state, crossing, lambda k: opacity(integ, k), None,
+                         integ.opt.max_layers, active)
+    return T
