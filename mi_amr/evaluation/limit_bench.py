@@ -84,29 +84,35 @@ def frame_against_mesh(sizes=SIZES, frames=FRAMES) -> list:
 
 TRANSLUCENT = {"isovalue": "0.02, 0.05, 0.1", "iso_opacity": "0.4, 0.5, 0.6"}
 TRANSLUCENT_SIZE, TRANSLUCENT_SPP = 256, 4
+REFERENCE_SPP = 64      # the translucent frames' errors are against the composited scene at this
 
 
 def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_SPP) -> dict:
     """Three translucent isovalues against one opaque one (sphere_wake.xml, 256^2, 4 spp,
-    shadow rays): median warm frames, interleaved; and the translucent scene once more with
-    the slow twins of its fast paths (every layer's search restarted, shadow rays composited
-    layer by layer), which is what it cost before them; and both without shadow rays."""
+    shadow rays): median warm frames, interleaved; the translucent scene composited, with one
+    layer picked per sample (``layers="stochastic"``), and composited with the slow twins of
+    its fast paths (every layer's search restarted, shadow rays composited layer by layer),
+    which is what it cost before them; and the same without shadow rays. The composited and
+    stochastic frames' mean squared error per pixel and channel against the composited scene
+    at :data:`REFERENCE_SPP` samples per pixel tells what the faster one costs in noise."""
     import drjit as dr
     import mitsuba as mi
 
     from mi_amr.plugin.scene import load_scene
 
-    def scene(**integrator):
+    def scene(spp=spp, **integrator):
         return load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size,
                           spp=spp, integrator=integrator)
 
     opaque, layered = scene(isovalue="0.05"), scene(**TRANSLUCENT)
-    # Where the difference is: the same two without shadow rays.
-    opaque_ns, layered_ns = scene(isovalue="0.05", shadows="false"), \
-        scene(shadows="false", **TRANSLUCENT)
-    runs = (("opaque_s", opaque, True), ("translucent_s", layered, True),
-            ("translucent_slow_s", layered, False), ("opaque_unshadowed_s", opaque_ns, True),
-            ("translucent_unshadowed_s", layered_ns, True))
+    picked = scene(layers="stochastic", **TRANSLUCENT)
+    # Where the difference is: the same without shadow rays.
+    unshadowed = {key: scene(shadows="false", **kw) for key, kw in (
+        ("opaque_unshadowed_s", {"isovalue": "0.05"}), ("translucent_unshadowed_s", TRANSLUCENT),
+        ("stochastic_unshadowed_s", dict(TRANSLUCENT, layers="stochastic")))}
+    runs = [("opaque_s", opaque, True), ("translucent_s", layered, True),
+            ("stochastic_s", picked, True), ("translucent_slow_s", layered, False)]
+    runs += [(key, sc, True) for key, sc in unshadowed.items()]
     times = {key: [] for key, _, _ in runs}
     for i in range(frames + 1):
         for key, sc, fast in runs:
@@ -116,11 +122,23 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
                 times[key].append(t)
     layered.integrator().layer_fast_paths = True
     row = {k: statistics.median(v) for k, v in times.items()}
-    row["ratio"] = row["translucent_s"] / row["opaque_s"]
-    row["ratio_slow"] = row["translucent_slow_s"] / row["opaque_s"]
-    row["ratio_unshadowed"] = row["translucent_unshadowed_s"] / row["opaque_unshadowed_s"]
+    for ratio, key, opaque_key in (
+            ("ratio", "translucent_s", "opaque_s"), ("ratio_slow", "translucent_slow_s",
+                                                    "opaque_s"),
+            ("ratio_stochastic", "stochastic_s", "opaque_s"),
+            ("ratio_unshadowed", "translucent_unshadowed_s", "opaque_unshadowed_s"),
+            ("ratio_stochastic_unshadowed", "stochastic_unshadowed_s", "opaque_unshadowed_s")):
+        row[ratio] = row[key] / row[opaque_key]
+    reference = np.array(mi.render(scene(spp=REFERENCE_SPP, **TRANSLUCENT), seed=1000),
+                         dtype=np.float64)
+    for key, sc in (("translucent_mse", layered), ("stochastic_mse", picked)):
+        row[key] = statistics.mean(
+            float(np.mean((np.array(mi.render(sc, seed=s), dtype=np.float64) - reference) ** 2))
+            for s in range(frames))
     print(f"translucent {row['translucent_s']:.3f} s (slow twins {row['translucent_slow_s']:.3f}"
-          f" s), opaque {row['opaque_s']:.3f} s: {row['ratio']:.1f}x", flush=True)
+          f" s), stochastic {row['stochastic_s']:.3f} s, opaque {row['opaque_s']:.3f} s: "
+          f"{row['ratio']:.1f}x, {row['ratio_stochastic']:.1f}x; squared error "
+          f"{row['translucent_mse']:.2e} / {row['stochastic_mse']:.2e}", flush=True)
     return row
 
 
@@ -241,13 +259,20 @@ def run_limit_bench(out_dir="out/bench", variant: str = "llvm_ad_rgb") -> dict:
 
 def _layers_table(r) -> str:
     return "\n".join([
-        f"| {TRANSLUCENT_SIZE}^2, {TRANSLUCENT_SPP} spp | one opaque isovalue (s) | three "
-        "translucent (s) | ratio | before the fast paths (s) | ratio |",
+        f"| {TRANSLUCENT_SIZE}^2, {TRANSLUCENT_SPP} spp | shadow rays (s) | ratio to one opaque "
+        f"isovalue | no shadow rays (s) | ratio | squared error against {REFERENCE_SPP} spp |",
         "|---|---|---|---|---|---|",
-        f"| sphere_wake, shadow rays | {r['opaque_s']:.3f} | {r['translucent_s']:.3f} | "
-        f"{r['ratio']:.1f}x | {r['translucent_slow_s']:.3f} | {r['ratio_slow']:.1f}x |",
-        f"| sphere_wake, no shadow rays | {r['opaque_unshadowed_s']:.3f} | "
-        f"{r['translucent_unshadowed_s']:.3f} | {r['ratio_unshadowed']:.1f}x | | |"])
+        f"| one opaque isovalue | {r['opaque_s']:.3f} | 1x | {r['opaque_unshadowed_s']:.3f} | "
+        "1x | |",
+        f"| three translucent, composited | {r['translucent_s']:.3f} | {r['ratio']:.1f}x | "
+        f"{r['translucent_unshadowed_s']:.3f} | {r['ratio_unshadowed']:.1f}x | "
+        f"{r['translucent_mse']:.2e} |",
+        f"| three translucent, one layer a sample (`layers=\"stochastic\"`) | "
+        f"{r['stochastic_s']:.3f} | {r['ratio_stochastic']:.1f}x | "
+        f"{r['stochastic_unshadowed_s']:.3f} | {r['ratio_stochastic_unshadowed']:.1f}x | "
+        f"{r['stochastic_mse']:.2e} |",
+        f"| three translucent, composited by the slow twins | {r['translucent_slow_s']:.3f} | "
+        f"{r['ratio_slow']:.1f}x | | | |"])
 
 
 def _table(frames, loads) -> str:
