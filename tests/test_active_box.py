@@ -152,7 +152,10 @@ def test04_clipped_shadow_rays_and_images_are_the_twins(request, which):
     assert np.mean(slow_T < 0.99) > 0.1
     np.testing.assert_array_equal(fast_T, slow_T)
     assert fast_img.mean() > 0.05
-    np.testing.assert_array_equal(fast_img, slow_img)
+    # The samples are the same bit for bit; the film adds each into its neighbouring pixels
+    # (Gaussian filter) with atomic adds whose order across threads varies from render to
+    # render: a pixel may then differ in its last bit (seen once in a full run, 251 of 12,288).
+    np.testing.assert_allclose(fast_img, slow_img, rtol=1e-6, atol=1e-9)
 
 
 def test05_a_new_isovalue_moves_the_box_without_compiling(opaque):
