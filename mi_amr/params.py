@@ -120,7 +120,8 @@ TABLE = (
           "translucent surfaces: ``composite`` (each sample shades every layer it meets, "
           "weighted by the light reaching it) or ``stochastic`` (one layer per sample, picked "
           "with the probability of that weight, as Mitsuba's ``mask`` BSDF does: the same "
-          "image in expectation, noisier per sample, at about one opaque surface's cost)",
+          "image in expectation, noisier per sample, at about one opaque surface's cost; "
+          "alpha is then the share of samples that stop at a layer)",
           choices=LAYER_MODES),
 )
 BY_NAME = {p.name: p for p in TABLE}

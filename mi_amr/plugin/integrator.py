@@ -165,7 +165,9 @@ class _AMRIso:
         # change inside the symbolic loops below.
         light_u = [sampler.next_2d(active) for _ in scene.emitters()]
         # ---- Isosurfaces (or the band) in front of the mesh, front to back.
-        u = surfaces.pick_u(self, sampler, ray, active) if surfaces.stochastic(self) else None
+        # Stochastic layers: the number that picks one (the sampler's, not a hash of the lane
+        # as jitter="stable" takes, so that passes at seeds 0, 1, ... converge).
+        u = sampler.next_1d(active) if surfaces.stochastic(self) else None
         if self.opt.mode == "surface":
             L, T = surfaces.surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, u, active)
         else:
@@ -173,7 +175,8 @@ class _AMRIso:
         # ---- What lies behind them: a mesh, an emitter, or nothing.
         L += T * shading.mesh_light(scene, sampler, ray, si, self.phong(), active & (T > 0.0),
                                     self.shadows(), self.iso_transmittance)
-        # ---- Alpha is the coverage by surfaces (the environment behind counts as empty).
+        # ---- Alpha is the coverage by surfaces (the environment behind counts as empty);
+        # with stochastic layers, the share of samples that stop at a layer (1 - T on average).
         covered = active & (si.is_valid() | (T < 1.0))
         aovs = iso_aovs(self, ray, o, d, t_mesh, jitter, active) if self.opt.aovs else []
         return L, covered, aovs

@@ -18,27 +18,14 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.surface import Crossing, crossings
 from mi_amr.kernels.transmit import transmittance_exact
-from mi_amr.plugin import bridge, wavefront
+from mi_amr.plugin import bridge
 from mi_amr.plugin.layers import front_to_back, pick_one
-
-PICK_SEED = 0x9E3779B9      # the stable jitter's seed for picking layers (not the steps')
-
 
 def stochastic(integ) -> bool:
     """Whether the integrator ``integ`` picks one layer per sample (``layers="stochastic"``)."""
     return integ.opt.layers == "stochastic"
-
-
-def pick_u(integ, sampler, ray, active):
-    """The uniform number per sample that picks its layer: the sampler's next, or
-    (``jitter="stable"``) a hash of the lane, the same every frame."""
-    if integ.opt.jitter == "random" or not bridge.vectorised():
-        return sampler.next_1d(active)
-    lane = integ.m.UInt32(wavefront.lane_index(integ, ray))
-    return bridge.to_mi(stable_jitter(integ.m, lane, PICK_SEED), mi.Float)
 
 
 def layer_crossing(integ, o, d, t_start, t_end, jitter):
@@ -65,7 +52,8 @@ def opacity(integ, k):
 
 def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
     """``(L, T)``: the shaded isosurfaces in front of the mesh at ``t_mesh`` and the weight of
-    what lies behind them; ``u``: :func:`pick_u` where :func:`stochastic`, else None."""
+    what lies behind them; ``u``: where :func:`stochastic`, the uniform number per sample
+    (``mi.Float``) that picks its layer, else None."""
     m = integ.m
     state, crossing = layer_crossing(integ, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh),
                                      jitter)
