@@ -456,13 +456,17 @@ def test09_images_keyframes_and_data_files(page, viewer):
 
 
 def test10_a_new_method_or_isovalue_count_loads_the_scene_again(page, viewer):
-    """Method and the number of isovalues change the kernels' structure: the page says the
-    scene is loaded again, the new view comes, and the controls' count stays 0."""
+    """Method, layers and the number of isovalues change the kernels' structure: the page
+    says the scene is loaded again, the new view comes, and the controls' count stays 0."""
     v = viewer.state()["version"]
     page.get_by_test_id("method").select_option("adaptive")
     wait_message(page, "Loading the scene again")
     v = wait_frame(page, v)
     assert viewer.state()["state"]["method"] == "adaptive"
+    page.get_by_test_id("layers").select_option("stochastic")
+    wait_message(page, "Loading the scene again")
+    v = wait_frame(page, v)
+    assert viewer.state()["state"]["layers"] == "stochastic"
     page.get_by_test_id("add-isovalue").click()
     v = wait_frame(page, v)
     assert len(viewer.state()["state"]["isovalues"]) == 2
@@ -498,6 +502,7 @@ def test12_the_newest_request_wins(variant):
     base = ViewState(data_file="a.npz", field="f", color_field=None, colormap=None,
                      color_range=None, isovalues=(0.3,), iso_colors=((1.0, 1.0, 1.0),),
                      iso_opacity=(1.0,), mode="surface", method="exact", reconstruction="basis",
+                     layers="composite",
                      step_scale=0.5, band_width=(0.01,), band_offsets=((-0.02, 0.02),),
                      band_peak=(1.6,), shadows=True,
                      camera=Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 30.0),
@@ -575,3 +580,22 @@ def test13_a_frame_ready_before_the_server_runs_is_kept(tmp_path):
     thread.start()
     thread.join()
     assert seen == [("frame", b"first"), ("reply", None), ("frame", b"second")]
+
+
+def test14_the_saved_scene_keeps_the_layers_of_surfaces():
+    """``layers`` is written for surfaces and left out in volume mode (which composites its
+    band and refuses the parameter)."""
+    from mi_amr.plugin.camera import Camera
+    from mi_amr.workflows.viewer.sceneio import integrator_values
+    from mi_amr.workflows.viewer.state import ViewState
+
+    state = ViewState(data_file="a.npz", field="f", color_field=None, colormap=None,
+                      color_range=None, isovalues=(0.3,), iso_colors=((1.0, 1.0, 1.0),),
+                      iso_opacity=(0.5,), mode="surface", method="exact",
+                      reconstruction="basis", layers="stochastic", step_scale=0.5,
+                      band_width=(0.01,), band_offsets=((-0.02, 0.02),), band_peak=(1.6,),
+                      shadows=True,
+                      camera=Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 30.0),
+                      light_direction=None, light_irradiance=None, spp=2)
+    assert integrator_values(state)["layers"] == "stochastic"
+    assert integrator_values(state.replace(mode="volume"))["layers"] is None

@@ -207,6 +207,7 @@ SETTERS = {
     "method": _simple("method", lambda v: choice(v, "method", params.METHODS)),
     "reconstruction": _simple("reconstruction",
                               lambda v: choice(v, "reconstruction", params.RECONSTRUCTIONS)),
+    "layers": _simple("layers", lambda v: choice(v, "layers", params.LAYER_MODES)),
     "mode": _set_mode, "band_width": _set_band_width, "field": _set_field,
     "color_field": _set_color_field, "colormap": _set_colormap, "color_range": _set_color_range,
     "light_azimuth": lambda s, m, c: _set_light(s, m, c, "azimuth"),

@@ -103,7 +103,7 @@ class Hub:
             "color_range": s.color_range, "isovalues": s.isovalues,
             "iso_colors": [controls.linear_to_hex(c) for c in s.iso_colors],
             "iso_opacity": s.iso_opacity, "mode": s.mode, "method": s.method,
-            "reconstruction": s.reconstruction, "step_scale": s.step_scale,
+            "reconstruction": s.reconstruction, "layers": s.layers, "step_scale": s.step_scale,
             "band_width": s.band_width[0], "shadows": s.shadows, "camera": s.camera.as_dict(),
             "light": light, "spp": s.spp, "structure": list(structure(s))}}
 
@@ -115,6 +115,7 @@ class Hub:
                 "value_range": i["value_range"], "color_data_range": i["color_data_range"],
                 "histogram": i["histogram"], "fields": i["fields"],
                 "methods": params.METHODS, "reconstructions": params.RECONSTRUCTIONS,
+                "layer_modes": params.LAYER_MODES,
                 "modes": params.MODES, "colormaps": COLORMAPS, "files": self.rules.listing(),
                 "out_dir": str(self.rules.out_dir), "resolution": i["resolution"],
                 "preview_scale": self.worker.preview_scale,
@@ -177,7 +178,7 @@ class Hub:
             return
         if structure(new) != structure(self.state):
             self.broadcast({"type": "notice", "message":
-                            "Loading the scene again: method, reconstruction, mode, fields and "
+                            "Loading the scene again: method, reconstruction, layers, mode, fields and "
                             "the number of isovalues are part of the kernels' structure, so "
                             "this compiles them once (a few seconds)."})
         self.version += 1

@@ -20,7 +20,7 @@ OWNED = (("filename", "string"), ("field", "string"), ("isovalue", "string"),
          ("colormap", "string"), ("color_range", "string"), ("mode", "string"),
          ("method", "string"), ("reconstruction", "string"), ("step_scale", "float"),
          ("shadows", "boolean"), ("band_width", "string"), ("band_support", "string"),
-         ("band_peak", "string"))
+         ("band_peak", "string"), ("layers", "string"))
 
 
 def num(x) -> str:
@@ -46,6 +46,8 @@ def integrator_values(state) -> dict:
         "band_width": ", ".join(num(w) for w in state.band_width) if volume else None,
         "band_support": support if volume else None,
         "band_peak": ", ".join(num(a) for a in state.band_peak) if volume else None,
+        # (volume mode composites its band: the scene then leaves the layers out)
+        "layers": None if volume else state.layers,
     }
 
 

@@ -18,8 +18,8 @@ light                       the directional emitter's ``to_world`` and          
 preview / image size        the film's ``size``                                    once a size
 data file (time step)       ``integrator.load_volume`` (same fields)               no
 method, reconstruction,     the scene is loaded again (:func:`structure`)          yes (once)
-mode, field, colour field,
-number of isovalues
+layers, mode, field, colour
+field, number of isovalues
 ==========================  =====================================================  ==========
 
 Positions and directions are scene world space; the light's ``direction`` is the way its light
@@ -63,6 +63,7 @@ class ViewState:
     mode: str
     method: str
     reconstruction: str
+    layers: str                     # translucent surfaces: composite or stochastic
     step_scale: float
     band_width: tuple               # volume mode: one per isovalue (field units)
     band_offsets: tuple             # one (lo, hi) per isovalue: its band's support minus it
@@ -81,7 +82,7 @@ def structure(state: ViewState) -> tuple:
     """What the kernels' structure depends on: a change of any of these loads the scene
     again (and compiles its kernels once); every other change is an ``mi.traverse`` update."""
     return (state.field, state.color_field, state.colormap is None, state.mode, state.method,
-            state.reconstruction, len(state.isovalues))
+            state.reconstruction, state.layers, len(state.isovalues))
 
 
 def refine_passes(total: int) -> list:
@@ -180,7 +181,7 @@ class Session:
             color_range=floats("color_range") if opt.colormap is not None else None,
             isovalues=floats("isovalue"), iso_colors=tuple(tuple(c) for c in colors),
             iso_opacity=floats("iso_opacity"), mode=opt.mode, method=opt.method,
-            reconstruction=opt.reconstruction, step_scale=floats("step_scale")[0],
+            reconstruction=opt.reconstruction, layers=opt.layers, step_scale=floats("step_scale")[0],
             band_width=band[0], band_offsets=band[1], band_peak=band[2],
             shadows=bool(p[k + "shadows"].numpy()[0]), camera=self.home_camera,
             light_direction=direction, light_irradiance=irradiance, spp=int(spp))

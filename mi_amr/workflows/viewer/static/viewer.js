@@ -106,6 +106,7 @@ function applyInfo(m) {
   $("scene-name").textContent = m.scene;
   fillSelect($("method"), m.methods);
   fillSelect($("reconstruction"), m.reconstructions);
+  fillSelect($("layers"), m.layer_modes);
   fillSelect($("mode"), m.modes);
   fillSelect($("color-field"), ["none", ...m.fields], ["(none: iso colours)", ...m.fields]);
   fillList($("field-list"), m.fields);
@@ -149,10 +150,11 @@ function applyState(s) {
   setValue("isovalue-text", fmt(s.isovalues[active]));
   buildIsoList(s);
   for (const [id, v] of [["method", s.method], ["reconstruction", s.reconstruction],
-    ["mode", s.mode], ["color-field", s.color_field || "none"]]) $(id).value = v;
+    ["layers", s.layers], ["mode", s.mode], ["color-field", s.color_field || "none"]]) $(id).value = v;
   setValue("step-scale", s.step_scale);
   setValue("band-width", s.band_width);
   $("band-row").style.display = s.mode === "volume" ? "" : "none";
+  $("layers-row").style.display = s.mode === "volume" ? "none" : "";
   setValue("field", s.field);
   setValue("colormap", s.colormap || "");
   $("colormap").disabled = $("color-lo").disabled = $("color-hi").disabled = !s.colormap;
@@ -249,7 +251,7 @@ function wireControls() {
   });
   onEnter("isovalue-text", (v) => set("isovalue", v, { index: active }));
   $("add-isovalue").addEventListener("click", () => send({ op: "add_isovalue" }));
-  for (const id of ["method", "reconstruction", "mode"]) {
+  for (const id of ["method", "reconstruction", "layers", "mode"]) {
     $(id).addEventListener("change", () => set(id, $(id).value));
   }
   onEnter("step-scale", (v) => set("step_scale", v));
