@@ -189,3 +189,20 @@ def test06_only_the_exact_march_on_the_basis_blend_clips(scene_data_ready, kw, c
     cfg = integ.config()
     assert clips(cfg) == clipped
     assert (clip_box(cfg) is not None) == clipped
+
+
+def test07_trace_clips_to_the_box_too(opaque):
+    """``mi_amr.trace`` (exact, basis) clips its rays to the active box as the integrator
+    does: the same hits, depths, normals and isovalues as with ``active_box=False``, for one
+    isovalue and three."""
+    from mi_amr.kernels.trace import trace
+
+    integ = opaque.integrator()
+    o, d = sample_rays(integ, n=6000)
+    for iso in (0.05, list(ISOVALUES)):
+        fast, slow = (trace(integ.prep.volume, o, d, field="q_criterion", isovalue=iso,
+                            active_box=box) for box in (True, False))
+        assert fast.hit.sum() > 500
+        for a, b in ((fast.hit, slow.hit), (fast.t, slow.t), (fast.iso_index, slow.iso_index)):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(fast.normal[fast.hit], slow.normal[slow.hit])

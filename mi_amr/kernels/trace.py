@@ -14,7 +14,7 @@ import numpy as np
 
 from mi_amr import params
 from mi_amr.errors import AMRError, shown
-from mi_amr.kernels.config import MarchConfig
+from mi_amr.kernels.config import MarchConfig, clips
 from mi_amr.kernels.device import device_array, lnot, opaque_floats
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import PreparedVolume
@@ -42,12 +42,15 @@ def trace(volume, origins, directions, *, field: str, isovalue,
           reconstruction: str = params.default("reconstruction"),
           step_scale: float = params.default("step_scale"), jitter=None,
           leaf_cells: int = params.default("leaf_cells"), t_max=np.inf,
-          backend=None) -> TraceResult:
+          backend=None, active_box: bool = True) -> TraceResult:
     """First crossing of ``isovalue`` (a number or a list) by each ray, in the volume's world
     space. ``origins`` and ``directions`` are ``(N, 3)``; directions need not be unit length.
     ``jitter`` (``(N,)`` in [0, 1)) offsets the adaptive methods' steps; by default
     :func:`~mi_amr.kernels.jitter.stable_jitter` of the ray index. ``backend`` is a Dr.Jit
-    module (default ``drjit.llvm.ad``). Defaults come from :mod:`mi_amr.params`. Raises
+    module (default ``drjit.llvm.ad``). Where the integrator would (``exact`` on the basis
+    blend), the rays are clipped to the isovalues' active box; ``active_box=False`` walks the
+    whole volume instead (the slow twin: the same crossings). Defaults come from
+    :mod:`mi_amr.params`. Raises
     :class:`AMRError` for an isovalue that is not a finite number (in float32, the kernels'
     precision) and for rays with a non-finite origin or a zero or non-finite direction."""
     if method not in METHODS:
@@ -67,6 +70,8 @@ def trace(volume, origins, directions, *, field: str, isovalue,
     scale = opaque_floats(m, [step_scale])
     cfg = MarchConfig(method=method, basis=reconstruction == "basis", isovalues=iso,
                       step_scale=scale, num_iso=len(isovalues))
+    if active_box and clips(cfg):
+        cfg.active_box = dev.active_box(isovalues)
     dev.node_search(cfg.basis)           # the leaf ranges, before the march is traced
     o = _array3(m, origins)
     d = _array3(m, directions)
