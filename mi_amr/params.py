@@ -16,7 +16,7 @@ from typing import Any
 METHODS = ("exact", "bisect", "adaptive", "uniform")
 RECONSTRUCTIONS = ("basis", "finest")
 MODES = ("surface", "volume")
-LAYER_MODES = ("composite", "stochastic")
+LAYER_MODES = ("composite", "one_shadow", "stochastic")
 MAX_ISOVALUES = 8
 REQUIRED = object()          # the default of a parameter that must be given
 
@@ -118,7 +118,10 @@ TABLE = (
           lo=1, hi=64),
     Param("layers", "string", "composite",
           "translucent surfaces: ``composite`` (each sample shades every layer it meets, "
-          "weighted by the light reaching it) or ``stochastic`` (one layer per sample, picked "
+          "weighted by the light reaching it, each with its own shadow rays), ``one_shadow`` "
+          "(every layer shaded, one shadow ray per light and sample, from a layer picked by "
+          "its share of that light: the same image in expectation, noisy only where a pixel's "
+          "layers see the light differently) or ``stochastic`` (one layer per sample, picked "
           "with the probability of that weight, as Mitsuba's ``mask`` BSDF does: the same "
           "image in expectation, noisier per sample, at about one opaque surface's cost; "
           "alpha is then the share of samples that stop at a layer)",

@@ -11,12 +11,13 @@ pytest.importorskip("mitsuba")
 from mi_amr.evaluation import limit_bench  # noqa: E402
 
 
-def test01_translucent_against_opaque_times_seven_scenes(scene_data_ready):
+def test01_translucent_against_opaque_times_eight_scenes(scene_data_ready):
     row = limit_bench.translucent_against_opaque(frames=1, size=32, spp=1)
     for key in ("opaque_s", "translucent_s", "stochastic_s", "translucent_slow_s", "ratio",
                 "ratio_slow", "ratio_stochastic", "opaque_unshadowed_s",
                 "translucent_unshadowed_s", "stochastic_unshadowed_s", "ratio_unshadowed",
-                "ratio_stochastic_unshadowed", "translucent_mse", "stochastic_mse"):
+                "ratio_stochastic_unshadowed", "translucent_mse", "stochastic_mse",
+                "one_shadow_s", "ratio_one_shadow", "one_shadow_mse"):
         assert math.isfinite(row[key]) and row[key] > 0, key
     assert row["ratio"] == pytest.approx(row["translucent_s"] / row["opaque_s"])
     assert row["ratio_stochastic"] == pytest.approx(row["stochastic_s"] / row["opaque_s"])
@@ -25,7 +26,7 @@ def test01_translucent_against_opaque_times_seven_scenes(scene_data_ready):
     # One layer a sample is noisier than all of them at the same samples per pixel.
     assert row["stochastic_mse"] > row["translucent_mse"]
     table = limit_bench._layers_table(row)
-    for key in ("translucent_s", "stochastic_s", "translucent_unshadowed_s",
+    for key in ("translucent_s", "stochastic_s", "one_shadow_s", "translucent_unshadowed_s",
                 "stochastic_unshadowed_s"):
         assert f"{row[key]:.3f}" in table, key
     assert f"{row['ratio_slow']:.1f}x" in table and f"{row['stochastic_mse']:.2e}" in table

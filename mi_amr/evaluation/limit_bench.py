@@ -90,10 +90,11 @@ REFERENCE_SPP = 64      # the translucent frames' errors are against the composi
 def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_SPP) -> dict:
     """Three translucent isovalues against one opaque one (sphere_wake.xml, 256^2, 4 spp,
     shadow rays): median warm frames, interleaved; the translucent scene composited, with one
-    layer picked per sample (``layers="stochastic"``), and composited with the slow twins of
+    shadow ray per sample (``layers="one_shadow"``), with one layer picked per sample
+    (``layers="stochastic"``), and composited with the slow twins of
     its fast paths (every layer's search restarted, shadow rays composited layer by layer),
     which is what it cost before them; and the same without shadow rays. The composited and
-    stochastic frames' mean squared error per pixel and channel against the composited scene
+    faster ones' mean squared error per pixel and channel against the composited scene
     at :data:`REFERENCE_SPP` samples per pixel tells what the faster one costs in noise."""
     import drjit as dr
     import mitsuba as mi
@@ -106,12 +107,14 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
 
     opaque, layered = scene(isovalue="0.05"), scene(**TRANSLUCENT)
     picked = scene(layers="stochastic", **TRANSLUCENT)
+    one_shadow = scene(layers="one_shadow", **TRANSLUCENT)
     # Where the difference is: the same without shadow rays.
     unshadowed = {key: scene(shadows="false", **kw) for key, kw in (
         ("opaque_unshadowed_s", {"isovalue": "0.05"}), ("translucent_unshadowed_s", TRANSLUCENT),
         ("stochastic_unshadowed_s", dict(TRANSLUCENT, layers="stochastic")))}
     runs = [("opaque_s", opaque, True), ("translucent_s", layered, True),
-            ("stochastic_s", picked, True), ("translucent_slow_s", layered, False)]
+            ("one_shadow_s", one_shadow, True), ("stochastic_s", picked, True),
+            ("translucent_slow_s", layered, False)]
     runs += [(key, sc, True) for key, sc in unshadowed.items()]
     times = {key: [] for key, _, _ in runs}
     for i in range(frames + 1):
@@ -126,19 +129,23 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
             ("ratio", "translucent_s", "opaque_s"), ("ratio_slow", "translucent_slow_s",
                                                     "opaque_s"),
             ("ratio_stochastic", "stochastic_s", "opaque_s"),
+            ("ratio_one_shadow", "one_shadow_s", "opaque_s"),
             ("ratio_unshadowed", "translucent_unshadowed_s", "opaque_unshadowed_s"),
             ("ratio_stochastic_unshadowed", "stochastic_unshadowed_s", "opaque_unshadowed_s")):
         row[ratio] = row[key] / row[opaque_key]
     reference = np.array(mi.render(scene(spp=REFERENCE_SPP, **TRANSLUCENT), seed=1000),
                          dtype=np.float64)
-    for key, sc in (("translucent_mse", layered), ("stochastic_mse", picked)):
+    for key, sc in (("translucent_mse", layered), ("one_shadow_mse", one_shadow),
+                    ("stochastic_mse", picked)):
         row[key] = statistics.mean(
             float(np.mean((np.array(mi.render(sc, seed=s), dtype=np.float64) - reference) ** 2))
             for s in range(frames))
     print(f"translucent {row['translucent_s']:.3f} s (slow twins {row['translucent_slow_s']:.3f}"
-          f" s), stochastic {row['stochastic_s']:.3f} s, opaque {row['opaque_s']:.3f} s: "
-          f"{row['ratio']:.1f}x, {row['ratio_stochastic']:.1f}x; squared error "
-          f"{row['translucent_mse']:.2e} / {row['stochastic_mse']:.2e}", flush=True)
+          f" s), one shadow ray {row['one_shadow_s']:.3f} s, stochastic "
+          f"{row['stochastic_s']:.3f} s, opaque {row['opaque_s']:.3f} s: {row['ratio']:.1f}x, "
+          f"{row['ratio_one_shadow']:.1f}x, {row['ratio_stochastic']:.1f}x; squared error "
+          f"{row['translucent_mse']:.2e} / {row['one_shadow_mse']:.2e} / "
+          f"{row['stochastic_mse']:.2e}", flush=True)
     return row
 
 
@@ -267,6 +274,9 @@ def _layers_table(r) -> str:
         f"| three translucent, composited | {r['translucent_s']:.3f} | {r['ratio']:.1f}x | "
         f"{r['translucent_unshadowed_s']:.3f} | {r['ratio_unshadowed']:.1f}x | "
         f"{r['translucent_mse']:.2e} |",
+        f"| three translucent, one shadow ray a sample (`layers=\"one_shadow\"`) | "
+        f"{r['one_shadow_s']:.3f} | {r['ratio_one_shadow']:.1f}x | | | "
+        f"{r['one_shadow_mse']:.2e} |",
         f"| three translucent, one layer a sample (`layers=\"stochastic\"`) | "
         f"{r['stochastic_s']:.3f} | {r['ratio_stochastic']:.1f}x | "
         f"{r['stochastic_unshadowed_s']:.3f} | {r['ratio_stochastic_unshadowed']:.1f}x | "

@@ -165,9 +165,9 @@ class _AMRIso:
         # change inside the symbolic loops below.
         light_u = [sampler.next_2d(active) for _ in scene.emitters()]
         # ---- Isosurfaces (or the band) in front of the mesh, front to back.
-        # Stochastic layers: the number that picks one (the sampler's, not a hash of the lane
-        # as jitter="stable" takes, so that passes at seeds 0, 1, ... converge).
-        u = sampler.next_1d(active) if surfaces.stochastic(self) else None
+        # Picking layers: the number that picks (the sampler's, not a hash of the lane as
+        # jitter="stable" takes, so that passes at seeds 0, 1, ... converge).
+        u = sampler.next_1d(active) if surfaces.draws_u(self) else None
         if self.opt.mode == "surface":
             L, T = surfaces.surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, u, active)
         else:

@@ -69,6 +69,20 @@ class IsoShader:
         A, S = self.light(scene, light_u, ray, bridge.to_mi(c.t, mi.Float), grad, hit)
         return color * A + S
 
+    def shade_parts(self, scene, light_u, ray, o, d, c, hit):
+        """:meth:`shade` with its shadow rays not yet traced: ``(base, parts)``, the ambient
+        light ``base`` and per emitter ``(direct, shadow ray)``, so that ``shade`` is ``base +
+        sum(direct * V)`` with each shadow ray's visibility ``V`` (Mitsuba types out)."""
+        m, dev, integ = self.m, self.integ.dev, self.integ
+        basis = integ.opt.reconstruction == "basis"
+        vals, grad = reconstruct(dev, basis, o + d * c.t, dev.arrays(basis, color=True),
+                                 m.Bool(hit))
+        color = bridge.to_mi3(self.color(c.k, vals[1]), mi.Color3f)
+        t = bridge.to_mi(c.t, mi.Float)
+        n = shading.facing_normal(integ.frame.to_scene, bridge.to_mi3(grad, mi.Normal3f), ray.d)
+        A0, parts = shading.iso_light_parts(scene, light_u, ray, ray(t), n, integ.phong(), hit)
+        return color * A0, [(color * p.diffuse + p.specular, p.shadow) for p in parts]
+
     def lighting(self, scene, light_u, ray, o, d):
         """The ``lighting`` object of the volume compositing
         (:func:`~mi_amr.kernels.composite.composite`) for the ray ``ray`` (scene) that is

@@ -11,6 +11,12 @@ treats opacity): it shades one layer per sample, layer ``i`` with the probabilit
 what lies behind with the probability of the transmittance left. Its expected image is
 :func:`front_to_back`'s; one sample costs about one opaque surface's shading and shadow rays
 instead of one per layer, and is noisier.
+
+:func:`one_shadow_ray` keeps :func:`front_to_back`'s shading of every layer and traces one shadow
+ray per light and sample instead of one per layer: from a layer picked with the probability of
+its share of that light's unshadowed direct light, its visibility weighting all of that light.
+The expectation is :func:`front_to_back`'s again; the noise is only where the layers of a pixel
+see the light differently.
 """
 
 from __future__ import annotations
@@ -19,6 +25,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_amr import tolerances as tol
+
+ONE_BELOW = 1.0 - 2.0 ** -24    # the largest float32 below 1: a rescaled number stays below 1
 
 
 @dr.syntax
@@ -82,3 +90,59 @@ def pick_one(state, crossing, opacity, shade, max_layers: int, u, nowhere, activ
     if picked:          # a symbolic branch: packets with no layer picked skip the shading
         L = shade(picked, where, k)
     return L, dr.select(picked | (T <= tol.T_MIN), 0.0, 1.0)
+
+
+@dr.syntax
+def one_shadow_ray(state, crossing, opacity, shade_parts, visible, max_layers: int, u,
+                   lights: int, active):
+    """``(L, T)`` as :func:`front_to_back` gives them in expectation, with one shadow ray per
+    light: ``shade_parts(hit, where, k) -> (base, [(direct, shadow_ray), ...])`` is a layer's
+    ambient light and per light its unshadowed direct light and shadow ray (``shade`` is
+    ``base + sum(direct * V)``), and ``visible(shadow_ray, active)`` the ray's ``V``.
+
+    Per light, the layers' weighted direct light ``c_i = T_i alpha_i direct_i`` is summed
+    (``Q``, over the channels) while one layer is kept by weighted reservoir sampling
+    (``u``, ``mi.Float`` in ``[0, 1)``, rescaled at each choice): layer ``i`` with probability
+    ``q_i / Q``, ``q_i`` its channels' sum. Its ``c_i V_i Q / q_i`` then stands for ``sum(c_i
+    V_i)``; where every layer sees the light alike it is that sum exactly. ``lights``: how
+    many lights (entries of ``shade_parts``' list) there are."""
+    L = mi.Spectrum(0.0)
+    T = mi.Float(1.0)
+    layer = mi.UInt32(0)
+    alive = mi.Bool(active)
+    # Per light: (u, Q, c, q, shadow ray) of the layer kept so far.
+    kept = tuple((mi.Float(u), mi.Float(0.0), mi.Spectrum(0.0), mi.Float(0.0),
+                  dr.zeros(mi.Ray3f)) for _ in range(lights))
+    while alive:
+        hit, where, state, k = crossing(state, alive)
+        alpha = opacity(k)
+        if hit:
+            L, kept = _take_layer(L, kept, T * alpha, shade_parts(hit, where, k), hit)
+        T = dr.select(hit, T * (1.0 - alpha), T)
+        layer += 1
+        alive = hit & (T > tol.T_MIN) & (layer < max_layers)
+    for _, Q, c, q, ray in kept:
+        on = q > 0.0
+        L += dr.select(on, c * (Q / q) * visible(ray, on), 0.0)
+    T = dr.select(T <= tol.T_MIN, 0.0, T)
+    return L, T
+
+
+def _take_layer(L, kept, weight, shaded, hit):
+    """``(L, kept)`` after a layer of weight ``weight`` (``T alpha``) whose
+    ``shade_parts`` are ``shaded``: its ambient light added, and per light its weighted
+    direct light offered to the reservoir (see :func:`one_shadow_ray`)."""
+    base, parts = shaded
+    L = L + weight * base
+    out = []
+    for (u, Q, c, q, ray), (direct, shadow) in zip(kept, parts):
+        c_i = weight * direct
+        q_i = dr.select(hit, c_i.x + c_i.y + c_i.z, 0.0)
+        Q = Q + q_i
+        p = dr.select(q_i > 0.0, q_i / Q, 0.0)
+        take = u < p
+        # The uniform number rescaled to the part of [0, 1) it fell in, for the next choice.
+        u = dr.select(take, u / p, (u - p) / (1.0 - p))
+        out.append((dr.minimum(u, ONE_BELOW), Q, dr.select(take, c_i, c),
+                    dr.select(take, q_i, q), dr.select(take, shadow, ray)))
+    return L, tuple(out)

@@ -61,7 +61,12 @@ def visibility(scene, origin, ds, active, shadows, iso_transmittance: Callable, 
     """Fraction of the light of sample ``ds`` reaching ``origin``: 0 behind a mesh, else the
     transmittance of the isosurfaces in between (``iso_transmittance(ray, from_iso, active)``),
     and 1 where ``shadows`` is off."""
-    ray = shadow_ray(origin, ds)
+    return ray_visibility(scene, shadow_ray(origin, ds), active, shadows, iso_transmittance,
+                          from_iso)
+
+
+def ray_visibility(scene, ray, active, shadows, iso_transmittance: Callable, from_iso: bool):
+    """:func:`visibility` along the shadow ray ``ray`` itself."""
     test = active & shadows
     blocked = scene.ray_test(ray, test)
     clear = test & dr.select(blocked, False, True)
@@ -82,6 +87,32 @@ def iso_light(scene, light_u, ray, P, n, phong: Phong, active, shadows, iso_tran
         A += dr.select(lit, diffuse, 0.0)
         S += dr.select(lit, specular, 0.0)
     return A, S
+
+
+@dataclass
+class LightPart:
+    """One emitter's direct light at an isosurface point before its shadow ray: the Phong
+    terms ``diffuse`` (to be multiplied by the point's colour) and ``specular``, zero where
+    the light is not on the normal's side, and the shadow ray that would decide them."""
+
+    diffuse: Any
+    specular: Any
+    shadow: Any      # mi.Ray3f
+
+
+def iso_light_parts(scene, light_u, ray, P, n, phong: Phong, active):
+    """``(A0, parts)``: what :func:`iso_light` adds up, the shadow rays not yet traced --
+    the ambient term ``A0`` and one :class:`LightPart` per emitter. ``iso_light`` is
+    ``A0 + sum(diffuse * V)``, ``sum(specular * V)`` with each part's visibility ``V``."""
+    parts = []
+    for emitter, u in zip(scene.emitters(), light_u):
+        ds, w = _sample_emitter(emitter, u, ray, P, active)
+        lit = active & (ds.pdf > 0.0) & (dr.dot(n, ds.d) > 0.0)
+        diffuse, specular = phong_terms(phong, n, ds.d, -ray.d, w)
+        parts.append(LightPart(diffuse=dr.select(lit, diffuse, 0.0),
+                               specular=dr.select(lit, specular, 0.0),
+                               shadow=shadow_ray(P, ds)))
+    return mi.Spectrum(phong.ka * phong.ambient), parts
 
 
 def _sample_emitter(emitter, u, ray, P, active):

@@ -20,12 +20,13 @@ import mitsuba as mi
 
 from mi_amr.kernels.surface import Crossing, crossings
 from mi_amr.kernels.transmit import transmittance_exact
-from mi_amr.plugin import bridge
-from mi_amr.plugin.layers import front_to_back, pick_one
+from mi_amr.plugin import bridge, shading
+from mi_amr.plugin.layers import front_to_back, one_shadow_ray, pick_one
 
-def stochastic(integ) -> bool:
-    """Whether the integrator ``integ`` picks one layer per sample (``layers="stochastic"``)."""
-    return integ.opt.layers == "stochastic"
+def draws_u(integ) -> bool:
+    """Whether the integrator ``integ``'s camera rays pick (one layer, or one layer's shadow
+    rays) and so draw a number per sample: ``layers`` other than ``composite``."""
+    return integ.opt.layers != "composite"
 
 
 def layer_crossing(integ, o, d, t_start, t_end, jitter):
@@ -52,8 +53,8 @@ def opacity(integ, k):
 
 def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
     """``(L, T)``: the shaded isosurfaces in front of the mesh at ``t_mesh`` and the weight of
-    what lies behind them; ``u``: where :func:`stochastic`, the uniform number per sample
-    (``mi.Float``) that picks its layer, else None."""
+    what lies behind them; ``u``: where :func:`draws_u`, the uniform number per sample
+    (``mi.Float``) that picks, else None."""
     m = integ.m
     state, crossing = layer_crossing(integ, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh),
                                      jitter)
@@ -61,6 +62,16 @@ def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
     def opacity_of(k):
         return opacity(integ, k)
 
+    if integ.opt.layers == "one_shadow":
+        def parts(hit, c, k):
+            return integ.shader.shade_parts(scene, light_u, ray, o, d, c, hit)
+
+        def visible(shadow, on):
+            return shading.ray_visibility(scene, shadow, on, integ.shadows(),
+                                          integ.iso_transmittance, from_iso=True)
+
+        return one_shadow_ray(state, crossing, opacity_of, parts, visible,
+                              integ.opt.max_layers, u, len(scene.emitters()), active)
     if u is None:
         def shade(hit, c, k):
             return integ.shader.shade(scene, light_u, ray, o, d, c, k, hit)

@@ -1,7 +1,7 @@
 """``python -m mi_amr view SCENE.xml``: an interactive explorer in the browser.
 
 The page changes the isovalues (with the field's histogram behind the slider), the method,
-reconstruction, translucent layers (composited or stochastic), step and mode, the colour field,
+reconstruction, translucent layers (how they are sampled), step and mode, the colour field,
 map and range, the camera (drag to orbit, shift-drag to pan, wheel to zoom), the light and
 shadows, and saves images, scenes and movie keyframes. Every change that keeps the kernels' structure is an ``mi.traverse`` update in the
 same process, compiling nothing.
