@@ -9,8 +9,8 @@ checked without a scene or a volume. A ray stops after ``max_layers`` layers or 
 treats opacity): it shades one layer per sample, layer ``i`` with the probability
 ``T_i alpha_i`` that is its weight in :func:`front_to_back`, and lets the sample through to
 what lies behind with the probability of the transmittance left. Its expected image is
-:func:`front_to_back`'s; one sample costs about one opaque surface's shading and shadow rays
-instead of one per layer, and is noisier.
+:func:`front_to_back`'s; a sample shades one layer (and traces its shadow rays) instead of
+every one, and is noisier.
 
 :func:`one_shadow_ray` keeps :func:`front_to_back`'s shading of every layer and traces one shadow
 ray per light and sample instead of one per layer: from a layer picked with the probability of
