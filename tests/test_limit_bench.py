@@ -11,8 +11,8 @@ pytest.importorskip("mitsuba")
 from mi_amr.evaluation import limit_bench  # noqa: E402
 
 
-def test01_translucent_against_opaque_times_eight_scenes(scene_data_ready):
-    row = limit_bench.translucent_against_opaque(frames=1, size=32, spp=1)
+def test01_translucent_against_opaque_times_eight_scenes(scene_data_ready, tmp_path):
+    row = limit_bench.translucent_against_opaque(frames=1, size=32, spp=1, out_dir=tmp_path)
     for key in ("opaque_s", "translucent_s", "stochastic_s", "translucent_slow_s", "ratio",
                 "ratio_slow", "ratio_stochastic", "opaque_unshadowed_s",
                 "translucent_unshadowed_s", "stochastic_unshadowed_s", "ratio_unshadowed",
@@ -30,6 +30,12 @@ def test01_translucent_against_opaque_times_eight_scenes(scene_data_ready):
                 "stochastic_unshadowed_s"):
         assert f"{row[key]:.3f}" in table, key
     assert f"{row['ratio_slow']:.1f}x" in table and f"{row['stochastic_mse']:.2e}" in table
+    # The reference and a frame of each mode, side by side.
+    import mitsuba as mi
+    import numpy as np
+
+    strip = np.array(mi.Bitmap(str(tmp_path / "translucent_modes.png")))
+    assert strip.shape[:2] == (32, 4 * 32)
 
 
 def test02_the_frame_table_shows_the_time_without_shadow_rays():

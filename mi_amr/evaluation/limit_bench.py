@@ -87,7 +87,8 @@ TRANSLUCENT_SIZE, TRANSLUCENT_SPP = 256, 4
 REFERENCE_SPP = 64      # the translucent frames' errors are against the composited scene at this
 
 
-def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_SPP) -> dict:
+def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_SPP,
+                               out_dir=None) -> dict:
     """Three translucent isovalues against one opaque one (sphere_wake.xml, 256^2, 4 spp,
     shadow rays): median warm frames, interleaved; the translucent scene composited, with one
     shadow ray per sample (``layers="one_shadow"``), with one layer picked per sample
@@ -95,7 +96,9 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
     its fast paths (every layer's search restarted, shadow rays composited layer by layer),
     which is what it cost before them; and the same without shadow rays. The composited and
     faster ones' mean squared error per pixel and channel against the composited scene
-    at :data:`REFERENCE_SPP` samples per pixel tells what the faster one costs in noise."""
+    at :data:`REFERENCE_SPP` samples per pixel tells what the faster ones cost in noise. With
+    ``out_dir``, ``translucent_modes.png`` there shows the reference and one frame of each,
+    side by side."""
     import drjit as dr
     import mitsuba as mi
 
@@ -135,11 +138,17 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
         row[ratio] = row[key] / row[opaque_key]
     reference = np.array(mi.render(scene(spp=REFERENCE_SPP, **TRANSLUCENT), seed=1000),
                          dtype=np.float64)
+    shown = [reference]
     for key, sc in (("translucent_mse", layered), ("one_shadow_mse", one_shadow),
                     ("stochastic_mse", picked)):
-        row[key] = statistics.mean(
-            float(np.mean((np.array(mi.render(sc, seed=s), dtype=np.float64) - reference) ** 2))
-            for s in range(frames))
+        images = [np.array(mi.render(sc, seed=s), dtype=np.float64) for s in range(frames)]
+        row[key] = statistics.mean(float(np.mean((im - reference) ** 2)) for im in images)
+        shown.append(images[0])
+    if out_dir is not None:
+        from mi_amr.workflows.movie.output import write_image_atomic
+
+        write_image_atomic(Path(out_dir) / "translucent_modes.png",
+                           np.concatenate([im[..., :3] for im in shown], axis=1))
     print(f"translucent {row['translucent_s']:.3f} s (slow twins {row['translucent_slow_s']:.3f}"
           f" s), one shadow ray {row['one_shadow_s']:.3f} s, stochastic "
           f"{row['stochastic_s']:.3f} s, opaque {row['opaque_s']:.3f} s: {row['ratio']:.1f}x, "
@@ -251,7 +260,7 @@ def run_limit_bench(out_dir="out/bench", variant: str = "llvm_ad_rgb") -> dict:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     frames = frame_against_mesh()
-    layers = translucent_against_opaque()
+    layers = translucent_against_opaque(out_dir=out)
     data = project.data_dir()
     paths = [data / "sphere_wake.npz"] + sorted((data / "scaling").glob("cells_large*.npz"))
     loads = load_against_read(paths)
