@@ -184,3 +184,42 @@ def test04_picks_repeat_with_the_seed_and_new_opacities_compile_nothing(scene_da
     img, compiled = kernels_compiled(lambda: np.array(mi.render(sc, seed=0)))
     assert compiled == 0
     assert np.abs(img - first).mean() > 1e-3
+
+
+SCALAR_CHILD = """
+import sys, numpy as np, mitsuba as mi
+mi.set_variant("scalar_rgb")
+import mi_amr
+out = []
+for layers in ("composite", "one_shadow", "stochastic"):
+    scene = mi.load_dict({"type": "scene",
+        "integrator": {"type": "amr_iso", "filename": sys.argv[1], "field": "q_criterion",
+                       "isovalue": "0.02, 0.05, 0.1", "iso_opacity": "0.4, 0.5, 0.6",
+                       "layers": layers},
+        "sensor": {"type": "perspective", "fov": 30, "to_world": mi.ScalarTransform4f().look_at(
+                       origin=[-10, 8, 20], target=[2, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 4, "height": 4},
+                   "sampler": {"type": "independent", "sample_count": 2}},
+        "light": {"type": "directional", "direction": [0.3, -1, -0.2],
+                  "irradiance": {"type": "rgb", "value": 3.0}}})
+    out.append(np.array(mi.render(scene, seed=0), dtype=np.float64))
+np.save(sys.argv[2], np.array(out))
+"""
+
+
+def test06_scalar_variants_render_every_layer_mode(scene_data_ready, tmp_path):
+    """scalar_rgb runs the layer loops on Python numbers: no division by zero, no ``~`` of a
+    bool (in a fresh process, as ``tests/test_integrator.py`` test14 explains)."""
+    import subprocess
+    import sys
+
+    if "scalar_rgb" not in mi.variants():
+        pytest.skip("scalar_rgb is not available")
+    out = tmp_path / "scalar.npy"
+    proc = subprocess.run([sys.executable, "-c", SCALAR_CHILD,
+                           str(project.data_dir() / "sphere_wake.npz"), str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    images = np.load(out)
+    assert np.all(np.isfinite(images))
+    assert np.all(images.reshape(3, -1).sum(axis=1) > 0)

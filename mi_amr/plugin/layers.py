@@ -27,6 +27,7 @@ import mitsuba as mi
 from mi_amr import tolerances as tol
 
 ONE_BELOW = 1.0 - 2.0 ** -24    # the largest float32 below 1: a rescaled number stays below 1
+TINY = 1e-30                    # a divisor's floor where the quotient is not used
 
 
 @dr.syntax
@@ -85,7 +86,7 @@ def pick_one(state, crossing, opacity, shade, max_layers: int, u, nowhere, activ
         picked |= take
         T = T_next
         layer += 1
-        alive = hit & ~take & (T > tol.T_MIN) & (layer < max_layers)
+        alive = hit & dr.select(take, False, True) & (T > tol.T_MIN) & (layer < max_layers)
     L = mi.Spectrum(0.0)
     if picked:          # a symbolic branch: packets with no layer picked skip the shading
         L = shade(picked, where, k)
@@ -123,7 +124,7 @@ def one_shadow_ray(state, crossing, opacity, shade_parts, visible, max_layers: i
         alive = hit & (T > tol.T_MIN) & (layer < max_layers)
     for _, Q, c, q, ray in kept:
         on = q > 0.0
-        L += dr.select(on, c * (Q / q) * visible(ray, on), 0.0)
+        L += dr.select(on, c * (Q / dr.maximum(q, TINY)) * visible(ray, on), 0.0)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
     return L, T
 
@@ -139,10 +140,12 @@ def _take_layer(L, kept, weight, shaded, hit):
         c_i = weight * direct
         q_i = dr.select(hit, c_i.x + c_i.y + c_i.z, 0.0)
         Q = Q + q_i
-        p = dr.select(q_i > 0.0, q_i / Q, 0.0)
+        p = dr.select(q_i > 0.0, q_i / dr.maximum(Q, TINY), 0.0)
         take = u < p
         # The uniform number rescaled to the part of [0, 1) it fell in, for the next choice.
-        u = dr.select(take, u / p, (u - p) / (1.0 - p))
+        # (Denominators kept off 0 for scalar variants, whose floats raise; where a branch is
+        # taken they are p > 0 and 1 - p >= 2^-24, unchanged.)
+        u = dr.select(take, u / dr.maximum(p, TINY), (u - p) / dr.maximum(1.0 - p, TINY))
         out.append((dr.minimum(u, ONE_BELOW), Q, dr.select(take, c_i, c),
                     dr.select(take, q_i, q), dr.select(take, shadow, ray)))
     return L, tuple(out)
