@@ -23,6 +23,7 @@ from mi_amr.kernels.transmit import transmittance_exact
 from mi_amr.plugin import bridge, shading
 from mi_amr.plugin.layers import front_to_back, one_shadow_ray, pick_one
 
+
 def draws_u(integ) -> bool:
     """Whether the integrator ``integ``'s camera rays pick (one layer, or one layer's shadow
     rays) and so draw a number per sample: ``layers`` other than ``composite``."""
@@ -72,12 +73,13 @@ def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
 
         return one_shadow_ray(state, crossing, opacity_of, parts, visible,
                               integ.opt.max_layers, u, len(scene.emitters()), active)
-    if u is None:
+    if integ.opt.layers == "composite":
         def shade(hit, c, k):
             return integ.shader.shade(scene, light_u, ray, o, d, c, k, hit)
 
         return front_to_back(state, crossing, opacity_of, shade, integ.opt.max_layers, active)
 
+    # stochastic
     def crossing_t(state, alive):           # the loop keeps only where the layer is
         hit, c, state, k = crossing(state, alive)
         return hit, bridge.to_mi(c.t, mi.Float), state, k
