@@ -203,13 +203,19 @@ for layers in ("composite", "one_shadow", "stochastic"):
         "light": {"type": "directional", "direction": [0.3, -1, -0.2],
                   "irradiance": {"type": "rgb", "value": 3.0}}})
     out.append(np.array(mi.render(scene, seed=0), dtype=np.float64))
+# And a scene file through mi_amr's own loader (which writes no camera values back there).
+from mi_amr.plugin.scene import load_scene
+scene = load_scene(sys.argv[3], resx=4, resy=4, spp=1, integrator={"layers": "stochastic",
+                   "iso_opacity": "0.5"})
+out.append(np.array(mi.render(scene, seed=0), dtype=np.float64)[..., :3])
 np.save(sys.argv[2], np.array(out))
 """
 
 
 def test06_scalar_variants_render_every_layer_mode(scene_data_ready, tmp_path):
     """scalar_rgb runs the layer loops on Python numbers: no division by zero, no ``~`` of a
-    bool (in a fresh process, as ``tests/test_integrator.py`` test14 explains)."""
+    bool (in a fresh process, as ``tests/test_integrator.py`` test14 explains); and
+    ``load_scene`` loads a scene file there."""
     import subprocess
     import sys
 
@@ -217,9 +223,10 @@ def test06_scalar_variants_render_every_layer_mode(scene_data_ready, tmp_path):
         pytest.skip("scalar_rgb is not available")
     out = tmp_path / "scalar.npy"
     proc = subprocess.run([sys.executable, "-c", SCALAR_CHILD,
-                           str(project.data_dir() / "sphere_wake.npz"), str(out)],
+                           str(project.data_dir() / "sphere_wake.npz"), str(out),
+                           str(project.scenes_dir() / "sphere_wake.xml")],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-2000:]
     images = np.load(out)
     assert np.all(np.isfinite(images))
-    assert np.all(images.reshape(3, -1).sum(axis=1) > 0)
+    assert np.all(images.reshape(4, -1).sum(axis=1) > 0)

@@ -77,7 +77,10 @@ def _opaque_cameras(scene) -> None:
     its field of view, one after an update of its ``to_world`` alone (each compiled once, on
     first use). The camera and field of view are written here together, as
     :func:`mi_amr.plugin.camera.set_camera` always writes them, so moving the camera that way
-    never compiles; moving it by ``to_world`` alone compiles once."""
+    never compiles; moving it by ``to_world`` alone compiles once. Scalar variants compile
+    nothing: there it does nothing."""
+    if not dr.is_jit_v(mi.Float):
+        return
     params = mi.traverse(scene)
     prefixes = [s.id() for s in scene.sensors()] + [e.id() for e in scene.emitters()]
     suffixes = (".to_world", ".x_fov", ".irradiance.value", ".radiance.value",
