@@ -123,7 +123,7 @@ TABLE = (
           "its share of that light: the same image in expectation, noisy only where a pixel's "
           "layers see the light differently) or ``stochastic`` (one layer per sample, picked "
           "with the probability of that weight, as Mitsuba's ``mask`` BSDF does: the same "
-          "image in expectation, noisier per sample, at about one opaque surface's cost; "
+          "image in expectation, noisier per sample, shading one layer instead of every one; "
           "alpha is then the share of samples that stop at a layer)",
           choices=LAYER_MODES),
 )

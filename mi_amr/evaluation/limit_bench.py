@@ -128,14 +128,15 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
                 times[key].append(t)
     layered.integrator().layer_fast_paths = True
     row = {k: statistics.median(v) for k, v in times.items()}
-    for ratio, key, opaque_key in (
-            ("ratio", "translucent_s", "opaque_s"), ("ratio_slow", "translucent_slow_s",
-                                                    "opaque_s"),
-            ("ratio_stochastic", "stochastic_s", "opaque_s"),
-            ("ratio_one_shadow", "one_shadow_s", "opaque_s"),
-            ("ratio_unshadowed", "translucent_unshadowed_s", "opaque_unshadowed_s"),
-            ("ratio_stochastic_unshadowed", "stochastic_unshadowed_s", "opaque_unshadowed_s")):
-        row[ratio] = row[key] / row[opaque_key]
+    for ratio, key, base in (("ratio", "translucent_s", "opaque_s"),
+                             ("ratio_slow", "translucent_slow_s", "opaque_s"),
+                             ("ratio_stochastic", "stochastic_s", "opaque_s"),
+                             ("ratio_one_shadow", "one_shadow_s", "opaque_s"),
+                             ("ratio_unshadowed", "translucent_unshadowed_s",
+                              "opaque_unshadowed_s"),
+                             ("ratio_stochastic_unshadowed", "stochastic_unshadowed_s",
+                              "opaque_unshadowed_s")):
+        row[ratio] = row[key] / row[base]
     reference = np.array(mi.render(scene(spp=REFERENCE_SPP, **TRANSLUCENT), seed=1000),
                          dtype=np.float64)
     shown = [reference]

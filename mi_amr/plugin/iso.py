@@ -53,19 +53,15 @@ class IsoShader:
         """``(A, S)`` (Mitsuba spectra) at the scene point ``ray(t)`` with volume-space
         gradient ``grad`` (kernel types in)."""
         integ = self.integ
-        n = shading.facing_normal(integ.frame.to_scene, bridge.to_mi3(grad, mi.Normal3f), ray.d)
+        n = self.normal(grad, ray)
         return shading.iso_light(scene, light_u, ray, ray(t), n, integ.phong(), active,
                                  integ.shadows(), integ.iso_transmittance)
 
     def shade(self, scene, light_u, ray, o, d, c, k, hit):
         """Phong-shaded colour of the crossing ``c`` (kernel types) where ``hit``."""
-        m, dev, integ = self.m, self.integ.dev, self.integ
         if not bridge.vectorised() and not hit:
             return mi.Spectrum(0.0)
-        basis = integ.opt.reconstruction == "basis"
-        vals, grad = reconstruct(dev, basis, o + d * c.t, dev.arrays(basis, color=True),
-                                 m.Bool(hit))
-        color = bridge.to_mi3(self.color(c.k, vals[1]), mi.Color3f)
+        color, grad = self.surface_point(o, d, c, hit)
         A, S = self.light(scene, light_u, ray, bridge.to_mi(c.t, mi.Float), grad, hit)
         return color * A + S
 
@@ -73,15 +69,25 @@ class IsoShader:
         """:meth:`shade` with its shadow rays not yet traced: ``(base, parts)``, the ambient
         light ``base`` and per emitter ``(direct, shadow ray)``, so that ``shade`` is ``base +
         sum(direct * V)`` with each shadow ray's visibility ``V`` (Mitsuba types out)."""
+        color, grad = self.surface_point(o, d, c, hit)
+        P = ray(bridge.to_mi(c.t, mi.Float))
+        A0, parts = shading.iso_light_parts(scene, light_u, ray, P, self.normal(grad, ray),
+                                            self.integ.phong(), hit)
+        return color * A0, [(color * p.diffuse + p.specular, p.shadow) for p in parts]
+
+    def surface_point(self, o, d, c, hit):
+        """``(colour, gradient)`` at the crossing ``c`` of the volume ray ``o + t d``: the
+        colour as a Mitsuba colour, the volume-space gradient as a kernel ``Array3f``."""
         m, dev, integ = self.m, self.integ.dev, self.integ
         basis = integ.opt.reconstruction == "basis"
         vals, grad = reconstruct(dev, basis, o + d * c.t, dev.arrays(basis, color=True),
                                  m.Bool(hit))
-        color = bridge.to_mi3(self.color(c.k, vals[1]), mi.Color3f)
-        t = bridge.to_mi(c.t, mi.Float)
-        n = shading.facing_normal(integ.frame.to_scene, bridge.to_mi3(grad, mi.Normal3f), ray.d)
-        A0, parts = shading.iso_light_parts(scene, light_u, ray, ray(t), n, integ.phong(), hit)
-        return color * A0, [(color * p.diffuse + p.specular, p.shadow) for p in parts]
+        return bridge.to_mi3(self.color(c.k, vals[1]), mi.Color3f), grad
+
+    def normal(self, grad, ray):
+        """The shading normal (scene space, facing the viewer) of volume gradient ``grad``."""
+        return shading.facing_normal(self.integ.frame.to_scene,
+                                     bridge.to_mi3(grad, mi.Normal3f), ray.d)
 
     def lighting(self, scene, light_u, ray, o, d):
         """The ``lighting`` object of the volume compositing

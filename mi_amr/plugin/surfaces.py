@@ -2,13 +2,15 @@
 layer loops of :mod:`mi_amr.plugin.layers`, shaded for camera rays and as transmittance alone
 for shadow rays.
 
-A camera ray's sample shades every layer it meets (``layers="composite"``,
-:func:`~mi_amr.plugin.layers.front_to_back`) or one of them, picked at random with the
-probability of its weight there (``layers="stochastic"``,
-:func:`~mi_amr.plugin.layers.pick_one`): the same pixels in expectation, noisier per sample.
-Shadow rays carry the exact transmittance of the layers they cross either way: a 0-or-1 sample
-of it, stopping where the light falls below a number per sample, was measured no faster on the
-report's scene (0.82 against 0.83 s a frame) and noisier.
+A camera ray's sample shades every layer it meets, each with its own shadow rays
+(``layers="composite"``, :func:`~mi_amr.plugin.layers.front_to_back`); every layer with one
+shadow ray per light from a layer picked by its share of that light (``layers="one_shadow"``,
+:func:`~mi_amr.plugin.layers.one_shadow_ray`); or one layer, picked at random with the
+probability of its weight (``layers="stochastic"``, :func:`~mi_amr.plugin.layers.pick_one`).
+The last two give the same pixels in expectation, noisier per sample. Shadow rays carry the
+exact transmittance of the layers they cross in every mode: a 0-or-1 sample of it, stopping
+where the light falls below a number per sample, was measured no faster on the report's scene
+(0.82 against 0.83 s a frame) and noisier.
 
 Rays are in the volume's world space (``o + t d``); scene rays come in as Mitsuba types.
 """

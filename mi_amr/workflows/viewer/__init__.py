@@ -3,8 +3,8 @@
 The page changes the isovalues (with the field's histogram behind the slider), the method,
 reconstruction, translucent layers (how they are sampled), step and mode, the colour field,
 map and range, the camera (drag to orbit, shift-drag to pan, wheel to zoom), the light and
-shadows, and saves images, scenes and movie keyframes. Every change that keeps the kernels' structure is an ``mi.traverse`` update in the
-same process, compiling nothing.
+shadows, and saves images, scenes and movie keyframes. Every change that keeps the kernels'
+structure is an ``mi.traverse`` update in the same process, compiling nothing.
 
 * :mod:`.state` -- the view's state and how each control maps to ``mi.traverse``
 * :mod:`.controls` -- the page's requests checked and turned into states
