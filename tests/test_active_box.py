@@ -81,8 +81,8 @@ def first_crossings(integ, o, d, box):
 
     m = integ.m
     cfg = integ.config()
-    if not box:
-        cfg = dataclasses.replace(cfg, active_box=None)
+    if not box:          # the whole volume, each search from the root
+        cfg = dataclasses.replace(cfg, active_box=None, start_table=None)
     c = first_crossing(integ.dev, cfg, m.Array3f(*o.T), m.Array3f(*d.T), m.Float(0.0),
                        m.Float(dr.inf), m.Float(0.5), m.Bool(True))
     dr.eval(c.t, c.hit, c.k)

@@ -39,6 +39,7 @@ class MarchConfig:
     shading_extrema: bool = True
     transfer2d: Any = None
     active_box: Any = None
+    start_table: Any = None
 
     def iso(self, dev, k):
         """Isovalue ``k`` (a Python int, or a per-lane index array)."""
@@ -53,6 +54,14 @@ def clip_box(cfg: MarchConfig):
     jumps at grid edges, where a crossing lies between two skipped nodes, and the sampling
     methods take the side of the nodes skipped before their first sample: neither clips."""
     return cfg.active_box if clips(cfg) else None
+
+
+def start_table(cfg: MarchConfig):
+    """The :class:`~mi_amr.kernels.starts.StartTable` a leaf search may start from: where the
+    rays clip to the active box (:func:`clip_box`), ``cfg.start_table``, else None (a search
+    that starts from a deeper node skips smaller nodes, which changes the sides the sampling
+    methods see)."""
+    return cfg.start_table if clips(cfg) else None
 
 
 def clips(cfg: MarchConfig) -> bool:

@@ -32,7 +32,7 @@ import numpy as np
 from mi_amr import tolerances as tol
 from mi_amr.core import levels
 from mi_amr.core.buffers import aligned_empty, joined
-from mi_amr.kernels import bricks, ranges
+from mi_amr.kernels import bricks, ranges, starts
 from mi_amr.kernels.arrays import device_array
 from mi_amr.kernels.bricks import BRICK, BRICK_N, NO_BRICK, brick_table  # noqa: F401
 from mi_amr.errors import AMRError
@@ -123,6 +123,7 @@ class DeviceVolume:
         self.leaf_grids = u32(tree.leaf_grids)
         self.node_ropes = u32(tree.node_ropes)
         self.host_ranges, self.on_new_ranges, self._search, self._boxes = {}, None, {}, {}
+        self._tables = {}
 
         # grids
         glo, _ = volume.grid_boxes()
@@ -308,6 +309,20 @@ class DeviceVolume:
             self._boxes[key] = (self._point(lo), self._point(hi))
         return self._boxes[key]
 
+    def start_table(self, isovalues):
+        """The :class:`~mi_amr.kernels.starts.StartTable` of the leaves :meth:`active_box`
+        holds for ``isovalues`` (the last :data:`ACTIVE_BOXES` are kept)."""
+        iso = np.asarray(isovalues, dtype=np.float32).ravel()
+        key = iso.tobytes()
+        if key not in self._tables:
+            ranges = self.node_ranges(True)
+            active = active_leaves(self.tree, ranges, iso)
+            searched = node_holds(ranges, iso, widen=0.0)
+            while len(self._tables) >= ACTIVE_BOXES:
+                self._tables.pop(next(iter(self._tables)))
+            self._tables[key] = starts.start_table(self, self.tree, active, ~searched)
+        return self._tables[key]
+
 
 # How many active boxes (one per set of isovalues) a DeviceVolume keeps.
 ACTIVE_BOXES = 8
@@ -316,13 +331,27 @@ ACTIVE_BOXES = 8
 def active_box_host(tree, ranges, isovalues, pad: float):
     """:meth:`DeviceVolume.active_box` on the host: ``(lo, hi)`` float64 3-vectors from the
     per-node ``ranges`` (``lo, hi`` side by side, float32) of ``tree``."""
-    r = np.asarray(ranges, dtype=np.float64).reshape(-1, 2)
-    leaf = (tree.node_code & 3) == 3
-    slack = tol.ACTIVE_BOX_RANGE_REL * np.maximum(np.abs(r[:, 0]), np.abs(r[:, 1]))
-    iso = np.asarray(isovalues, dtype=np.float64)
-    with np.errstate(invalid="ignore"):      # an empty range (+inf, -inf) holds nothing
-        holds = (r[:, :1] - slack[:, None] <= iso) & (iso <= r[:, 1:] + slack[:, None])
-    active = np.flatnonzero(leaf & holds.any(axis=1))
+    active = active_leaves(tree, ranges, isovalues)
     if len(active) == 0:
         return np.full(3, np.inf), np.full(3, -np.inf)
     return (tree.node_lo[active].min(axis=0) - pad, tree.node_hi[active].max(axis=0) + pad)
+
+
+def active_leaves(tree, ranges, isovalues) -> np.ndarray:
+    """The kd nodes of the leaves whose range (``ranges``, see :func:`active_box_host`) may
+    hold one of ``isovalues`` (:func:`node_holds`)."""
+    leaf = (tree.node_code & 3) == 3
+    return np.flatnonzero(leaf & node_holds(ranges, isovalues))
+
+
+def node_holds(ranges, isovalues, widen: float = tol.ACTIVE_BOX_RANGE_REL) -> np.ndarray:
+    """Whether each kd node's range (``ranges``), widened by ``widen`` times its largest
+    magnitude, holds one of ``isovalues`` (float32 numbers): with ``widen`` 0 exactly the
+    nodes the kernels' search does not skip (float32 comparisons, exact in float64)."""
+    r = np.asarray(ranges, dtype=np.float64).reshape(-1, 2)
+    with np.errstate(invalid="ignore"):
+        slack = np.nan_to_num(widen * np.maximum(np.abs(r[:, 0]), np.abs(r[:, 1])))
+    iso = np.asarray(isovalues, dtype=np.float64)
+    with np.errstate(invalid="ignore"):      # an empty range (+inf, -inf) holds nothing
+        holds = (r[:, :1] - slack[:, None] <= iso) & (iso <= r[:, 1:] + slack[:, None])
+    return holds.any(axis=1)

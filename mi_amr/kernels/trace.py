@@ -42,7 +42,8 @@ def trace(volume, origins, directions, *, field: str, isovalue,
           reconstruction: str = params.default("reconstruction"),
           step_scale: float = params.default("step_scale"), jitter=None,
           leaf_cells: int = params.default("leaf_cells"), t_max=np.inf,
-          backend=None, active_box: bool = True) -> TraceResult:
+          backend=None, active_box: bool = True,
+          start_table: bool = True) -> TraceResult:
     """First crossing of ``isovalue`` (a number or a list) by each ray, in the volume's world
     space. ``origins`` and ``directions`` are ``(N, 3)``; directions need not be unit length.
     ``jitter`` (``(N,)`` in [0, 1)) offsets the adaptive methods' steps; by default
@@ -72,6 +73,8 @@ def trace(volume, origins, directions, *, field: str, isovalue,
                       step_scale=scale, num_iso=len(isovalues))
     if active_box and clips(cfg):
         cfg.active_box = dev.active_box(isovalues)
+        if start_table:
+            cfg.start_table = dev.start_table(isovalues)
     dev.node_search(cfg.basis)           # the leaf ranges, before the march is traced
     o = _array3(m, origins)
     d = _array3(m, directions)

@@ -18,8 +18,9 @@ from typing import Any
 import drjit as dr
 
 from mi_amr import tolerances as tol
-from mi_amr.kernels.config import holds, sides_differ
+from mi_amr.kernels.config import holds, sides_differ, start_table
 from mi_amr.kernels.device import NODE_RECORDS, lnot
+from mi_amr.kernels.starts import table_start
 
 
 @dataclass
@@ -111,18 +112,49 @@ def _node_box(dev, node, active):
     return m.Array3f(lo.x, lo.y, lo.z), m.Array3f(hi.x, hi.y, hi.z)
 
 
-def _restart(dev, o, d, t, node, face, active):
+def _restart(dev, o, d, t, node, face, active, table=None):
     """Where to resume the descent at ``o + t d`` after leaving ``node`` through ``face``: its
     rope when that node holds the point, else the root (also for ``face`` >= 6: no node yet).
-    Returns the node and its box."""
+    Given a start ``table`` (:mod:`mi_amr.kernels.starts`), the deeper of its node for the
+    point and the rope, and the rope is not read where the table's node is a leaf. Returns the
+    node and its box."""
     m = dev.m
     p = dr.fma(d, t, o)
     roped = active & (face < 6)
-    rope = dr.gather(m.UInt32, dev.node_ropes, node * 6 + dr.minimum(face, 5), roped)
-    lo, hi = _node_box(dev, rope, roped)
-    inside = roped & dr.all((p >= lo) & (p <= hi))
-    return (dr.select(inside, rope, m.UInt32(0)), dr.select(inside, lo, dev.root_lo),
-            dr.select(inside, hi, dev.root_hi))
+    if table is None:
+        rope, lo, hi, inside = _rope(dev, p, node, face, roped)
+        return (dr.select(inside, rope, m.UInt32(0)), dr.select(inside, lo, dev.root_lo),
+                dr.select(inside, hi, dev.root_hi))
+    t_node, t_lo, t_hi, found, at_leaf = table_start(dev, table, p, active)
+    rope, lo, hi, inside = _rope_unless(dev, p, node, face, roped & lnot(found & at_leaf))
+    # Both hold the point, so one holds the other: the smaller box is the deeper node.
+    inside &= lnot(found) | (dr.sum(hi - lo) < dr.sum(t_hi - t_lo))
+    start = dr.select(inside, rope, dr.select(found, t_node, m.UInt32(0)))
+    s_lo = dr.select(inside, lo, dr.select(found, t_lo, dev.root_lo))
+    s_hi = dr.select(inside, hi, dr.select(found, t_hi, dev.root_hi))
+    return start, s_lo, s_hi
+
+
+def _rope(dev, p, node, face, active):
+    """``(rope, lo, hi, inside)``: the rope of ``node``'s ``face``, its box, and whether it
+    holds the point ``p`` -- half open, as the descent goes (a point on a split plane belongs
+    to the upper node; a closed test let a rope lying below such a point hold it, whose
+    descent then met a leaf only touching it)."""
+    m = dev.m
+    rope = dr.gather(m.UInt32, dev.node_ropes, node * 6 + dr.minimum(face, 5), active)
+    lo, hi = _node_box(dev, rope, active)
+    return rope, lo, hi, active & dr.all((p >= lo) & (p < hi))
+
+
+@dr.syntax
+def _rope_unless(dev, p, node, face, active):
+    """:func:`_rope` in a symbolic branch: a packet with no lane needing its rope skips the
+    loads (``inside`` False there)."""
+    m = dev.m
+    rope, lo, hi, inside = m.UInt32(0), m.Array3f(0.0), m.Array3f(0.0), m.Bool(False)
+    if active:
+        rope, lo, hi, inside = _rope(dev, p, node, face, active)
+    return rope, lo, hi, inside
 
 
 @dataclass
@@ -185,17 +217,19 @@ def seek_part(dev, cfg, o, d, t1, w: Walk, sk: Seeking, side, active):
     shadow rays) is faster with :func:`seek`, the whole search at once: the search's state
     carried in the loop costs more than the waiting saves there."""
     begin = active & w.needs_leaf() & lnot(sk.searching)
-    sk = sk.replaced(begin, seek_start(dev, o, d, w.t, w.node, w.face, side, begin))
+    sk = sk.replaced(begin, seek_start(dev, o, d, w.t, w.node, w.face, side, begin,
+                                       start_table(cfg)))
     sk = seek_steps(dev, cfg, o, d, t1, sk, SEEK_STEPS)
     return sk, active & w.needs_leaf() & lnot(sk.searching)
 
 
-def seek_start(dev, o, d, t, node, face, side, active) -> Seeking:
-    """A :func:`seek` from ``t`` having left ``node`` through ``face``, before its first step."""
+def seek_start(dev, o, d, t, node, face, side, active, table=None) -> Seeking:
+    """A :func:`seek` from ``t`` having left ``node`` through ``face``, before its first step
+    (from the node of the start ``table`` where it has one and no rope leads on)."""
     m = dev.m
     t = m.Float(t)
     eps = epsilon(dev, t, dr.norm(d))
-    node, b_lo, b_hi = _restart(dev, o, d, t + eps, node, face, active)
+    node, b_lo, b_hi = _restart(dev, o, d, t + eps, node, face, active, table)
     return Seeking(node=node, b_lo=b_lo, b_hi=b_hi, t=t, side=m.Float(side),
                    t_side=m.Float(dr.nan), leaf=m.UInt32(0), t_exit=m.Float(t),
                    face=m.UInt32(6), found=m.Bool(False), turned=m.Bool(False),

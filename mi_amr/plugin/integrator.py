@@ -94,6 +94,7 @@ class _AMRIso:
         self.shader = IsoShader(self)
         self.layer_fast_paths = True
         self.clip_to_active = True      # False: the whole volume, not the active box (twin)
+        self.start_tables = True        # False: leaf searches start at the root (twin)
         wavefront.attach(self)
         _warn_outside(self.prep, opt.isovalues)
 
@@ -132,6 +133,8 @@ class _AMRIso:
                           transfer2d=self.inputs.transfer2d)
         if self.opt.mode == "surface" and self.clip_to_active and clips(cfg):
             cfg.active_box = self.dev.active_box(self.inputs.host["isovalue"])
+            if self.start_tables:
+                cfg.start_table = self.dev.start_table(self.inputs.host["isovalue"])
         return cfg
 
     def phong(self) -> shading.Phong:

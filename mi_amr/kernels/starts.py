@@ -1,0 +1,146 @@
+"""Where a ray's leaf search starts: a table of kd nodes over the active box, so that a search
+that would descend from the root starts at the deepest node holding the point.
+
+The exact march on the basis blend clips its rays to the active box of the frame's isovalues
+(:meth:`~mi_amr.kernels.device.DeviceVolume.active_box`) and then searches the kd-tree for the
+leaves inside it, each search descending from the root (a camera ray at its entry, every shadow
+ray) or from a rope. The kd nodes are power-of-two boxes of the finest level's lattice, as in an
+octree (:mod:`mi_amr.core.kdtree`), so a uniform table whose cells are the smallest active
+leaves' size, laid on the same lattice, has each cell inside one node, often a leaf: the
+**start table** holds, for every cell, the deepest node whose box holds the whole cell. A search
+from a point in the box looks its cell up and descends from that node instead of the root,
+which is where a descent from the root would arrive (it passes through every node holding the
+point), so the same leaves are found at the same parameters.
+
+Cells are half open, ``[lo + i s, lo + (i + 1) s)`` on each axis (a point on a split plane goes
+up, as in the tree). The table is built on the host when the isovalues change (with the active
+box), in lattice integers; the kernels read it as opaque inputs (a new isovalue compiles
+nothing), and check that the node found holds the point (rounding at a cell's face may give
+its neighbour), falling back to the root where it does not or where the point is outside the
+table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import drjit as dr
+import numpy as np
+
+# Cells of a start table at most (4 bytes each): a coarser cell (twice the size, a shallower
+# start node) where the smallest active leaves would need more.
+MAX_START_CELLS = 1 << 21
+FINAL = 1 << 31           # set in a table entry whose node ends a descent (a leaf, or empty)
+
+
+@dataclass
+class StartTable:
+    """A start table as kernel inputs: ``nodes`` (``m.UInt32``, x fastest), the box's lower
+    corner ``lo`` and ``inv_cell`` (one over the cell's size) as opaque points (volume world),
+    and ``dims``, the cells per axis, as opaque floats (0 for an empty table)."""
+
+    nodes: Any
+    lo: Any
+    inv_cell: Any
+    dims: Any
+
+
+def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_CELLS):
+    """``(lo, cell, dims, nodes)`` of the start table over the leaves ``active_nodes`` (kd node
+    indices) of ``tree``: lower corner and cell size in lattice units (finest cells from the
+    volume's anchor, float64 3-vectors), cells per axis and the node of each cell (x fastest);
+    an empty table (no cells) where there are no active nodes. Entries of leaves have
+    :data:`FINAL` set."""
+    if len(active_nodes) == 0:
+        return np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64), np.zeros(1, np.uint32)
+    lo = tree._node_lo[active_nodes].min(axis=0)
+    hi = tree._node_hi[active_nodes].max(axis=0)
+    cell = (tree._node_hi[active_nodes] - tree._node_lo[active_nodes]).min(axis=0)
+    origin = tree._root[0]
+    while True:
+        # The corner on the cells' lattice from the root's corner (node boxes are aligned so).
+        start = origin + np.floor((lo - origin) / cell) * cell
+        dims = np.ceil((hi - start) / cell).astype(np.int64)
+        if np.prod(dims) <= max_cells:
+            break
+        cell = cell * 2
+    idx = np.indices(dims[::-1]).reshape(3, -1)[::-1].T       # x fastest
+    c_lo = start + idx * cell
+    nodes = descend_boxes(tree, c_lo, c_lo + cell, stop=empty)
+    final = (tree.node_code[nodes] & 3) == 3
+    if empty is not None:
+        final |= empty[nodes]
+    return start, cell, dims, (nodes | np.where(final, FINAL, 0)).astype(np.uint32)
+
+
+def descend_boxes(tree, lo, hi, stop=None) -> np.ndarray:
+    """For each half-open lattice box ``[lo, hi)`` (rows), the deepest node of ``tree`` that
+    holds it all, descending from the root, or the first node met where ``stop`` (a bool per
+    node) is True."""
+    node = np.zeros(len(lo), dtype=np.int64)
+    todo = np.arange(len(lo))
+    at = node.copy()
+    while len(todo):
+        code = np.take(tree.node_code, at)
+        ax = code & 3
+        inner = ax != 3
+        if stop is not None:
+            inner &= ~np.take(stop, at)
+        axis = np.where(inner, ax, 0)
+        split = np.take(tree._node_split, at)
+        above = inner & (lo[todo, axis] >= split)
+        go = above | (inner & (hi[todo, axis] <= split))
+        at = (code[go] >> 2) + above[go]
+        todo = todo[go]
+        node[todo] = at
+    return node
+
+
+def descend_box_reference(tree, lo, hi, stop=None) -> int:
+    """Slow twin of :func:`descend_boxes` for one box: the plain descent, node by node."""
+    node = 0
+    while (tree.node_code[node] & 3) != 3 and not (stop is not None and stop[node]):
+        axis = tree.node_code[node] & 3
+        split = tree._node_split[node]
+        if lo[axis] >= split:
+            node = (tree.node_code[node] >> 2) + 1
+        elif hi[axis] <= split:
+            node = tree.node_code[node] >> 2
+        else:
+            break
+    return int(node)
+
+
+def start_table(dev, tree, active_nodes, empty) -> StartTable:
+    """The :class:`StartTable` of ``dev`` (a DeviceVolume of ``tree``) over ``active_nodes``,
+    descents stopping at the nodes where ``empty`` (see :func:`start_table_host`)."""
+    from mi_amr.kernels.device import device_array, opaque_floats, opaque_point
+
+    m = dev.m
+    lo, cell, dims, nodes = start_table_host(tree, active_nodes, empty)
+    h = tree.h_fine
+    return StartTable(nodes=device_array(m.UInt32, nodes, np.uint32),
+                      lo=opaque_point(m, tree.volume.anchor + lo * h),
+                      inv_cell=opaque_point(m, 1.0 / (cell * h)),
+                      dims=m.Array3f(*(opaque_floats(m, [float(n)]) for n in dims)))
+
+
+def table_start(dev, table: StartTable, p, active):
+    """``(node, lo, hi, found, leaf)``: the table's node for the point ``p`` (volume world),
+    its box and whether it is a leaf, where ``found`` (the point is in the table and the node
+    holds it)."""
+    m = dev.m
+    rel = (p - table.lo) * table.inv_cell
+    in_table = active & dr.all((rel >= 0.0) & (rel < table.dims))
+    cell = m.Array3u(dr.floor(rel))
+    nx, ny = m.UInt32(table.dims.x), m.UInt32(table.dims.y)
+    index = (cell.z * ny + cell.y) * nx + cell.x
+    entry = dr.gather(m.UInt32, table.nodes, index, in_table)
+    node = entry & (FINAL - 1)
+    lo = dr.gather(m.Array4f, dev.node_box, 2 * node, in_table)
+    hi = dr.gather(m.Array4f, dev.node_box, 2 * node + 1, in_table)
+    lo, hi = m.Array3f(lo.x, lo.y, lo.z), m.Array3f(hi.x, hi.y, hi.z)
+    # Half open, as the descent goes: a point on a split plane belongs to the upper node.
+    found = in_table & dr.all((p >= lo) & (p < hi))
+    return node, lo, hi, found, entry >= FINAL

@@ -1,0 +1,178 @@
+"""Leaf searches start from the start table over the active box
+(:mod:`mi_amr.kernels.starts`) instead of the root: the table's nodes against a plain descent
+cell by cell, and the same crossings, layers, shadow-ray transmittances and images as searches
+from the root (``integrator.start_tables = False``, ``trace(start_table=False)``).
+
+The scene is sphere_wake.xml (64^2, 1 spp), rays as in ``test_active_box``.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+mi = pytest.importorskip("mitsuba")
+dr = pytest.importorskip("drjit")
+
+from mi_amr.kernels import starts  # noqa: E402
+from mi_amr.kernels.config import clips, start_table  # noqa: E402
+from mi_amr.kernels.device import node_holds  # noqa: E402
+from test_active_box import ISOVALUES, sample_rays, scene, transmittances  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def opaque(scene_data_ready):
+    return scene()
+
+
+@pytest.fixture(scope="module")
+def translucent(scene_data_ready):
+    return scene(isovalue=", ".join(map(str, ISOVALUES)), iso_opacity="0.4, 0.5, 0.6")
+
+
+def host_table(integ, iso, **kw):
+    tree = integ.dev.tree
+    holds = node_holds(integ.dev.node_ranges(True), iso)
+    active = np.flatnonzero(holds & ((tree.node_code & 3) == 3))
+    return tree, ~holds, starts.start_table_host(tree, active, ~holds, **kw)
+
+
+@pytest.mark.parametrize("iso, max_cells", [((0.05,), starts.MAX_START_CELLS),
+                                            (ISOVALUES, starts.MAX_START_CELLS),
+                                            ((0.05,), 5000)])
+def test01_each_cell_starts_where_a_plain_descent_stops(opaque, iso, max_cells):
+    """A cell's node is the first empty node on the way down from the root, else the deepest
+    node holding the whole cell (a plain descent, cell by cell, on 3000 cells); it holds the
+    cell, and it is marked final where it is a leaf or empty. The table covers every leaf
+    whose range holds an isovalue, with at most ``max_cells`` cells (coarser cells beyond)."""
+    tree, empty, (lo, cell, dims, entries) = host_table(opaque.integrator(), iso,
+                                                        max_cells=max_cells)
+    assert np.prod(dims) <= max_cells and len(entries) == np.prod(dims) > 1000
+    nodes = (entries & (starts.FINAL - 1)).astype(np.int64)
+    final = entries >= starts.FINAL
+    is_leaf = (tree.node_code[nodes] & 3) == 3
+    np.testing.assert_array_equal(final, is_leaf | empty[nodes])
+    idx = np.indices(dims[::-1]).reshape(3, -1)[::-1].T
+    c_lo = lo + idx * cell
+    c_hi = c_lo + cell
+    assert np.all(tree._node_lo[nodes] <= c_lo) and np.all(c_hi <= tree._node_hi[nodes])
+    pick = np.random.default_rng(1).choice(len(nodes), 3000, replace=False)
+    slow = [starts.descend_box_reference(tree, c_lo[i], c_hi[i], empty) for i in pick]
+    np.testing.assert_array_equal(nodes[pick], slow)
+    # Every active leaf lies inside the table's box.
+    active = np.flatnonzero(~empty & ((tree.node_code & 3) == 3))
+    assert np.all(tree._node_lo[active] >= lo)
+    assert np.all(tree._node_hi[active] <= lo + dims * cell)
+    if max_cells == starts.MAX_START_CELLS:     # the smallest active leaves' cells
+        assert final.mean() > 0.9
+
+
+def test02_no_active_leaf_gives_an_empty_table(opaque):
+    tree, _, (lo, cell, dims, entries) = host_table(opaque.integrator(), (1e9,))
+    assert np.prod(dims) == 0 and len(entries) == 1
+
+
+def crossings(integ, o, d, table):
+    from mi_amr.kernels.surface import first_crossing
+
+    m = integ.m
+    cfg = integ.config()
+    if not table:
+        cfg = dataclasses.replace(cfg, start_table=None)
+    c = first_crossing(integ.dev, cfg, m.Array3f(*o.T), m.Array3f(*d.T), m.Float(0.0),
+                       m.Float(dr.inf), m.Float(0.5), m.Bool(True))
+    dr.eval(c.t, c.hit, c.k, c.samples)
+    hit = c.hit.numpy().astype(bool)
+    return (np.where(hit, c.t.numpy(), np.inf), np.where(hit, c.k.numpy().astype(int), -1),
+            c.samples.numpy())
+
+
+def test03_first_crossings_are_the_searches_from_the_root(opaque):
+    integ = opaque.integrator()
+    assert start_table(integ.config()) is not None
+    o, d = sample_rays(integ)
+    fast, slow = crossings(integ, o, d, True), crossings(integ, o, d, False)
+    assert np.isfinite(slow[0]).sum() > 1500
+    for a, b in zip(fast, slow):                 # depths, isovalues, pieces examined
+        np.testing.assert_array_equal(a, b)
+
+
+def twin(integ, fn):
+    integ.start_tables = False
+    try:
+        return fn()
+    finally:
+        integ.start_tables = True
+
+
+def test04_layers_are_the_searches_from_the_root(translucent):
+    from test_translucent import layers
+
+    integ = translucent.integrator()
+    o, d = sample_rays(integ, n=6000)
+    fast = layers(integ, o, d, resume=True)
+    slow = twin(integ, lambda: layers(integ, o, d, resume=True))
+    assert (fast[1] >= 0).sum() > 2000
+    np.testing.assert_array_equal(fast[1], slow[1])
+    np.testing.assert_array_equal(fast[0], slow[0])
+
+
+@pytest.mark.parametrize("which", ["opaque", "translucent"])
+def test05_shadow_rays_and_images_are_the_twins(request, which):
+    sc = request.getfixturevalue(which)
+    integ = sc.integrator()
+    o, d = sample_rays(integ, n=3000)
+
+    def both():
+        return transmittances(integ, o, d), np.array(mi.render(sc, seed=0))
+
+    (fast_T, fast_img), (slow_T, slow_img) = both(), twin(integ, both)
+    assert np.mean(slow_T < 0.99) > 0.1
+    np.testing.assert_array_equal(fast_T, slow_T)
+    assert fast_img.mean() > 0.05
+    # (The film's atomic adds: see test_active_box test04.)
+    np.testing.assert_allclose(fast_img, slow_img, rtol=1e-6, atol=1e-9)
+
+
+def test06_a_new_isovalue_builds_its_table_without_compiling(opaque):
+    from conftest import kernels_compiled
+
+    integ = opaque.integrator()
+    params = mi.traverse(opaque)
+    before = integ.config().start_table
+    mi.render(opaque, seed=0)
+    try:
+        params["integrator.isovalue"] = mi.Float(0.2)
+        params.update()
+        after = integ.config().start_table
+        assert after is not before and after.nodes.shape != before.nodes.shape
+        assert kernels_compiled(lambda: dr.eval(mi.render(opaque, seed=0)))[1] == 0
+        o, d = sample_rays(integ, n=3000)
+        np.testing.assert_array_equal(crossings(integ, o, d, True)[0],
+                                      crossings(integ, o, d, False)[0])
+    finally:
+        params["integrator.isovalue"] = mi.Float(0.05)
+        params.update()
+
+
+@pytest.mark.parametrize("kw", [{"reconstruction": "finest"}, {"method": "uniform"},
+                                {"method": "bisect"}, {"mode": "volume"}])
+def test07_only_searches_in_the_active_box_use_a_table(scene_data_ready, kw):
+    """A search from a deeper node skips smaller nodes, which changes the sides that the
+    sampling methods and the finest level see: only the clipped exact march uses a table."""
+    cfg = scene(**kw).integrator().config()
+    assert not clips(cfg) and start_table(cfg) is None
+
+
+def test08_trace_starts_from_the_table_too(opaque):
+    from mi_amr.kernels.trace import trace
+
+    integ = opaque.integrator()
+    o, d = sample_rays(integ, n=6000)
+    for iso in (0.05, list(ISOVALUES)):
+        fast, slow = (trace(integ.prep.volume, o, d, field="q_criterion", isovalue=iso,
+                            start_table=table) for table in (True, False))
+        assert fast.hit.sum() > 500
+        for a, b in ((fast.hit, slow.hit), (fast.t, slow.t), (fast.iso_index, slow.iso_index)):
+            np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(fast.normal[fast.hit], slow.normal[slow.hit])
