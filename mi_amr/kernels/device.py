@@ -320,7 +320,11 @@ class DeviceVolume:
             searched = node_holds(ranges, iso, widen=0.0)
             while len(self._tables) >= ACTIVE_BOXES:
                 self._tables.pop(next(iter(self._tables)))
-            self._tables[key] = starts.start_table(self, self.tree, active, ~searched)
+            lo, cell, dims, nodes = starts.start_table_host(self.tree, active, ~searched)
+            h = self.tree.h_fine
+            self._tables[key] = starts.StartTable(
+                nodes=self._uints(nodes), lo=self._point(self.volume.anchor + lo * h),
+                inv_cell=self._point(1.0 / (cell * h)), dims=self._point(dims))
         return self._tables[key]
 
 

@@ -112,20 +112,6 @@ def descend_box_reference(tree, lo, hi, stop=None) -> int:
     return int(node)
 
 
-def start_table(dev, tree, active_nodes, empty) -> StartTable:
-    """The :class:`StartTable` of ``dev`` (a DeviceVolume of ``tree``) over ``active_nodes``,
-    descents stopping at the nodes where ``empty`` (see :func:`start_table_host`)."""
-    from mi_amr.kernels.device import device_array, opaque_floats, opaque_point
-
-    m = dev.m
-    lo, cell, dims, nodes = start_table_host(tree, active_nodes, empty)
-    h = tree.h_fine
-    return StartTable(nodes=device_array(m.UInt32, nodes, np.uint32),
-                      lo=opaque_point(m, tree.volume.anchor + lo * h),
-                      inv_cell=opaque_point(m, 1.0 / (cell * h)),
-                      dims=m.Array3f(*(opaque_floats(m, [float(n)]) for n in dims)))
-
-
 def table_start(dev, table: StartTable, p, active):
     """``(node, lo, hi, found, leaf)``: the table's node for the point ``p`` (volume world),
     its box and whether it is a leaf, where ``found`` (the point is in the table and the node
