@@ -50,7 +50,9 @@ def trace(volume, origins, directions, *, field: str, isovalue,
     :func:`~mi_amr.kernels.jitter.stable_jitter` of the ray index. ``backend`` is a Dr.Jit
     module (default ``drjit.llvm.ad``). Where the integrator would (``exact`` on the basis
     blend), the rays are clipped to the isovalues' active box; ``active_box=False`` walks the
-    whole volume instead (the slow twin: the same crossings). Defaults come from
+    whole volume instead (the slow twin: the same crossings). There the leaf searches start
+    from the box's start table (:mod:`mi_amr.kernels.starts`); ``start_table=False`` starts
+    them at the root and the ropes (the slow twin: the same crossings). Defaults come from
     :mod:`mi_amr.params`. Raises
     :class:`AMRError` for an isovalue that is not a finite number (in float32, the kernels'
     precision) and for rays with a non-finite origin or a zero or non-finite direction."""
