@@ -17,7 +17,8 @@ dr = pytest.importorskip("drjit")
 from mi_amr.kernels import starts  # noqa: E402
 from mi_amr.kernels.config import clips, start_table  # noqa: E402
 from mi_amr.kernels.device import node_holds  # noqa: E402
-from test_active_box import ISOVALUES, sample_rays, scene, transmittances  # noqa: E402
+from test_active_box import (ISOVALUES, assert_shadow_rays_and_images_agree,  # noqa: E402
+                             sample_rays, scene)
 
 
 @pytest.fixture(scope="module")
@@ -119,19 +120,7 @@ def test04_layers_are_the_searches_from_the_root(translucent):
 
 @pytest.mark.parametrize("which", ["opaque", "translucent"])
 def test05_shadow_rays_and_images_are_the_twins(request, which):
-    sc = request.getfixturevalue(which)
-    integ = sc.integrator()
-    o, d = sample_rays(integ, n=3000)
-
-    def both():
-        return transmittances(integ, o, d), np.array(mi.render(sc, seed=0))
-
-    (fast_T, fast_img), (slow_T, slow_img) = both(), twin(integ, both)
-    assert np.mean(slow_T < 0.99) > 0.1
-    np.testing.assert_array_equal(fast_T, slow_T)
-    assert fast_img.mean() > 0.05
-    # (The film's atomic adds: see test_active_box test04.)
-    np.testing.assert_allclose(fast_img, slow_img, rtol=1e-6, atol=1e-9)
+    assert_shadow_rays_and_images_agree(request.getfixturevalue(which), "start_tables")
 
 
 def test06_a_new_isovalue_builds_its_table_without_compiling(opaque):
