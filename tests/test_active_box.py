@@ -7,6 +7,7 @@ volume's box. Rays start at random points of the volume's box (inside and outsid
 box) in random directions, and along the axes in the planes of the active box's faces.
 """
 
+import contextlib
 import dataclasses
 
 import numpy as np
@@ -163,24 +164,31 @@ def test04_clipped_shadow_rays_and_images_are_the_twins(request, which):
     assert_shadow_rays_and_images_agree(request.getfixturevalue(which), "clip_to_active")
 
 
+@contextlib.contextmanager
+def new_isovalue(sc, value=0.2, back=0.05):
+    """Scene ``sc`` rendered once, then with its isovalue set to ``value`` (``back`` after)."""
+    params = mi.traverse(sc)
+    mi.render(sc, seed=0)
+    try:
+        params["integrator.isovalue"] = mi.Float(value)
+        params.update()
+        yield
+    finally:
+        params["integrator.isovalue"] = mi.Float(back)
+        params.update()
+
+
 def test05_a_new_isovalue_moves_the_box_without_compiling(opaque):
     from conftest import kernels_compiled
 
     integ = opaque.integrator()
-    params = mi.traverse(opaque)
     before = host_box(integ)
-    mi.render(opaque, seed=0)
-    try:
-        params["integrator.isovalue"] = mi.Float(0.2)
-        params.update()
+    with new_isovalue(opaque):
         assert not np.array_equal(host_box(integ)[0], before[0])
         assert kernels_compiled(lambda: dr.eval(mi.render(opaque, seed=0)))[1] == 0
         o, d = sample_rays(integ, n=3000)
         np.testing.assert_array_equal(first_crossings(integ, o, d, True)[0],
                                       first_crossings(integ, o, d, False)[0])
-    finally:
-        params["integrator.isovalue"] = mi.Float(0.05)
-        params.update()
 
 
 @pytest.mark.parametrize("kw, clipped", [
@@ -196,18 +204,22 @@ def test06_only_the_exact_march_on_the_basis_blend_clips(scene_data_ready, kw, c
     assert (clip_box(cfg) is not None) == clipped
 
 
-def test07_trace_clips_to_the_box_too(opaque):
-    """``mi_amr.trace`` (exact, basis) clips its rays to the active box as the integrator
-    does: the same hits, depths, normals and isovalues as with ``active_box=False``, for one
-    isovalue and three."""
+def assert_trace_twins_agree(integ, twin_flag):
+    """``mi_amr.trace`` with its keyword ``twin_flag`` True and False (its slow twin): the same
+    hits, depths, normals and isovalues, for one isovalue and three."""
     from mi_amr.kernels.trace import trace
 
-    integ = opaque.integrator()
     o, d = sample_rays(integ, n=6000)
     for iso in (0.05, list(ISOVALUES)):
         fast, slow = (trace(integ.prep.volume, o, d, field="q_criterion", isovalue=iso,
-                            active_box=box) for box in (True, False))
+                            **{twin_flag: on}) for on in (True, False))
         assert fast.hit.sum() > 500
         for a, b in ((fast.hit, slow.hit), (fast.t, slow.t), (fast.iso_index, slow.iso_index)):
             np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(fast.normal[fast.hit], slow.normal[slow.hit])
+
+
+def test07_trace_clips_to_the_box_too(opaque):
+    """``mi_amr.trace`` (exact, basis) clips its rays to the active box as the integrator
+    does, against ``active_box=False``."""
+    assert_trace_twins_agree(opaque.integrator(), "active_box")

@@ -17,18 +17,10 @@ dr = pytest.importorskip("drjit")
 from mi_amr.kernels import starts  # noqa: E402
 from mi_amr.kernels.config import clips, start_table  # noqa: E402
 from mi_amr.kernels.device import node_holds  # noqa: E402
-from test_active_box import (ISOVALUES, assert_shadow_rays_and_images_agree,  # noqa: E402
-                             sample_rays, scene)
-
-
-@pytest.fixture(scope="module")
-def opaque(scene_data_ready):
-    return scene()
-
-
-@pytest.fixture(scope="module")
-def translucent(scene_data_ready):
-    return scene(isovalue=", ".join(map(str, ISOVALUES)), iso_opacity="0.4, 0.5, 0.6")
+# (opaque, translucent: the fixtures of test_active_box, one scene each per module)
+from test_active_box import (ISOVALUES, assert_shadow_rays_and_images_agree,  # noqa: E402, F401
+                             assert_trace_twins_agree, new_isovalue, opaque,
+                             sample_rays, scene, translucent)
 
 
 def host_table(integ, iso, **kw):
@@ -127,21 +119,14 @@ def test06_a_new_isovalue_builds_its_table_without_compiling(opaque):
     from conftest import kernels_compiled
 
     integ = opaque.integrator()
-    params = mi.traverse(opaque)
     before = integ.config().start_table
-    mi.render(opaque, seed=0)
-    try:
-        params["integrator.isovalue"] = mi.Float(0.2)
-        params.update()
+    with new_isovalue(opaque):
         after = integ.config().start_table
         assert after is not before and after.nodes.shape != before.nodes.shape
         assert kernels_compiled(lambda: dr.eval(mi.render(opaque, seed=0)))[1] == 0
         o, d = sample_rays(integ, n=3000)
         np.testing.assert_array_equal(crossings(integ, o, d, True)[0],
                                       crossings(integ, o, d, False)[0])
-    finally:
-        params["integrator.isovalue"] = mi.Float(0.05)
-        params.update()
 
 
 @pytest.mark.parametrize("kw", [{"reconstruction": "finest"}, {"method": "uniform"},
@@ -154,14 +139,4 @@ def test07_only_searches_in_the_active_box_use_a_table(scene_data_ready, kw):
 
 
 def test08_trace_starts_from_the_table_too(opaque):
-    from mi_amr.kernels.trace import trace
-
-    integ = opaque.integrator()
-    o, d = sample_rays(integ, n=6000)
-    for iso in (0.05, list(ISOVALUES)):
-        fast, slow = (trace(integ.prep.volume, o, d, field="q_criterion", isovalue=iso,
-                            start_table=table) for table in (True, False))
-        assert fast.hit.sum() > 500
-        for a, b in ((fast.hit, slow.hit), (fast.t, slow.t), (fast.iso_index, slow.iso_index)):
-            np.testing.assert_array_equal(a, b)
-        np.testing.assert_array_equal(fast.normal[fast.hit], slow.normal[slow.hit])
+    assert_trace_twins_agree(opaque.integrator(), "start_table")

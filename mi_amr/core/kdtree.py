@@ -298,22 +298,33 @@ class KDTree:
         """For each face of ``nodes`` (6 per node), the deepest node holding its face box,
         descending from ``start`` (a node holding it); the root for faces outside the tree."""
         lo, hi, outside = self._face_boxes(nodes)
-        lo_flat, hi_flat = lo.reshape(-1), hi.reshape(-1)
-        node = np.asarray(start, dtype=np.int64).copy()
-        todo = np.flatnonzero(~outside)
-        at = node[todo]
+        inside = ~outside
+        node = np.zeros(len(lo), dtype=np.int64)
+        node[inside] = self.descend_boxes(lo[inside], hi[inside],
+                                          np.asarray(start, dtype=np.int64)[inside])
+        return node
+
+    def descend_boxes(self, lo, hi, start=None, stop=None) -> np.ndarray:
+        """For each closed lattice box ``[lo, hi]`` (rows), the deepest node holding it all,
+        descending from ``start`` (nodes holding them; the root by default), or the first
+        node met where ``stop`` (a bool per node) is True."""
+        lo_flat, hi_flat = np.asarray(lo).reshape(-1), np.asarray(hi).reshape(-1)
+        node = np.zeros(len(lo), dtype=np.int64) if start is None else start.copy()
+        todo = np.arange(len(lo))
+        at = node.copy()
         while len(todo):
             code = np.take(self.node_code, at)
             ax = code & 3
             split = np.take(self._node_split, at)
             inner = ax != LEAF
+            if stop is not None:
+                inner &= ~np.take(stop, at)
             pos = todo * 3 + np.where(inner, ax, 0)
             above = inner & (np.take(lo_flat, pos) >= split)
             go = above | (inner & (np.take(hi_flat, pos) < split))
             at = (code[go] >> 2) + above[go]
             todo = todo[go]
             node[todo] = at
-        node[outside] = 0
         return node
 
     def _set_ropes(self, ropes) -> None:

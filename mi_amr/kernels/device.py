@@ -300,32 +300,38 @@ class DeviceVolume:
         taken :data:`~mi_amr.tolerances.ACTIVE_BOX_RANGE_REL` wider than the search reads
         them, so a leaf whose float32 range only just misses an isovalue is kept. The last
         :data:`ACTIVE_BOXES` boxes are kept (a frame of an unchanged isovalue costs a lookup)."""
-        iso = np.asarray(isovalues, dtype=np.float32).ravel()
-        key = iso.tobytes()
-        if key not in self._boxes:
+        def make(iso):
             lo, hi = active_box_host(self.tree, self.node_ranges(True), iso, self.min_h_host)
-            while len(self._boxes) >= ACTIVE_BOXES:
-                self._boxes.pop(next(iter(self._boxes)))
-            self._boxes[key] = (self._point(lo), self._point(hi))
-        return self._boxes[key]
+            return self._point(lo), self._point(hi)
+
+        return _kept(self._boxes, isovalues, make)
 
     def start_table(self, isovalues):
         """The :class:`~mi_amr.kernels.starts.StartTable` of the leaves :meth:`active_box`
         holds for ``isovalues`` (the last :data:`ACTIVE_BOXES` are kept)."""
-        iso = np.asarray(isovalues, dtype=np.float32).ravel()
-        key = iso.tobytes()
-        if key not in self._tables:
+        def make(iso):
             ranges = self.node_ranges(True)
             active = active_leaves(self.tree, ranges, iso)
             searched = node_holds(ranges, iso, widen=0.0)
-            while len(self._tables) >= ACTIVE_BOXES:
-                self._tables.pop(next(iter(self._tables)))
             lo, cell, dims, nodes = starts.start_table_host(self.tree, active, ~searched)
             h = self.tree.h_fine
-            self._tables[key] = starts.StartTable(
+            return starts.StartTable(
                 nodes=self._uints(nodes), lo=self._point(self.volume.anchor + lo * h),
                 inv_cell=self._point(1.0 / (cell * h)), dims=self._point(dims))
-        return self._tables[key]
+
+        return _kept(self._tables, isovalues, make)
+
+
+def _kept(cache: dict, isovalues, make):
+    """``make(iso)`` for the float32 isovalues ``iso``, kept in ``cache`` by their bytes with
+    the last :data:`ACTIVE_BOXES` others."""
+    iso = np.asarray(isovalues, dtype=np.float32).ravel()
+    key = iso.tobytes()
+    if key not in cache:
+        while len(cache) >= ACTIVE_BOXES:
+            cache.pop(next(iter(cache)))
+        cache[key] = make(iso)
+    return cache[key]
 
 
 # How many active boxes (one per set of isovalues) a DeviceVolume keeps.
@@ -353,9 +359,8 @@ def node_holds(ranges, isovalues, widen: float = tol.ACTIVE_BOX_RANGE_REL) -> np
     magnitude, holds one of ``isovalues`` (float32 numbers): with ``widen`` 0 exactly the
     nodes the kernels' search does not skip (float32 comparisons, exact in float64)."""
     r = np.asarray(ranges, dtype=np.float64).reshape(-1, 2)
-    with np.errstate(invalid="ignore"):
-        slack = np.nan_to_num(widen * np.maximum(np.abs(r[:, 0]), np.abs(r[:, 1])))
     iso = np.asarray(isovalues, dtype=np.float64)
     with np.errstate(invalid="ignore"):      # an empty range (+inf, -inf) holds nothing
+        slack = np.nan_to_num(widen * np.maximum(np.abs(r[:, 0]), np.abs(r[:, 1])))
         holds = (r[:, :1] - slack[:, None] <= iso) & (iso <= r[:, 1:] + slack[:, None])
     return holds.any(axis=1)

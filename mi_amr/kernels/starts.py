@@ -7,10 +7,13 @@ leaves inside it, each search descending from the root (a camera ray at its entr
 ray) or from a rope. The kd nodes are power-of-two boxes of the finest level's lattice, as in an
 octree (:mod:`mi_amr.core.kdtree`), so a uniform table whose cells are the smallest active
 leaves' size, laid on the same lattice, has each cell inside one node, often a leaf: the
-**start table** holds, for every cell, the deepest node whose box holds the whole cell. A search
-from a point in the box looks its cell up and descends from that node instead of the root,
-which is where a descent from the root would arrive (it passes through every node holding the
-point), so the same leaves are found at the same parameters.
+**start table** holds, for every cell, the first node on the way down from the root that the
+search skips (its range holds no isovalue), else the deepest node whose box holds the whole
+cell. A search from a point in the box looks its cell up and goes on from that node instead of
+the root, which is where a descent from the root would arrive (it passes through every node
+holding the point and stops at the first it skips), so the same leaves are found at the same
+parameters. Entries that end a descent (a leaf, or a node to skip) are marked :data:`FINAL`:
+there the search does not read its rope either; elsewhere it takes the deeper of the two.
 
 Cells are half open, ``[lo + i s, lo + (i + 1) s)`` on each axis (a point on a split plane goes
 up, as in the tree). The table is built on the host when the isovalues change (with the active
@@ -38,7 +41,7 @@ FINAL = 1 << 31           # set in a table entry whose node ends a descent (a le
 class StartTable:
     """A start table as kernel inputs: ``nodes`` (``m.UInt32``, x fastest), the box's lower
     corner ``lo`` and ``inv_cell`` (one over the cell's size) as opaque points (volume world),
-    and ``dims``, the cells per axis, as opaque floats (0 for an empty table)."""
+    and ``dims``, the cells per axis, as an opaque point (0 for an empty table)."""
 
     nodes: Any
     lo: Any
@@ -50,8 +53,9 @@ def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_
     """``(lo, cell, dims, nodes)`` of the start table over the leaves ``active_nodes`` (kd node
     indices) of ``tree``: lower corner and cell size in lattice units (finest cells from the
     volume's anchor, float64 3-vectors), cells per axis and the node of each cell (x fastest);
-    an empty table (no cells) where there are no active nodes. Entries of leaves have
-    :data:`FINAL` set."""
+    an empty table (no cells) where there are no active nodes. Descents stop at the nodes
+    where ``empty`` (a bool per node: ranges the search skips); entries of leaves and of such
+    nodes have :data:`FINAL` set."""
     if len(active_nodes) == 0:
         return np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64), np.zeros(1, np.uint32)
     lo = tree._node_lo[active_nodes].min(axis=0)
@@ -67,38 +71,18 @@ def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_
         cell = cell * 2
     idx = np.indices(dims[::-1]).reshape(3, -1)[::-1].T       # x fastest
     c_lo = start + idx * cell
-    nodes = descend_boxes(tree, c_lo, c_lo + cell, stop=empty)
+    # Cells are half open on a lattice of whole numbers: [lo, lo + cell) holds what the
+    # closed box [lo, lo + cell - 1/2] does.
+    nodes = tree.descend_boxes(c_lo, c_lo + cell - 0.5, stop=empty)
     final = (tree.node_code[nodes] & 3) == 3
     if empty is not None:
         final |= empty[nodes]
     return start, cell, dims, (nodes | np.where(final, FINAL, 0)).astype(np.uint32)
 
 
-def descend_boxes(tree, lo, hi, stop=None) -> np.ndarray:
-    """For each half-open lattice box ``[lo, hi)`` (rows), the deepest node of ``tree`` that
-    holds it all, descending from the root, or the first node met where ``stop`` (a bool per
-    node) is True."""
-    node = np.zeros(len(lo), dtype=np.int64)
-    todo = np.arange(len(lo))
-    at = node.copy()
-    while len(todo):
-        code = np.take(tree.node_code, at)
-        ax = code & 3
-        inner = ax != 3
-        if stop is not None:
-            inner &= ~np.take(stop, at)
-        axis = np.where(inner, ax, 0)
-        split = np.take(tree._node_split, at)
-        above = inner & (lo[todo, axis] >= split)
-        go = above | (inner & (hi[todo, axis] <= split))
-        at = (code[go] >> 2) + above[go]
-        todo = todo[go]
-        node[todo] = at
-    return node
-
-
 def descend_box_reference(tree, lo, hi, stop=None) -> int:
-    """Slow twin of :func:`descend_boxes` for one box: the plain descent, node by node."""
+    """Slow twin of the table's descents (:meth:`~mi_amr.core.kdtree.KDTree.descend_boxes`)
+    for one half-open box ``[lo, hi)``: the plain descent, node by node."""
     node = 0
     while (tree.node_code[node] & 3) != 3 and not (stop is not None and stop[node]):
         axis = tree.node_code[node] & 3
@@ -113,9 +97,9 @@ def descend_box_reference(tree, lo, hi, stop=None) -> int:
 
 
 def table_start(dev, table: StartTable, p, active):
-    """``(node, lo, hi, found, leaf)``: the table's node for the point ``p`` (volume world),
-    its box and whether it is a leaf, where ``found`` (the point is in the table and the node
-    holds it)."""
+    """``(node, lo, hi, found, final)``: the table's node for the point ``p`` (volume world),
+    its box and whether its entry is :data:`FINAL`, where ``found`` (the point is in the table
+    and the node holds it)."""
     m = dev.m
     rel = (p - table.lo) * table.inv_cell
     in_table = active & dr.all((rel >= 0.0) & (rel < table.dims))

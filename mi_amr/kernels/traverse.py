@@ -116,8 +116,8 @@ def _restart(dev, o, d, t, node, face, active, table=None):
     """Where to resume the descent at ``o + t d`` after leaving ``node`` through ``face``: its
     rope when that node holds the point, else the root (also for ``face`` >= 6: no node yet).
     Given a start ``table`` (:mod:`mi_amr.kernels.starts`), the deeper of its node for the
-    point and the rope, and the rope is not read where the table's node is a leaf. Returns the
-    node and its box."""
+    point and the rope, and the rope is not read where the table's entry is final (a leaf, or
+    a node to skip). Returns the node and its box."""
     m = dev.m
     p = dr.fma(d, t, o)
     roped = active & (face < 6)
@@ -125,8 +125,8 @@ def _restart(dev, o, d, t, node, face, active, table=None):
         rope, lo, hi, inside = _rope(dev, p, node, face, roped)
         return (dr.select(inside, rope, m.UInt32(0)), dr.select(inside, lo, dev.root_lo),
                 dr.select(inside, hi, dev.root_hi))
-    t_node, t_lo, t_hi, found, at_leaf = table_start(dev, table, p, active)
-    rope, lo, hi, inside = _rope_unless(dev, p, node, face, roped & lnot(found & at_leaf))
+    t_node, t_lo, t_hi, found, final = table_start(dev, table, p, active)
+    rope, lo, hi, inside = _rope_unless(dev, p, node, face, roped & lnot(found & final))
     # Both hold the point, so one holds the other: the smaller box is the deeper node.
     inside &= lnot(found) | (dr.sum(hi - lo) < dr.sum(t_hi - t_lo))
     start = dr.select(inside, rope, dr.select(found, t_node, m.UInt32(0)))
