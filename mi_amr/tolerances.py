@@ -78,6 +78,12 @@ QUADRATIC_EPS = 1e-30
 # transmittance: a ray whose transmittance falls below this stops (early termination, the
 # rest would change a pixel by less than 1 %), and what is left counts as opaque.
 T_MIN = 0.01
+# transmittance: a shadow ray of stochastic layers whose transmittance falls below this plays
+# Russian roulette (it stops with the probability of the share lost, else counts as this):
+# the frame 0.456 -> 0.423 s against exact transmittances, squared error per pixel 1.23e-3 ->
+# 1.26e-3 (three translucent isovalues, 256^2, 4 spp; at 0.5: 0.434 s, 1.42e-3; at 1, a
+# 0-or-1 sample: 0.397 s, 2.51e-3).
+ROULETTE_T = 0.25
 # opacity: a piece or sample more transparent than this is not shaded (it changes an 8-bit
 # pixel by less than one level).
 ALPHA_LIT = 1e-3

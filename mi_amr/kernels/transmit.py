@@ -68,11 +68,17 @@ class Sides:
 
 
 @dr.syntax
-def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int, active):
+def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int, active,
+                        u=None):
     """Transmittance of the isosurfaces on ``(t_start, t_end)``: the product of ``1 -
     opacity[k]`` over the crossings of isovalue ``k`` (``opacity``: device array, one per
     isovalue), at most ``max_layers`` of them; 0 once it falls to
-    :data:`~mi_amr.tolerances.T_MIN` (as front-to-back compositing gives)."""
+    :data:`~mi_amr.tolerances.T_MIN` (as front-to-back compositing gives).
+
+    With ``u`` (uniform in ``[0, 1)`` per ray) an unbiased sample of it instead (Russian
+    roulette below :data:`~mi_amr.tolerances.ROULETTE_T`, ``R``): the walk stops where the
+    transmittance falls to ``R u`` (0); one that ends above it gives its transmittance, or
+    ``R`` where that is below ``R`` (which it stays above with probability ``T / R``)."""
     m = dev.m
     o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active,
                                        clip_box(cfg))
@@ -84,6 +90,7 @@ def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int
     v_prev = m.Float(dr.nan)
     sides = Sides.start(m, cfg.num_iso)
     T = m.Float(1.0)
+    T_end = m.Float(tol.T_MIN if u is None else dr.maximum(tol.ROULETTE_T * u, tol.T_MIN))
     layers = m.UInt32(0)
     sk = seek_start(dev, o, d, w.t, w.node, w.face, v_prev, m.Bool(False))
     while active:
@@ -110,9 +117,9 @@ def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int
         T, layers = _pass(dev, cfg, opacity, T, layers, max_layers, counts)
         v_prev = dr.select(march, dr.select(have, v_end, dr.nan), v_prev)
         w.t = dr.select(march, t_b, w.t)
-        active = (march | turned | searching) & (w.t < t1) & (T > tol.T_MIN) & \
+        active = (march | turned | searching) & (w.t < t1) & (T > T_end) & \
             (layers < max_layers)
-    return dr.select(T <= tol.T_MIN, 0.0, T)
+    return dr.select(T <= T_end, 0.0, T if u is None else dr.maximum(T, tol.ROULETTE_T))
 
 
 def _pass(dev, cfg, opacity, T, layers, max_layers: int, counts):

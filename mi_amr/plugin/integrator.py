@@ -95,6 +95,7 @@ class _AMRIso:
         self.layer_fast_paths = True
         self.clip_to_active = True      # False: the whole volume, not the active box (twin)
         self.start_tables = True        # False: leaf searches start at the root (twin)
+        self.packet_picks = True        # False: stochastic layers picked per lane (twin)
         wavefront.attach(self)
         _warn_outside(self.prep, opt.isovalues)
 
@@ -155,7 +156,8 @@ class _AMRIso:
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         if not wavefront.supported(sensor, spp):
             return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
-        return wavefront.render(self, scene, sensor, seed, spp, develop, evaluate)
+        return wavefront.render(self, scene, sensor, seed, spp, develop, evaluate,
+                                by_sample=self.packet_picks and self.opt.layers == "stochastic")
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         active = mi.Bool(active)
@@ -171,6 +173,11 @@ class _AMRIso:
         # Picking layers: the number that picks (the sampler's, not a hash of the lane as
         # jitter="stable" takes, so that passes at seeds 0, 1, ... converge).
         u = sampler.next_1d(active) if surfaces.draws_u(self) else None
+        if self.opt.layers == "stochastic":
+            # One number per packet (stratified over the pixel's samples): its lanes stop
+            # at their picked layers together.
+            shared = wavefront.packet_u(self, ray, salt=0)
+            u = u if shared is None else shared
         if self.opt.mode == "surface":
             L, T = surfaces.surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, u, active)
         else:
@@ -206,7 +213,10 @@ class _AMRIso:
             res = composite(self.dev, self.config(), o, d, t0, t1, m.Float(0.5), None, None,
                             m.Bool(active))
             return bridge.to_mi(res.T, mi.Float)
-        return surfaces.transmittance(self, self.config(), o, d, t0, t1, active)
+        # Stochastic layers: a 0-or-1 sample of it, a number per packet deciding where the
+        # walks stop (the packet's lanes together).
+        u = wavefront.packet_u(self, ray, salt=1) if self.opt.layers == "stochastic" else None
+        return surfaces.transmittance(self, self.config(), o, d, t0, t1, active, u)
 
     def _volume(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
         """Front-to-back compositing of the opacity band up to the mesh hit."""

@@ -28,7 +28,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_amr.kernels.jitter import stable_jitter
+from mi_amr.plugin import bridge
+from mi_amr.plugin.layers import ONE_BELOW
+
 TILE = 4        # a 16-lane packet at 1 spp: 4 x 4 pixels
+PACKET = 16     # lanes of a SIMD packet (AVX-512; AVX2's 8 are half of one)
 SUPER = 32      # tiles in squares of 32 x 32 pixels: the lanes a thread takes in a row
 
 # Measured with camera rays of the report's scene at 1024^2 (`mi_amr.trace`, primary exact
@@ -71,6 +76,7 @@ def attach(integrator) -> None:
     integrator.tiled_lanes = True
     integrator._orders = Orders()
     integrator._wavefront_lane = None
+    integrator._wavefront_picks = None
 
 
 def lane_index(integrator, ray):
@@ -103,10 +109,12 @@ def supported(sensor, spp: int) -> bool:
         width * height * spp < 2 ** 32
 
 
-def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True):
+def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, by_sample=False):
     """Render ``scene`` through ``sensor`` with ``integrator.sample``, the wavefront's pixels
     in tile order (scanlines where ``integrator.tiled_lanes`` is False). Returns the developed
-    image as ``mi.render`` does (None unless ``develop``)."""
+    image as ``mi.render`` does (None unless ``develop``). ``by_sample`` (tile order only):
+    each packet holds one sample index of :data:`PACKET` pixels, and :func:`packet_u` gives
+    the packet's shared numbers."""
     film = sensor.film()
     width, height, spp, border = film_shape(sensor, spp)
     order = integrator._orders(width, height) if integrator.tiled_lanes else None
@@ -120,16 +128,19 @@ def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True):
     block.set_offset(film.crop_offset())
     block.set_coalesce(block.coalesce() and spp >= 4)
 
-    lane = dr.arange(mi.UInt32, n)
-    if order is not None:
-        spp_u = dr.opaque(mi.UInt32, spp)
-        pixel = lane // spp_u
-        lane = dr.gather(mi.UInt32, order, pixel) * spp_u + (lane - pixel * spp_u)
+    by_sample = by_sample and order is not None
+    lane = tiled_lanes(order, n, spp, by_sample) if order is not None else \
+        dr.arange(mi.UInt32, n)
     integrator._wavefront_lane = lane
+    integrator._wavefront_picks = None
+    if by_sample:
+        seed_u = mi.UInt32(seed)
+        dr.make_opaque(seed_u)          # a new seed compiles nothing
+        integrator._wavefront_picks = (dr.opaque(mi.UInt32, spp), seed_u)
     try:
         _render_lanes(integrator, scene, sensor, sampler, block, lane, width, spp, border)
     finally:
-        integrator._wavefront_lane = None
+        integrator._wavefront_lane = integrator._wavefront_picks = None
     film.put_block(block)
     result = None
     if develop:
@@ -141,6 +152,47 @@ def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True):
         dr.eval()
         dr.sync_thread()
     return result
+
+
+def tiled_lanes(order, n: int, spp: int, by_sample: bool):
+    """The scanline lane (``pixel * spp + sample``) of each lane of the tiled wavefront of
+    ``n`` lanes: the pixels in ``order`` (:func:`pixel_order`, a device array), the samples
+    of a pixel side by side, or (``by_sample``) in groups of :data:`PACKET` pixels, sample 0
+    of the group's pixels, then sample 1, ... (a last group of fewer pixels alike)."""
+    pos = dr.arange(mi.UInt32, n)
+    spp_u = dr.opaque(mi.UInt32, spp)
+    if not by_sample:
+        pixel = pos // spp_u
+        return dr.gather(mi.UInt32, order, pixel) * spp_u + (pos - pixel * spp_u)
+    group = pos // (spp_u * PACKET)
+    first = group * PACKET
+    size = dr.minimum(dr.opaque(mi.UInt32, n) // spp_u - first, PACKET)
+    r = pos - first * spp_u
+    sample = r // size
+    pixel = dr.gather(mi.UInt32, order, first + (r - sample * size))
+    return pixel * spp_u + sample
+
+
+def packet_u(integrator, ray, salt: int):
+    """A uniform number in ``[0, 1)`` per lane that all lanes of a packet share, stratified
+    over a pixel's samples: ``((sample + r) mod spp + xi) / spp``, ``xi`` a hash of the
+    packet and ``r`` (in ``0 .. spp - 1``) of its group of pixels, both of the frame's seed
+    and ``salt`` (one stream per use: the streams of a sample are independent). None unless
+    :func:`render` traces a ``by_sample`` wavefront of ``ray``'s width. A packet's lanes end
+    their walks together where the number decides how far they go (stochastic layers)."""
+    picks = integrator._wavefront_picks
+    lane = integrator._wavefront_lane
+    if picks is None or lane is None or dr.width(lane) != dr.width(ray.o):
+        return None
+    spp_u, seed = picks
+    m = integrator.m
+    pos = dr.arange(m.UInt32, dr.width(lane))
+    key = m.UInt32(seed) * 32 + 2 * salt
+    xi = stable_jitter(m, pos // PACKET, key)
+    turn = m.UInt32(stable_jitter(m, pos // (spp_u * PACKET), key + 1) * m.Float(spp_u))
+    stratum = (m.UInt32(lane % spp_u) + turn) % spp_u
+    u = bridge.to_mi((m.Float(stratum) + xi) / m.Float(spp_u), mi.Float)
+    return dr.minimum(u, ONE_BELOW)
 
 
 def _render_lanes(integrator, scene, sensor, sampler, block, lane, width, spp, border):
