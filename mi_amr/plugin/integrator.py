@@ -170,8 +170,9 @@ class _AMRIso:
         # change inside the symbolic loops below.
         light_u = [sampler.next_2d(active) for _ in scene.emitters()]
         # ---- Isosurfaces (or the band) in front of the mesh, front to back.
-        # Picking layers: the number that picks (the sampler's, not a hash of the lane as
-        # jitter="stable" takes, so that passes at seeds 0, 1, ... converge).
+        # Picking layers: the number that picks (the sampler's, or for stochastic layers a
+        # hash of the packet and the seed; not a hash of the lane alone as jitter="stable"
+        # takes, so that passes at seeds 0, 1, ... converge).
         u = sampler.next_1d(active) if surfaces.draws_u(self) else None
         if self.opt.layers == "stochastic":
             # One number per packet (stratified over the pixel's samples): its lanes stop
@@ -213,8 +214,8 @@ class _AMRIso:
             res = composite(self.dev, self.config(), o, d, t0, t1, m.Float(0.5), None, None,
                             m.Bool(active))
             return bridge.to_mi(res.T, mi.Float)
-        # Stochastic layers: a 0-or-1 sample of it, a number per packet deciding where the
-        # walks stop (the packet's lanes together).
+        # Stochastic layers: Russian roulette, a number per packet deciding where the walks
+        # stop (the packet's lanes together).
         u = wavefront.packet_u(self, ray, salt=1) if self.opt.layers == "stochastic" else None
         return surfaces.transmittance(self, self.config(), o, d, t0, t1, active, u)
 

@@ -106,8 +106,8 @@ def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
 def transmittance(integ, cfg, o, d, t0, t1, active, u=None):
     """Light passing the isosurfaces on ``(t0, t1)`` (kernel values) of a ray in the volume:
     one walk counting the crossings (``exact``), else the layers composited one by one.
-    ``u`` (``mi.Float`` in ``[0, 1)``, ``exact`` only): a 0-or-1 sample of it, 1 where it
-    stays above ``u`` (:func:`~mi_amr.kernels.transmit.transmittance_exact`)."""
+    ``u`` (``mi.Float`` in ``[0, 1)``, ``exact`` only): an unbiased sample of it by Russian
+    roulette (:func:`~mi_amr.kernels.transmit.transmittance_exact`)."""
     m = integ.m
     if cfg.method == "exact" and integ.layer_fast_paths:
         return bridge.to_mi(transmittance_exact(
