@@ -124,9 +124,9 @@ TABLE = (
           "layers see the light differently) or ``stochastic`` (one layer per sample, picked "
           "with the probability of that weight, as Mitsuba's ``mask`` BSDF does: the same "
           "image in expectation, noisier per sample, shading one layer instead of every one; "
-          "the numbers that pick are shared by 16 pixels and stratified over a pixel's "
-          "samples, and shadow rays play Russian roulette where under a quarter of the light "
-          "gets through; alpha is then the share of samples that stop at a layer)",
+          "from 2 spp on, the numbers that pick are shared by 16 pixels and stratified over a "
+          "pixel's samples, and shadow rays play Russian roulette where under a quarter of the "
+          "light gets through; alpha is then the share of samples that stop at a layer)",
           choices=LAYER_MODES),
 )
 BY_NAME = {p.name: p for p in TABLE}

@@ -172,3 +172,15 @@ def test05_the_per_lane_twin_and_the_packets_converge_to_one_image(translucent):
     assert shared.mean() > 0.05
     assert np.mean((shared - lanes_a) ** 2) < 1.3 * noise
     assert abs(shared.mean() - lanes_a.mean()) < 0.01 * shared.mean()
+
+
+def test06_at_one_sample_per_pixel_lanes_keep_their_own_numbers(scene_data_ready):
+    """(A number shared by 16 pixels of one sample each would show as 4 x 4 blocks of noise.)
+    The same image with and without ``packet_picks``, up to the film's atomic adds."""
+    sc = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=32, resy=32, spp=1,
+                    integrator=dict(TRANSLUCENT, layers="stochastic"))
+    shared = np.array(mi.render(sc, seed=2))
+    sc.integrator().packet_picks = False
+    own = np.array(mi.render(sc, seed=2))
+    assert shared.mean() > 0.05
+    np.testing.assert_allclose(shared, own, rtol=1e-6, atol=1e-9)

@@ -112,9 +112,9 @@ def supported(sensor, spp: int) -> bool:
 def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, by_sample=False):
     """Render ``scene`` through ``sensor`` with ``integrator.sample``, the wavefront's pixels
     in tile order (scanlines where ``integrator.tiled_lanes`` is False). Returns the developed
-    image as ``mi.render`` does (None unless ``develop``). ``by_sample`` (tile order only):
-    each packet holds one sample index of :data:`PACKET` pixels, and :func:`packet_u` gives
-    the packet's shared numbers."""
+    image as ``mi.render`` does (None unless ``develop``). ``by_sample`` (tile order and 2 or
+    more samples per pixel only): each packet holds one sample index of :data:`PACKET`
+    pixels, and :func:`packet_u` gives the packet's shared numbers."""
     film = sensor.film()
     width, height, spp, border = film_shape(sensor, spp)
     order = integrator._orders(width, height) if integrator.tiled_lanes else None
@@ -128,7 +128,9 @@ def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, by
     block.set_offset(film.crop_offset())
     block.set_coalesce(block.coalesce() and spp >= 4)
 
-    by_sample = by_sample and order is not None
+    # (At 1 spp a packet's shared number would be 16 pixels' only one: their noise would show
+    # as 4 x 4 blocks. With more, each pixel's samples take every stratum.)
+    by_sample = by_sample and order is not None and spp > 1
     lane = tiled_lanes(order, n, spp, by_sample) if order is not None else \
         dr.arange(mi.UInt32, n)
     integrator._wavefront_lane = lane
