@@ -184,3 +184,33 @@ def test06_at_one_sample_per_pixel_lanes_keep_their_own_numbers(scene_data_ready
     own = np.array(mi.render(sc, seed=2))
     assert shared.mean() > 0.05
     np.testing.assert_allclose(shared, own, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("least", [1, 4])
+def test07_passes_of_stochastic_layers_take_several_samples(least):
+    """The render workflow's and the viewer's passes (``pass_samples``): every sample once, at
+    most 16 a pass, and with stochastic layers (``least`` 4) passes of 2 or more spp, where
+    packets share their numbers; with 1 the layout before, one sample a pass up to 16."""
+    from mi_amr.workflows.render import pass_samples
+    from mi_amr.workflows.viewer.state import refine_passes
+
+    for total in (1, 2, 3, 5, 8, 16, 17, 40, 100, 256, 1000):
+        spp = pass_samples(total, least)
+        assert sum(spp) == total and max(spp) <= 16 and len(spp) <= max(16, -(-total // 16))
+        assert refine_passes(total, least) == list(enumerate(spp))
+        if least == 1:
+            passes = max(min(total, 16), -(-total // 16))
+            assert len(spp) == passes and max(spp) - min(spp) <= 1
+        elif total >= 2:
+            assert min(spp) >= 2
+
+
+def test08_the_render_workflow_asks_stochastic_layers_for_passes_of_4(translucent,
+                                                                      scene_data_ready):
+    from mi_amr.workflows.render import STOCHASTIC_PASS_SPP, least_pass_spp
+
+    assert least_pass_spp(translucent.integrator()) == STOCHASTIC_PASS_SPP == 4
+    composited = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=8, resy=8, spp=1,
+                            integrator=TRANSLUCENT)
+    assert least_pass_spp(composited.integrator()) == 1
+    assert least_pass_spp(object()) == 1

@@ -107,13 +107,33 @@ def _check_defines(scene_path, defines: dict) -> None:
                            f"it has {', '.join(known) or 'none'}")
 
 
+STOCHASTIC_PASS_SPP = 4    # stochastic layers: samples a pass at least (see pass_samples)
+
+
+def least_pass_spp(integrator) -> int:
+    """Samples a pass at least for ``integrator``: :data:`STOCHASTIC_PASS_SPP` with stochastic
+    layers, whose frames of 2 or more spp share the numbers that pick by SIMD packet
+    (:func:`mi_amr.plugin.wavefront.packet_u`: faster, and stratified over a pixel's samples;
+    frames of 1 spp keep a number per lane), else 1."""
+    opt = getattr(integrator, "opt", None)
+    return STOCHASTIC_PASS_SPP if getattr(opt, "layers", None) == "stochastic" else 1
+
+
+def pass_samples(total: int, least: int = 1) -> list:
+    """Samples per pass of a ``total``-spp image: passes of at most 16 spp -- one sample a
+    pass (``least`` a pass) up to 16 passes -- so a progress bar moves and memory stays
+    bounded. The render workflow and the viewer's refinement both take these, seeds 0, 1, ...
+    in turn, so a scene the viewer saves renders to the same pixels."""
+    passes = max(min(-(-total // max(least, 1)), 16), -(-total // 16))
+    return [total // passes + (1 if i < total % passes else 0) for i in range(passes)]
+
+
 def _render_passes(mi, dr, np, scene, total_spp, quiet):
-    """The image (all film channels), rendered in passes of at most 16 spp -- one sample per
-    pass up to 16 -- so the progress bar moves and memory stays bounded."""
+    """The image (all film channels), rendered in the passes of :func:`pass_samples`."""
     from tqdm import tqdm
 
-    passes = max(min(total_spp, 16), -(-total_spp // 16))
-    per_pass = [total_spp // passes + (1 if i < total_spp % passes else 0) for i in range(passes)]
+    per_pass = pass_samples(total_spp, least_pass_spp(scene.integrator()))
+    passes = len(per_pass)
     accum = None
     with tqdm(total=total_spp, unit="spp", disable=quiet or passes == 1, leave=False) as bar:
         for i, n in enumerate(per_pass):

@@ -44,6 +44,7 @@ from mi_amr.errors import AMRError
 from mi_amr.plugin.camera import Camera, scene_camera, sensor_key, set_camera
 from mi_amr.plugin.inputs import colormap_table
 from mi_amr.plugin.scene import load_scene
+from mi_amr.workflows.render import least_pass_spp, pass_samples
 
 HISTOGRAM_BINS = 128
 
@@ -85,13 +86,12 @@ def structure(state: ViewState) -> tuple:
             state.reconstruction, state.layers, len(state.isovalues))
 
 
-def refine_passes(total: int) -> list:
+def refine_passes(total: int, least: int = 1) -> list:
     """``(seed, spp)`` of the passes that make a ``total``-spp image, exactly as
-    ``python -m mi_amr render`` makes it (``_render_passes`` in :mod:`mi_amr.workflows.render`:
-    one sample a pass up to 16, at most 16 passes beyond, seeds 0, 1, ...), so a saved scene
-    renders to the same pixels (``tests/test_viewer.py`` checks it)."""
-    passes = max(min(total, 16), -(-total // 16))
-    return [(i, total // passes + (1 if i < total % passes else 0)) for i in range(passes)]
+    ``python -m mi_amr render`` makes it (:func:`mi_amr.workflows.render.pass_samples`, seeds
+    0, 1, ...; ``least``: samples a pass at least), so a saved scene renders to the same
+    pixels (``tests/test_viewer.py`` checks it)."""
+    return list(enumerate(pass_samples(total, least)))
 
 
 class Session:
@@ -350,7 +350,7 @@ class Session:
         """The ``spp``-sample image, in the passes of :func:`refine_passes`; None when
         ``before_pass()`` returns True (a newer request: the rest is dropped)."""
         accum = None
-        for seed, n in refine_passes(spp):
+        for seed, n in refine_passes(spp, least_pass_spp(self.scene.integrator())):
             if before_pass is not None and before_pass():
                 return None
             part = self.render(size, n, seed) * n
