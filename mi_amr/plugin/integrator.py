@@ -157,7 +157,12 @@ class _AMRIso:
         if not wavefront.supported(sensor, spp):
             return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
         return wavefront.render(self, scene, sensor, seed, spp, develop, evaluate,
-                                by_sample=self.packet_picks and self.opt.layers == "stochastic")
+                                by_sample=self.picks_by_packet())
+
+    def picks_by_packet(self) -> bool:
+        """Do frames of 2 or more spp share the numbers that pick by SIMD packet
+        (:func:`mi_amr.plugin.wavefront.packet_u`)? Stochastic layers, unless the twin."""
+        return self.packet_picks and self.opt.layers == "stochastic"
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         active = mi.Bool(active)
@@ -174,11 +179,10 @@ class _AMRIso:
         # hash of the packet and the seed; not a hash of the lane alone as jitter="stable"
         # takes, so that passes at seeds 0, 1, ... converge).
         u = sampler.next_1d(active) if surfaces.draws_u(self) else None
-        if self.opt.layers == "stochastic":
-            # One number per packet (stratified over the pixel's samples): its lanes stop
-            # at their picked layers together.
-            shared = wavefront.packet_u(self, ray, salt=0)
-            u = u if shared is None else shared
+        # Where the frame picks by packet: one number per packet (stratified over the pixel's
+        # samples), so its lanes stop at their picked layers together.
+        shared = wavefront.packet_u(self, ray, salt=0)
+        u = u if shared is None else shared
         if self.opt.mode == "surface":
             L, T = surfaces.surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, u, active)
         else:
@@ -214,9 +218,9 @@ class _AMRIso:
             res = composite(self.dev, self.config(), o, d, t0, t1, m.Float(0.5), None, None,
                             m.Bool(active))
             return bridge.to_mi(res.T, mi.Float)
-        # Stochastic layers: Russian roulette, a number per packet deciding where the walks
-        # stop (the packet's lanes together).
-        u = wavefront.packet_u(self, ray, salt=1) if self.opt.layers == "stochastic" else None
+        # Where the frame picks by packet: Russian roulette, a number per packet deciding where
+        # the walks stop (the packet's lanes together); else None, the exact transmittance.
+        u = wavefront.packet_u(self, ray, salt=1)
         return surfaces.transmittance(self, self.config(), o, d, t0, t1, active, u)
 
     def _volume(self, scene, light_u, ray, o, d, t_mesh, jitter, active):

@@ -111,12 +111,12 @@ STOCHASTIC_PASS_SPP = 4    # stochastic layers: samples a pass at least (see pas
 
 
 def least_pass_spp(integrator) -> int:
-    """Samples a pass at least for ``integrator``: :data:`STOCHASTIC_PASS_SPP` with stochastic
-    layers, whose frames of 2 or more spp share the numbers that pick by SIMD packet
-    (:func:`mi_amr.plugin.wavefront.packet_u`: faster, and stratified over a pixel's samples;
+    """Samples a pass at least for ``integrator``: :data:`STOCHASTIC_PASS_SPP` where its
+    frames of 2 or more spp share the numbers that pick by SIMD packet (``amr_iso``'s
+    ``picks_by_packet``, stochastic layers: faster, and stratified over a pixel's samples;
     frames of 1 spp keep a number per lane), else 1."""
-    opt = getattr(integrator, "opt", None)
-    return STOCHASTIC_PASS_SPP if getattr(opt, "layers", None) == "stochastic" else 1
+    shares = getattr(integrator, "picks_by_packet", None)
+    return STOCHASTIC_PASS_SPP if shares is not None and shares() else 1
 
 
 def pass_samples(total: int, least: int = 1) -> list:
