@@ -40,12 +40,17 @@ def velocity_fields(volume, velocity=None) -> tuple:
                    f"{list(volume.field_names)}")
 
 
-def derive(volume, *names: str, velocity=None):
+def derive(volume, *names: str, velocity=None, gradient_fields=None):
     """A volume with the derived fields ``names`` added (any of :data:`DERIVED_FIELDS`).
 
     ``velocity`` names the three velocity components; by default they are found by name
     (``vx, vy, vz``, ``x_velocity, ...``). The stored fields are shared, not copied. Each
     derived field has the dtype of its grid's velocity components.
+
+    ``gradient_fields``, when given, computes the fields that need the velocity gradient
+    instead of :func:`gradient.map_chunks`: called as ``gradient_fields(volume, comps, names,
+    flat)``, it writes field ``name`` of level ``l`` into ``flat[name][l]`` (the device path,
+    :mod:`mi_amr.kernels.derive`, gives the same numbers).
     """
     unknown = [n for n in names if n not in DERIVED_FIELDS]
     if unknown:
@@ -58,7 +63,9 @@ def derive(volume, *names: str, velocity=None):
             np.sqrt(vx * vx + vy * vy + vz * vz, out=flat["speed"][level], casting="same_kind")
     wanted = [(n, f) for n, f in (("q_criterion", q_criterion),
                                   ("vorticity_magnitude", vorticity_magnitude)) if n in names]
-    if wanted:
+    if wanted and gradient_fields is not None:
+        gradient_fields(volume, comps, [n for n, _ in wanted], flat)
+    elif wanted:
         # A few chunks' float64 gradients at a time (9 values a cell), not the whole volume's;
         # each thread writes its chunk's cells of the level arrays.
         def write(level, at, grad):

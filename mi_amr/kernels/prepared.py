@@ -17,6 +17,7 @@ import drjit as dr
 
 from mi_amr import params
 from mi_amr.core.derive import DERIVED_FIELDS
+from mi_amr.kernels import derive as device_derive
 from mi_amr.kernels import snapshot
 from mi_amr.kernels.device import DeviceVolume
 from mi_amr.errors import AMRError
@@ -41,7 +42,7 @@ class PreparedVolume:
                  leaf_cells: int = params.default("leaf_cells"), m=None):
         clock = time.perf_counter()
         self.timings = {}
-        volume, derived = needed_fields(volume, field, color_field)
+        volume, derived = needed_fields(volume, field, color_field, m=m or dr.llvm.ad)
         self.volume = volume
         self.field = field
         self.color_field = color_field or field
@@ -96,9 +97,11 @@ def _report(text: str) -> None:
         REPORT(text)
 
 
-def needed_fields(volume, field: str, color_field: str | None):
+def needed_fields(volume, field: str, color_field: str | None, m=None):
     """``(volume, derived)``: ``volume`` with exactly the fields ``field`` and ``color_field``
-    (derived from the velocity where it lacks them; ``derived``: some were), arrays shared.
+    (derived from the velocity where it lacks them, by Dr.Jit kernels on backend ``m``
+    (:mod:`mi_amr.kernels.derive`), on the host when ``m`` is None; ``derived``: some were),
+    arrays shared.
     Whatever else ``volume`` held is not referenced by the result, so a caller that drops its
     own reference frees it (the velocity a derived field was computed from)."""
     wanted = [f for f in dict.fromkeys([field, color_field]) if f is not None]
@@ -109,7 +112,9 @@ def needed_fields(volume, field: str, color_field: str | None):
         raise AMRError(f"{volume._label()}unknown field(s) {unknown}: the volume holds "
                        f"{list(volume.field_names)}; derived fields are "
                        f"{list(DERIVED_FIELDS)}")
-    if derivable:
+    if derivable and m is not None:
+        volume = device_derive.derive(volume, *derivable, m=m)
+    elif derivable:
         from mi_amr.core.derive import derive
         volume = derive(volume, *derivable)
     return volume.select_fields(wanted), bool(derivable)
@@ -187,7 +192,7 @@ def _prepare_from_file(path, field, color_field, leaf_cells, m) -> PreparedVolum
     # Derived here, so that the velocity read for it is freed before the kd-tree and the
     # device arrays are built (a third of the peak memory of a large load).
     t0 = time.perf_counter()
-    volume, derived = needed_fields(volume, field, color_field)
+    volume, derived = needed_fields(volume, field, color_field, m=m or dr.llvm.ad)
     derive_s = time.perf_counter() - t0
     if derived:
         _report(f"{_STEPS['derive']} in {derive_s:.2f} s")

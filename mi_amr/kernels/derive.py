@@ -1,0 +1,359 @@
+"""Derived fields from the velocity gradient (Q-criterion, vorticity) computed by Dr.Jit
+kernels, whole chunks of a level at a time: the fast path that preparing a volume for
+rendering takes.
+
+The numbers are those of :mod:`mi_amr.core.gradient` bit for bit (its whole-level NumPy pass
+and its grid-by-grid slow twin; ``tests/test_device_derive.py``): central differences of
+float64 values, a neighbour beyond a grid's face (a ghost cell) read from the grid of the same
+level that holds it, else trilinearly interpolated from the coarser level (recursively, the
+same "complete" interpolation as :func:`levels.interpolate`), else a one-sided difference. The
+same-level lookup is :class:`levels.LevelIndex`'s dense block table, gathered from.
+
+Per chunk of a level, three steps: one kernel computes every cell's fields with the ghosts
+the level itself holds and marks the cells that lack one; for those alone, the missing ghosts
+are interpolated from the coarser levels (a few kernels, one a level of recursion); one more
+kernel computes those cells again with them. Every per-level number is an opaque kernel input,
+so each kernel compiles once per dtype, whatever the level or dataset.
+
+Index coordinates are those of :meth:`AMRVolume.index_boxes`; derivatives are per world unit.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+from mi_amr.core import derive as host_derive
+from mi_amr.core import levels
+from mi_amr.core.buffers import ALIGN
+from mi_amr.kernels.arrays import device_table
+
+# Cells a chunk of grids holds at least (the last of a level may hold fewer): bounds the
+# kernels' outputs and the per-cell grid table (~30 bytes a cell) on a large level.
+CHUNK_CELLS = 1 << 22
+GRADIENT_FIELDS = ("q_criterion", "vorticity_magnitude")
+
+
+def derive(volume, *names: str, m, velocity=None):
+    """:func:`mi_amr.core.derive.derive` with Q and vorticity computed on backend ``m`` (a
+    Dr.Jit module such as ``drjit.llvm.ad``). A level too sparse for a dense block table
+    (:data:`levels.DENSE_BLOCKS`) has no device lookup: such a volume is derived on the host."""
+    dense = all(levels.level_index(volume, level).table is not None
+                for level in range(volume.num_levels))
+    fill = (lambda vol, comps, wanted, flat: _fill(vol, comps, wanted, flat, m)) if dense \
+        else None
+    return host_derive.derive(volume, *names, velocity=velocity, gradient_fields=fill)
+
+
+def _fill(volume, comps, wanted, flat, m):
+    """Write fields ``wanted`` (names of :data:`GRADIENT_FIELDS`) of every level into
+    ``flat[name][level]`` (NumPy arrays of the level's values), chunk by chunk."""
+    with levels.fields_fixed(volume):
+        tables = [_Level(volume, level, comps, m) for level in range(volume.num_levels)]
+        for level, lv in enumerate(tables):
+            for start, stop in _chunks(lv.host):
+                at = int(lv.host.offsets[start])
+                dtypes = {name: flat[name][level].dtype for name in wanted}
+                out = _chunk_fields(tables, level, start, stop, dtypes)
+                for name, values in out.items():
+                    target = flat[name][level]
+                    target[at:at + len(values)] = values.numpy()
+
+
+def _chunks(table):
+    """``(start, stop)`` ranges of consecutive grids of ``table`` of at least
+    :data:`CHUNK_CELLS` cells (the last may hold fewer)."""
+    ends = np.cumsum(np.prod(table.hi - table.lo, axis=1))
+    start = 0
+    while start < len(ends):
+        before = ends[start - 1] if start else 0
+        stop = min(int(np.searchsorted(ends, before + CHUNK_CELLS)) + 1, len(ends))
+        yield start, stop
+        start = stop
+
+
+def _mapped(m, values):
+    """A level's flat values as a Dr.Jit array of their own precision, mapped without a copy
+    where NumPy's buffer is aligned (:mod:`mi_amr.core.buffers`)."""
+    T = m.Float64 if values.dtype == np.float64 else m.Float32
+    a = np.ascontiguousarray(values, dtype=np.float64 if T is m.Float64 else np.float32)
+    if a.ctypes.data % ALIGN or a.size < 2:
+        return device_table(T, a, a.dtype)
+    return T(a)
+
+
+class _Level:
+    """One level's lookup on the device: the values of the velocity components (flat, grid
+    after grid as :func:`levels.level_values`), its dense block table and per grid (position in
+    :class:`levels.LevelIndex`) its lower index corner, size, first value and cell size; the
+    per-level numbers are opaque one-element arrays."""
+
+    def __init__(self, volume, level, comps, m):
+        t = levels.level_index(volume, level)
+        self.m, self.level, self.host = m, level, t
+        self.values = [_mapped(m, levels.level_values(volume, level, n)) for n in comps]
+        self.table = device_table(m.Int32, t.table, np.int32)
+        dims = t.hi - t.lo
+        h = volume.spacings()[t.grids]
+        self.lo = [device_table(m.Int32, t.lo[:, a], np.int32) for a in range(3)]
+        self.dims = [device_table(m.Int32, dims[:, a], np.int32) for a in range(3)]
+        self.h = [device_table(m.Float64, h[:, a], np.float64) for a in range(3)]
+        self.start = device_table(m.UInt32, t.offsets, np.uint32)
+        self.shift = dr.opaque(m.Int32, int(t.block).bit_length() - 1)
+        self.origin = [dr.opaque(m.Int32, int(x)) for x in t.origin]
+        self.blocks = [dr.opaque(m.Int32, int(x)) for x in t.dims]
+        self.anchor = [dr.opaque(m.Float64, float(x)) for x in volume.anchor]
+        self.spacing = [dr.opaque(m.Float64, float(x)) for x in volume.level_spacing(level)]
+
+    def find(self, idx, active):
+        """``(p, found)``: the table position of the grid holding level cells ``idx`` (three
+        Int32 arrays), where ``found``."""
+        m = self.m
+        rel = [(idx[a] >> self.shift) - self.origin[a] for a in range(3)]
+        inside = m.Bool(active)
+        for a in range(3):
+            inside &= (rel[a] >= 0) & (rel[a] < self.blocks[a])
+        key = m.UInt32((rel[0] * self.blocks[1] + rel[1]) * self.blocks[2] + rel[2])
+        p = dr.gather(m.Int32, self.table, key, inside)
+        found = inside & (p >= 0)
+        return m.UInt32(p), found
+
+    def cell_values(self, idx, active):
+        """``(values, found)``: the three components (Float64, NaN where not found) at level
+        cells ``idx`` -- :func:`levels.cell_values`."""
+        m = self.m
+        p, found = self.find(idx, active)
+        local = [m.UInt32(idx[a] - dr.gather(m.Int32, self.lo[a], p, found)) for a in range(3)]
+        n1 = m.UInt32(dr.gather(m.Int32, self.dims[1], p, found))
+        n2 = m.UInt32(dr.gather(m.Int32, self.dims[2], p, found))
+        at = dr.gather(m.UInt32, self.start, p, found) + (local[0] * n1 + local[1]) * n2 + \
+            local[2]
+        return [dr.select(found, m.Float64(dr.gather(type(v), v, at, found)), dr.nan)
+                for v in self.values], found
+
+    def own(self, c, comp, active=True):
+        """Component ``comp`` of the level's flat value ``c`` as Float64."""
+        v = self.values[comp]
+        return self.m.Float64(dr.gather(type(v), v, c, active))
+
+
+def interpolate(tables, level, points):
+    """Trilinear interpolation of level ``level`` at world ``points`` (three Float64 arrays):
+    :func:`levels.interpolate` with ``complete=True``, the 8 cells of each point read corner
+    after corner as one array, the cells the level lacks interpolated from the coarser level
+    (recursively). Three Float64 arrays, NaN where some cell with weight lacks data."""
+    lv, m = tables[level], tables[level].m
+    n = dr.width(points[0])
+    u = [(points[a] - lv.anchor[a]) / lv.spacing[a] - 0.5 for a in range(3)]
+    base = [m.Int32(dr.floor(x)) for x in u]
+    frac = [u[a] - m.Float64(base[a]) for a in range(3)]
+    dr.eval(base, frac)
+
+    def corner_cells(j):
+        """Level index of corner ``j // n`` of point ``j % n``."""
+        point, corner = j % dr.opaque(m.UInt32, n), j // dr.opaque(m.UInt32, n)
+        return [dr.gather(m.Int32, base[a], point) + m.Int32((corner >> (2 - a)) & 1)
+                for a in range(3)]
+
+    values, found = lv.cell_values(corner_cells(dr.arange(m.UInt32, 8 * n)), True)
+    dr.eval(values, found)
+    if level > 0:
+        missing = dr.compress(~found)
+        if dr.width(missing):
+            cells = corner_cells(missing)
+            centres = [lv.anchor[a] + (m.Float64(cells[a]) + 0.5) * lv.spacing[a]
+                       for a in range(3)]
+            coarse = interpolate(tables, level - 1, centres)
+            for v, c in zip(values, coarse):
+                dr.scatter(v, c, missing)
+    return _weighted(m, values, frac, n)
+
+
+def _weighted(m, values, frac, n):
+    """The trilinear blend of the corner values (corner ``k`` of point ``i`` at ``k n + i``),
+    a corner with a non-finite component given no weight; NaN where the weights left sum to
+    less than 1 (up to rounding), as in :func:`levels.interpolate`."""
+    i = dr.arange(m.UInt32, n)
+    num = [m.Float64(0.0) for _ in range(3)]
+    den = m.Float64(0.0)
+    for k in range(8):
+        w = m.Float64(1.0)
+        for a in range(3):
+            w *= frac[a] if (k >> (2 - a)) & 1 else 1.0 - frac[a]
+        v = [dr.gather(m.Float64, c, k * n + i) for c in values]
+        ok = dr.isfinite(v[0]) & dr.isfinite(v[1]) & dr.isfinite(v[2])
+        w = dr.select(ok, w, 0.0)
+        num = [s + dr.select(ok, w * x, 0.0) for s, x in zip(num, v)]
+        den += w
+    enough = den > 1.0 - 1e-9
+    return [dr.select(enough, s / den, dr.nan) for s in num]
+
+
+class _Cells:
+    """Where cells ``c`` (positions in the level's flat values, UInt32) lie: their grid ``p``
+    (table position), index in it ``local``, its size ``n`` and lower corner ``lo`` (level
+    index), the steps ``stride`` to the next cell along each axis and the grid's cell size
+    ``h`` (world units)."""
+
+    def __init__(self, lv, c, p):
+        m = self.m = lv.m
+        self.c, self.p = c, p
+        self.n = [m.UInt32(dr.gather(m.Int32, lv.dims[a], p)) for a in range(3)]
+        off = c - dr.gather(m.UInt32, lv.start, p)
+        plane = self.n[1] * self.n[2]
+        # Divisors kept from 0: a vector's lanes past the array's end read 0 from their
+        # (masked) gathers, and an integer division by 0 traps even there.
+        i = off // dr.maximum(plane, 1)
+        rest = off - i * plane
+        j = rest // dr.maximum(self.n[2], 1)
+        self.local = [i, j, rest - j * self.n[2]]
+        self.stride = [plane, self.n[2], m.UInt32(1)]
+        self.h = [dr.gather(m.Float64, lv.h[a], p) for a in range(3)]
+        self.lo = [dr.gather(m.Int32, lv.lo[a], p) for a in range(3)]
+
+    def face(self, axis, side):
+        """Cells on the grid's lower (side 0) or upper (side 1) face along ``axis``."""
+        return self.local[axis] == 0 if side == 0 else self.local[axis] == self.n[axis] - 1
+
+    def ghost(self, axis, side):
+        """Level index of the ghost cell beyond that face (three Int32 arrays)."""
+        step = -1 if side == 0 else 1
+        return [self.lo[a] + self.m.Int32(self.local[a]) + (step if a == axis else 0)
+                for a in range(3)]
+
+
+def _fields(lv, cells, ghost_of, wanted):
+    """Fields ``wanted`` (Float64 arrays, by name) at ``cells`` from the velocity gradient;
+    ``ghost_of(axis, side)`` gives the three components beyond each face (NaN where none)."""
+    grad = [[None] * 3 for _ in range(3)]
+    own = [lv.own(cells.c, comp) for comp in range(3)]
+    for axis in range(3):
+        faces = cells.face(axis, 0), cells.face(axis, 1)
+        ghosts = ghost_of(axis, 0), ghost_of(axis, 1)
+        s = cells.stride[axis]
+        for comp in range(3):
+            below = dr.select(faces[0], ghosts[0][comp],
+                              lv.own(cells.c - s, comp, ~faces[0]))
+            above = dr.select(faces[1], ghosts[1][comp],
+                              lv.own(cells.c + s, comp, ~faces[1]))
+            grad[comp][axis] = _difference(lv, cells, axis, comp, own[comp], below, above,
+                                           faces)
+    out = {}
+    if "q_criterion" in wanted:
+        q = -0.5 * (grad[0][0] * grad[0][0] + grad[1][1] * grad[1][1] +
+                    grad[2][2] * grad[2][2])
+        out["q_criterion"] = q - (grad[0][1] * grad[1][0] + grad[0][2] * grad[2][0] +
+                                  grad[1][2] * grad[2][1])
+    if "vorticity_magnitude" in wanted:
+        w = (grad[2][1] - grad[1][2], grad[0][2] - grad[2][0], grad[1][0] - grad[0][1])
+        out["vorticity_magnitude"] = dr.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    return out
+
+
+def _difference(lv, cells, axis, comp, f0, below, above, faces):
+    """d v / d x along ``axis``: central, one-sided on a face whose ghost is missing (the
+    lower face first, then the upper, as :func:`gradient._axis_difference`)."""
+    d = (above - below) / (2.0 * cells.h[axis])
+    for sign, face, ghost, other in ((1, faces[0], below, above), (-1, faces[1], above, below)):
+        use = face & ~dr.isfinite(ghost)
+        d = dr.select(use, _one_sided(lv, cells, axis, comp, f0, sign, other, use), d)
+    return d
+
+
+def _one_sided(lv, cells, axis, comp, f0, sign, other, use):
+    """:func:`gradient._one_sided` at the lanes ``use``: second order from 3 cells thick,
+    first order at 2, at 1 the difference to the ``other`` ghost (0 where that is missing)."""
+    thick, s, h, c = cells.n[axis], cells.stride[axis], cells.h[axis], cells.c
+    one, two = (c + s, c + 2 * s) if sign > 0 else (c - s, c - 2 * s)
+    f1 = lv.own(dr.select(thick >= 2, one, c), comp, use)
+    f2 = lv.own(dr.select(thick >= 3, two, c), comp, use)
+    second = sign * (-3.0 * f0 + 4.0 * f1 - f2) / (2.0 * h)
+    first = sign * (f1 - f0) / h
+    lone = dr.select(dr.isfinite(other), sign * (other - f0) / h, 0.0)
+    return dr.select(thick >= 3, second, dr.select(thick == 2, first, lone))
+
+
+def _chunk_fields(tables, level, start, stop, wanted):
+    """Fields ``wanted`` (by name: Dr.Jit arrays of the dtype ``wanted`` gives) of the cells
+    of grids ``start:stop`` of ``level``, in the order of :func:`levels.level_values`."""
+    lv, m = tables[level], tables[level].m
+    counts = np.prod(lv.host.hi - lv.host.lo, axis=1)[start:stop]
+    p = device_table(m.UInt32, np.repeat(np.arange(start, stop), counts), np.uint32)
+    n = int(counts.sum())
+    c = dr.opaque(m.UInt32, int(lv.host.offsets[start])) + dr.arange(m.UInt32, n)
+    cells = _Cells(lv, c, p)
+    lack = [m.Bool(False)]
+
+    def same_level(axis, side):
+        face = cells.face(axis, side)
+        values, found = lv.cell_values(cells.ghost(axis, side), face)
+        lack[0] |= face & ~found
+        return values
+
+    out = {k: _as(m, v, wanted[k]) for k, v in _fields(lv, cells, same_level, wanted).items()}
+    need = lack[0] if level > 0 else m.Bool(False)
+    dr.eval(out, need)
+    redo = dr.compress(need) if level > 0 else None
+    if redo is not None and dr.width(redo):
+        again = _with_coarse_ghosts(tables, level, dr.gather(m.UInt32, c, redo),
+                                    dr.gather(m.UInt32, p, redo), wanted)
+        for k, v in again.items():
+            dr.scatter(out[k], _as(m, v, wanted[k]), redo)
+        dr.eval(out)
+    return out
+
+
+def _as(m, values, dtype):
+    """Float64 ``values`` rounded to ``dtype`` (float32 or float64) as the host's buffer holds
+    it."""
+    return m.Float32(values) if np.dtype(dtype) == np.float32 else values
+
+
+def _with_coarse_ghosts(tables, level, c, p, wanted):
+    """:func:`_fields` of the cells ``c`` (grids ``p``) with every ghost: the level's own,
+    else interpolated from the coarser levels (NaN where that too lacks cells)."""
+    lv, m = tables[level], tables[level].m
+    k = dr.width(c)
+    slot, coarse = _coarse_ghosts(tables, level, c, p)
+    cells = _Cells(lv, c, p)
+    lane = dr.arange(m.UInt32, k)
+
+    def either(axis, side):
+        values, found = lv.cell_values(cells.ghost(axis, side), cells.face(axis, side))
+        at = dr.gather(m.UInt32, slot, (2 * axis + side) * dr.opaque(m.UInt32, k) + lane,
+                       ~found)
+        return [dr.select(found, v, dr.gather(m.Float64, g, at, ~found))
+                for v, g in zip(values, coarse)]
+
+    return _fields(lv, cells, either, wanted)
+
+
+def _coarse_ghosts(tables, level, c, p):
+    """``(slot, values)`` for the ``k`` cells ``c``: the ghosts the level lacks beyond their
+    faces, interpolated from level ``level - 1`` (three Float64 arrays, NaN where that fails
+    too); the ghost beyond face ``2 axis + side`` of cell ``i`` is ``values[slot[face k +
+    i]]`` (slot read only where the level lacks that ghost)."""
+    lv, m = tables[level], tables[level].m
+    k = dr.opaque(m.UInt32, dr.width(c))
+    j = dr.arange(m.UInt32, 6 * dr.width(c))
+    lane, face_id = j % k, j // k
+    cells = _Cells(lv, dr.gather(m.UInt32, c, lane), dr.gather(m.UInt32, p, lane))
+    axis, upper = face_id >> 1, (face_id & 1) == 1
+    along = [axis == a for a in range(3)]
+    local = dr.select(along[0], cells.local[0], dr.select(along[1], cells.local[1],
+                                                          cells.local[2]))
+    size = dr.select(along[0], cells.n[0], dr.select(along[1], cells.n[1], cells.n[2]))
+    on_face = dr.select(upper, local == size - 1, local == 0)
+    step = dr.select(upper, m.Int32(1), m.Int32(-1))
+    index = [cells.lo[a] + m.Int32(cells.local[a]) + dr.select(along[a], step, 0)
+             for a in range(3)]
+    _, found = lv.find(index, on_face)
+    asked = dr.compress(on_face & ~found)
+    slot = dr.zeros(m.UInt32, dr.width(j))
+    dr.scatter(slot, dr.arange(m.UInt32, dr.width(asked)), asked)
+    centres = [lv.anchor[a] + (m.Float64(dr.gather(m.Int32, index[a], asked)) + 0.5) *
+               lv.spacing[a] for a in range(3)]
+    values = interpolate(tables, level - 1, centres) if dr.width(asked) else \
+        [dr.full(m.Float64, dr.nan, 2) for _ in range(3)]
+    dr.eval(slot, values)
+    return slot, values

@@ -1,0 +1,71 @@
+"""The device derivation (mi_amr.kernels.derive: Dr.Jit kernels, whole chunks of a level)
+gives the host's numbers (mi_amr.core.derive and its grid-by-grid twin) bit for bit."""
+
+import numpy as np
+import pytest
+
+drjit = pytest.importorskip("drjit")
+
+from test_derive import _velocity_hierarchy  # noqa: E402
+
+import mi_amr  # noqa: E402
+from mi_amr.core import derive as host_derive, gradient  # noqa: E402
+
+NAMES = ("q_criterion", "vorticity_magnitude", "speed")
+
+
+@pytest.mark.parametrize("seed,ratios,dtype,holes", [(0, (2, 2), np.float64, False),
+                                                     (1, (4, 2), np.float32, False),
+                                                     (2, (2, 4), np.float64, True),
+                                                     (5, (2, 2), np.float32, True)])
+def test01_device_fields_equal_the_grid_by_grid_twin(monkeypatch, seed, ratios, dtype, holes):
+    """Ghosts from the same level, interpolated from coarser ones (ratios 2 and 4), one-sided
+    differences, grids 1 or 2 cells thick, missing data, several chunks a level: the same bits
+    as the slow twin's gradient, rounded to the velocity's dtype."""
+    from mi_amr.kernels import derive as device_derive
+
+    monkeypatch.setattr(device_derive, "CHUNK_CELLS", 60)
+    vol = _velocity_hierarchy(seed, ratios, dtype, holes)
+    slow = list(gradient.grid_gradients_reference(vol, ("vx", "vy", "vz")))
+    out = device_derive.derive(vol, *NAMES, m=drjit.llvm.ad)
+    for g, h, grad in zip(vol.grids, out.grids, slow):
+        np.testing.assert_array_equal(h.fields["q_criterion"],
+                                      host_derive.q_criterion(grad).astype(dtype))
+        np.testing.assert_array_equal(h.fields["vorticity_magnitude"],
+                                      host_derive.vorticity_magnitude(grad).astype(dtype))
+        assert h.fields["q_criterion"].dtype == dtype
+    host = mi_amr.derive(vol, *NAMES)
+    for a, b in zip(out.grids, host.grids):
+        for name in NAMES:
+            np.testing.assert_array_equal(a.fields[name], b.fields[name])
+
+
+def test02_a_level_without_a_dense_table_is_derived_on_the_host(monkeypatch):
+    """Where a level is too sparse for the device lookup (no dense block table), the host
+    derives the volume, with the same numbers."""
+    from mi_amr.core import levels
+    from mi_amr.kernels import derive as device_derive
+
+    vol = _velocity_hierarchy(1, (2, 2), np.float32, False)
+    expected = mi_amr.derive(vol, "q_criterion")
+    monkeypatch.setattr(levels, "DENSE_BLOCKS", 0)
+    vol = _velocity_hierarchy(1, (2, 2), np.float32, False)
+    assert levels.level_index(vol, 0).table is None
+    called = []
+    monkeypatch.setattr(device_derive, "_fill", lambda *a: called.append(a))
+    out = device_derive.derive(vol, "q_criterion", m=drjit.llvm.ad)
+    assert not called
+    for a, b in zip(out.grids, expected.grids):
+        np.testing.assert_array_equal(a.fields["q_criterion"], b.fields["q_criterion"])
+
+
+def test03_preparing_a_volume_derives_on_its_backend():
+    """PreparedVolume derives Q with the device kernels: the values it maps are the host's."""
+    from mi_amr.kernels.prepared import PreparedVolume
+
+    vol = _velocity_hierarchy(0, (2, 2), np.float32, False)
+    prep = PreparedVolume(vol, "q_criterion", "speed", m=drjit.llvm.ad)
+    host = mi_amr.derive(vol, "q_criterion", "speed")
+    for a, b in zip(prep.volume.grids, host.grids):
+        np.testing.assert_array_equal(a.fields["q_criterion"], b.fields["q_criterion"])
+        np.testing.assert_array_equal(a.fields["speed"], b.fields["speed"])
