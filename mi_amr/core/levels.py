@@ -102,14 +102,15 @@ def box_points(lo, hi):
     return points, owner
 
 
-def grid_chunks(table):
+def grid_chunks(table, cells: int | None = None):
     """``(start, stop)`` ranges of consecutive grids of :class:`LevelIndex` ``table`` holding
-    at least :data:`CHUNK_CELLS` cells each (the last may hold fewer)."""
+    at least ``cells`` (default :data:`CHUNK_CELLS`) cells each (the last may hold fewer)."""
+    cells = CHUNK_CELLS if cells is None else cells
     ends = np.cumsum(np.prod(table.hi - table.lo, axis=1))
     start = 0
     while start < len(ends):
         before = ends[start - 1] if start else 0
-        stop = min(int(np.searchsorted(ends, before + CHUNK_CELLS)) + 1, len(ends))
+        stop = min(int(np.searchsorted(ends, before + cells)) + 1, len(ends))
         yield start, stop
         start = stop
 

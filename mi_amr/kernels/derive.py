@@ -51,25 +51,13 @@ def _fill(volume, comps, wanted, flat, m):
     with levels.fields_fixed(volume):
         tables = [_Level(volume, level, comps, m) for level in range(volume.num_levels)]
         for level, lv in enumerate(tables):
-            for start, stop in _chunks(lv.host):
+            for start, stop in levels.grid_chunks(lv.host, CHUNK_CELLS):
                 at = int(lv.host.offsets[start])
                 dtypes = {name: flat[name][level].dtype for name in wanted}
                 out = _chunk_fields(tables, level, start, stop, dtypes)
                 for name, values in out.items():
                     target = flat[name][level]
                     target[at:at + len(values)] = values.numpy()
-
-
-def _chunks(table):
-    """``(start, stop)`` ranges of consecutive grids of ``table`` of at least
-    :data:`CHUNK_CELLS` cells (the last may hold fewer)."""
-    ends = np.cumsum(np.prod(table.hi - table.lo, axis=1))
-    start = 0
-    while start < len(ends):
-        before = ends[start - 1] if start else 0
-        stop = min(int(np.searchsorted(ends, before + CHUNK_CELLS)) + 1, len(ends))
-        yield start, stop
-        start = stop
 
 
 def _mapped(m, values):
