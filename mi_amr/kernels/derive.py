@@ -31,29 +31,31 @@ from mi_amr.kernels.arrays import device_table
 # Cells a chunk of grids holds at least (the last of a level may hold fewer): bounds the
 # kernels' outputs and the per-cell grid table (~30 bytes a cell) on a large level.
 CHUNK_CELLS = 1 << 22
-GRADIENT_FIELDS = ("q_criterion", "vorticity_magnitude")
+LEVEL_CELLS_MAX = 1 << 31   # cells a level may hold: flat positions are 32-bit on the device
 
 
 def derive(volume, *names: str, m, velocity=None):
     """:func:`mi_amr.core.derive.derive` with Q and vorticity computed on backend ``m`` (a
     Dr.Jit module such as ``drjit.llvm.ad``). A level too sparse for a dense block table
-    (:data:`levels.DENSE_BLOCKS`) has no device lookup: such a volume is derived on the host."""
-    dense = all(levels.level_index(volume, level).table is not None
-                for level in range(volume.num_levels))
+    (:data:`levels.DENSE_BLOCKS`) has no device lookup, and one of :data:`LEVEL_CELLS_MAX` cells
+    or more would overflow its positions: such a volume is derived on the host."""
+    tables = [levels.level_index(volume, level) for level in range(volume.num_levels)]
+    dense = all(t.table is not None and int(np.prod(t.hi - t.lo, axis=1).sum()) <
+                LEVEL_CELLS_MAX for t in tables)
     fill = (lambda vol, comps, wanted, flat: _fill(vol, comps, wanted, flat, m)) if dense \
         else None
     return host_derive.derive(volume, *names, velocity=velocity, gradient_fields=fill)
 
 
 def _fill(volume, comps, wanted, flat, m):
-    """Write fields ``wanted`` (names of :data:`GRADIENT_FIELDS`) of every level into
+    """Write fields ``wanted`` (Q, vorticity: those needing the gradient) of every level into
     ``flat[name][level]`` (NumPy arrays of the level's values), chunk by chunk."""
     with levels.fields_fixed(volume):
         tables = [_Level(volume, level, comps, m) for level in range(volume.num_levels)]
         for level, lv in enumerate(tables):
+            dtypes = {name: flat[name][level].dtype for name in wanted}
             for start, stop in levels.grid_chunks(lv.host, CHUNK_CELLS):
                 at = int(lv.host.offsets[start])
-                dtypes = {name: flat[name][level].dtype for name in wanted}
                 out = _chunk_fields(tables, level, start, stop, dtypes)
                 for name, values in out.items():
                     target = flat[name][level]
@@ -78,7 +80,7 @@ class _Level:
 
     def __init__(self, volume, level, comps, m):
         t = levels.level_index(volume, level)
-        self.m, self.level, self.host = m, level, t
+        self.m, self.host = m, t
         self.values = [_mapped(m, levels.level_values(volume, level, n)) for n in comps]
         self.table = device_table(m.Int32, t.table, np.int32)
         dims = t.hi - t.lo
