@@ -412,3 +412,19 @@ def test34_the_thread_map_keeps_order_and_bounds_what_is_in_flight():
             assert len(started) <= len(out) + 2 * threads
         assert out == [i * i for i in range(50)]
     assert 1 <= parallel.thread_count() <= parallel.MAX_THREADS
+
+
+def test05b_chunked_speed_rounds_as_the_whole_array_expression():
+    # The slow twin is NumPy's one-line expression over the whole level; mixed dtypes and a
+    # length that is not a whole number of chunks included.
+    from mi_amr.core.derive import SPEED_CHUNK, _speed
+
+    rng = np.random.default_rng(3)
+    n = 2 * SPEED_CHUNK + 17
+    for dtypes in [(np.float32,) * 3, (np.float64,) * 3, (np.float32, np.float64, np.float32)]:
+        v = [rng.normal(size=n).astype(d) for d in dtypes]
+        for out_dtype in (np.float32, np.float64):
+            got, want = np.empty(n, out_dtype), np.empty(n, out_dtype)
+            _speed(v, got)
+            np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2], out=want, casting="same_kind")
+            np.testing.assert_array_equal(got, want)

@@ -20,6 +20,7 @@ VELOCITY_NAMES = (("vx", "vy", "vz"), ("x_velocity", "y_velocity", "z_velocity")
                   ("velocity_x", "velocity_y", "velocity_z"), ("x-velocity", "y-velocity",
                                                                "z-velocity"),
                   ("velx", "vely", "velz"), ("v_x", "v_y", "v_z"), ("u", "v", "w"))
+SPEED_CHUNK = 1 << 16     # values of a level whose speed is computed at a time
 
 
 def velocity_fields(volume, velocity=None) -> tuple:
@@ -59,8 +60,7 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None):
     flat = _level_buffers(volume, names, comps)
     if "speed" in names:
         for level in range(volume.num_levels):
-            vx, vy, vz = (levels.level_values(volume, level, n) for n in comps)
-            np.sqrt(vx * vx + vy * vy + vz * vz, out=flat["speed"][level], casting="same_kind")
+            _speed([levels.level_values(volume, level, n) for n in comps], flat["speed"][level])
     wanted = [(n, f) for n, f in (("q_criterion", q_criterion),
                                   ("vorticity_magnitude", vorticity_magnitude)) if n in names]
     if wanted and gradient_fields is not None:
@@ -79,6 +79,22 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None):
         for level, values in enumerate(arrays):
             levels.share_level_values(out, level, name, values)
     return out
+
+
+def _speed(v, out) -> None:
+    """``out = sqrt(vx^2 + vy^2 + vz^2)`` for the flat components ``v``, rounded once to
+    ``out``'s dtype, :data:`SPEED_CHUNK` values at a time (the same numbers as the whole-array
+    expression, without its temporaries of the level's size: on a large level those are
+    fresh memory, the slow part)."""
+    work = np.result_type(*v)
+    for a in range(0, len(out), SPEED_CHUNK):
+        part = slice(a, a + SPEED_CHUNK)
+        # Each square in its component's own dtype, the sums in the widest, as NumPy's
+        # ``vx * vx + vy * vy + vz * vz`` rounds them.
+        total = np.square(v[0][part]).astype(work, copy=False)
+        total += np.square(v[1][part])
+        total += np.square(v[2][part])
+        np.sqrt(total, out=out[part], casting="same_kind")
 
 
 def q_criterion(grad: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_amr.core.buffers import ALIGN, aligned_empty
 from mi_amr.errors import AMRError
 from mi_amr.readers.fields import requested
 from mi_amr.core.npz import MAGIC, VERSION
@@ -37,6 +38,7 @@ _DAMAGE = (OSError, EOFError, ValueError, KeyError, OverflowError,
            struct.error, zlib.error, zipfile.BadZipFile, tokenize.TokenError)
 # The largest grid extent per axis (as in AMReX, whose indices are 32-bit).
 _MAX_CELLS_PER_AXIS = 2 ** 31 - 1
+_READ_CHUNK = 1 << 22     # bytes of a field entry read at a time
 
 
 def is_native(path) -> bool:
@@ -77,21 +79,13 @@ def load(path, fields=None) -> AMRVolume:
     with _archive(path) as archive, _damage(path):
         index = _read_index(path, archive)
         wanted = _wanted(path, fields, index["names"])
-        total = index["offsets"][-1]
-        data = {}
-        for n in wanted:
-            flat = _entry(path, archive, f"field:{n}")
-            if flat.size != total:
-                raise AMRError(f"{path}: field '{n}' holds {flat.size} values, the grids need "
-                               f"{total}")
-            if flat.ndim != 1:
-                raise AMRError(f"{path}: field '{n}' has shape {flat.shape}; the file stores "
-                               f"each field as one row of every grid's values")
-            data[n] = flat
+        runs, starts = _level_layout(index)
+        data = {n: _field(path, archive, n, index["offsets"][-1], runs) for n in wanted}
     offsets, shape = index["offsets"], index["shape"]
     grids = [{"level": int(index["level"][i]), "origin": index["origin"][i],
               "spacing": index["spacing"][i],
-              "fields": {n: data[n][offsets[i]:offsets[i + 1]].reshape(shape[i]) for n in wanted}}
+              "fields": {n: data[n][starts[i]:starts[i] + offsets[i + 1] - offsets[i]]
+                         .reshape(shape[i]) for n in wanted}}
              for i in range(len(shape))]
     return AMRVolume.from_grids(grids, allow_nonfinite=index["allow_nonfinite"],
                                 source=str(path))
@@ -141,9 +135,76 @@ class _damage:
         return False
 
 
-def _entry(path: Path, archive, key: str) -> np.ndarray:
-    """The array ``key`` of the archive, after checking that the size its ``.npy`` header
-    declares is the size the zip entry holds (so no array is allocated from a damaged size)."""
+def _level_layout(index) -> tuple:
+    """Where each grid's values go in the buffer a field is read into: ``(runs, starts)``, with
+    ``runs`` the ``(first, stop, at)`` element ranges of the file's field row (consecutive grids
+    of one level) and where each begins in the buffer, and ``starts`` each grid's first
+    element there. Levels lie one after the other in the buffer, each starting on an
+    :data:`~mi_amr.core.buffers.ALIGN` byte boundary (for 1-byte values) and its grids in file
+    order, so every level's values are one aligned slice that the device maps without a copy
+    (:func:`mi_amr.core.levels.level_values`)."""
+    level = np.asarray(index["level"], dtype=np.int64)
+    if len(level) == 0:
+        return [], []
+    offsets = np.asarray(index["offsets"], dtype=np.int64)
+    counts = np.diff(offsets)
+    # Levels ranked (so that a bad level number is left for the volume's checks to name).
+    rank = np.unique(level, return_inverse=True)[1].ravel()
+    sizes = np.bincount(rank, weights=counts).astype(np.int64)
+    level_start = np.concatenate([[0], np.cumsum(-(-sizes // ALIGN) * ALIGN)[:-1]])
+    within = np.zeros(len(level), dtype=np.int64)      # elements before the grid in its level
+    for r in range(len(sizes)):
+        mine = np.flatnonzero(rank == r)
+        within[mine] = np.cumsum(counts[mine]) - counts[mine]
+    starts = level_start[rank] + within
+    cut = np.flatnonzero(np.diff(level) != 0) + 1
+    runs = [(int(offsets[a]), int(offsets[b]), int(starts[a]))
+            for a, b in zip(np.concatenate([[0], cut]), np.concatenate([cut, [len(level)]]))]
+    return runs, [int(x) for x in starts]
+
+
+def _field(path: Path, archive, name: str, total: int, runs) -> np.ndarray:
+    """Field ``name`` (one row of every grid's values in the file) read into a new aligned
+    buffer laid out by :func:`_level_layout`'s ``runs``, the zip entry streamed (CRC checked)
+    straight into its places: as one read of the row, no second copy."""
+    key = f"field:{name}"
+    info, shape, dtype, header_size = _entry_header(path, archive, key)
+    if len(shape) != 1:
+        raise AMRError(f"{path}: field '{name}' has shape {shape}; the file stores each field "
+                       f"as one row of every grid's values")
+    if shape[0] != total:
+        raise AMRError(f"{path}: field '{name}' holds {shape[0]} values, the grids need {total}")
+    if dtype.hasobject or dtype.itemsize == 0:
+        raise AMRError(f"{path}: field '{name}' has dtype {dtype}, expected real numbers")
+    size = max((at + stop - first for first, stop, at in runs), default=0)
+    out = aligned_empty(size, dtype)
+    raw = out.view(np.uint8)
+    step = dtype.itemsize
+    with archive.zip.open(info) as f:
+        f.read(header_size)
+        for first, stop, at in runs:
+            _read_into(f, raw[at * step:(at + stop - first) * step])
+        if f.read(1):           # the whole entry read, so that its CRC was checked
+            raise AMRError(f"{path}: damaged mi_amr volume: entry '{key}' is longer than "
+                           f"its header says")
+    return out
+
+
+def _read_into(f, dst: np.ndarray) -> None:
+    """Fill the bytes ``dst`` from the open zip entry ``f``, a chunk at a time."""
+    at = 0
+    while at < len(dst):
+        chunk = f.read(min(_READ_CHUNK, len(dst) - at))
+        if not chunk:
+            raise EOFError("entry cut off")
+        dst[at:at + len(chunk)] = np.frombuffer(chunk, dtype=np.uint8)
+        at += len(chunk)
+
+
+def _entry_header(path: Path, archive, key: str):
+    """``(info, shape, dtype, header_size)`` of the archive's ``.npy`` entry ``key``, after
+    checking that the size its header declares is the size the zip entry holds (so no array
+    is allocated from a damaged size)."""
     name = f"{key}.npy"
     if name not in archive.zip.namelist():
         raise KeyError(key)
@@ -166,6 +227,12 @@ def _entry(path: Path, archive, key: str) -> np.ndarray:
         raise AMRError(f"{path}: damaged mi_amr volume: entry '{key}' declares shape {shape} "
                        f"of {dtype} ({need} bytes with its header), the archive holds "
                        f"{info.file_size} bytes")
+    return info, shape, dtype, header_size
+
+
+def _entry(path: Path, archive, key: str) -> np.ndarray:
+    """The array ``key`` of the archive, its header checked first (:func:`_entry_header`)."""
+    _entry_header(path, archive, key)
     return archive[key]
 
 
