@@ -352,3 +352,32 @@ def test08_brick_pools_equal_their_slow_twin(monkeypatch, hierarchy, dense):
             np.testing.assert_array_equal(a, b)
             assert np.isnan(a).any() and np.isfinite(a).any()
         first += len(fast[3][0]) // bricks.BRICK_N ** 3
+
+
+@pytest.mark.parametrize("hierarchy", sorted(HIERARCHIES))
+def test08b_device_volume_pools_leave_no_slot_unwritten(hierarchy):
+    """:func:`bricks.build_pools` allocates its pools unset and fills every slot: all levels'
+    pools are the slow twin's, level after level, though the memory they get was last filled
+    with a value no brick holds."""
+    import drjit as dr
+
+    from mi_amr.core.kdtree import KDTree
+    from mi_amr.kernels import bricks
+    from mi_amr.kernels.device import DeviceVolume
+
+    grids = HIERARCHIES[hierarchy]()
+    for g in grids:
+        g["fields"]["c"] = np.cos(g["fields"]["f"])
+    vol = AMRVolume.from_grids(grids)
+    slow, first = [], 0
+    for level in range(vol.num_levels):
+        part = bricks.level_bricks_reference(vol, level, ["f", "c"], first)
+        slow.append(part[3])
+        first += len(part[3][0]) // bricks.BRICK_N ** 3
+    want = [np.concatenate([p[k] for p in slow]).ravel() for k in range(2)]
+    for _ in range(2):      # memory recycled from an array of a sentinel value, freed
+        dr.eval(dr.full(dr.llvm.ad.Float, 12345.0, len(want[0])))
+    device = DeviceVolume(vol, KDTree(vol), "f", "c")
+    got = [np.asarray(p.numpy()) for p in device.host_bricks[1]]
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
