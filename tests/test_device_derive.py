@@ -69,3 +69,17 @@ def test03_preparing_a_volume_derives_on_its_backend():
     for a, b in zip(prep.volume.grids, host.grids):
         np.testing.assert_array_equal(a.fields["q_criterion"], b.fields["q_criterion"])
         np.testing.assert_array_equal(a.fields["speed"], b.fields["speed"])
+
+
+def test_grid_of_each_cell_is_the_host_repeat():
+    """The per-cell grid numbers made on the device (a 1 at each grid's first cell, summed)
+    are NumPy's ``repeat`` of the grid numbers by their cell counts, one-cell grids and a
+    chunk of one grid included."""
+    import drjit as dr
+
+    from mi_amr.kernels.derive import _grid_of_cells
+
+    for counts in ([5], [1], [1, 1], [3, 1, 4, 1, 5, 9, 2, 6], [1000, 1, 37]):
+        offsets = np.concatenate([[0], np.cumsum(counts)])
+        got = _grid_of_cells(dr.llvm.ad, offsets, 11).numpy()
+        np.testing.assert_array_equal(got, np.repeat(np.arange(11, 11 + len(counts)), counts))

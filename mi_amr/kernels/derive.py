@@ -268,9 +268,9 @@ def _chunk_fields(tables, level, start, stop, wanted):
     of grids ``start:stop`` of ``level``, in the order of :func:`levels.level_values`."""
     lv, m = tables[level], tables[level].m
     counts = np.prod(lv.host.hi - lv.host.lo, axis=1)[start:stop]
-    p = device_table(m.UInt32, np.repeat(np.arange(start, stop), counts), np.uint32)
-    n = int(counts.sum())
-    c = dr.opaque(m.UInt32, int(lv.host.offsets[start])) + dr.arange(m.UInt32, n)
+    first, n = int(lv.host.offsets[start]), int(counts.sum())
+    p = _grid_of_cells(m, np.concatenate([[0], np.cumsum(counts)]), start)
+    c = dr.opaque(m.UInt32, first) + dr.arange(m.UInt32, n)
     cells = _Cells(lv, c, p)
     lack = [m.Bool(False)]
 
@@ -291,6 +291,21 @@ def _chunk_fields(tables, level, start, stop, wanted):
             dr.scatter(out[k], _as(m, v, wanted[k]), redo)
         dr.eval(out)
     return out
+
+
+def _grid_of_cells(m, offsets, start):
+    """Per cell of consecutive grids ``start, start + 1, ...`` (their cells from 0 on,
+    ``offsets``: each grid's first cell and the end), the grid's table position (UInt32):
+    ``start`` plus the number of grids that begin at or before the cell, a 1 scattered at
+    each grid's first cell and summed -- on the device, not a host table of every cell."""
+    n = int(offsets[-1])
+    marks = dr.zeros(m.UInt32, n)
+    begins = np.asarray(offsets[1:-1], dtype=np.int64)
+    if len(begins):
+        at = device_table(m.UInt32, begins, np.uint32)
+        dr.scatter(marks, m.UInt32(1), at, dr.arange(m.UInt32, dr.width(at)) < len(begins))
+    return dr.opaque(m.UInt32, int(start)) + dr.prefix_reduce(dr.ReduceOp.Add, marks,
+                                                              exclusive=False)
 
 
 def _as(m, values, dtype):
