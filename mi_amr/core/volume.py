@@ -77,7 +77,8 @@ class Grid:
 
     @property
     def num_cells(self) -> int:
-        return int(np.prod(self.shape))
+        nx, ny, nz = self.shape          # plain ints: np.prod of a tuple costs microseconds
+        return int(nx) * int(ny) * int(nz)
 
     def cell_centers(self):
         """World coordinates of the cell centres along x, y and z (three 1-D arrays)."""
