@@ -38,7 +38,7 @@ _DAMAGE = (OSError, EOFError, ValueError, KeyError, OverflowError,
            struct.error, zlib.error, zipfile.BadZipFile, tokenize.TokenError)
 # The largest grid extent per axis (as in AMReX, whose indices are 32-bit).
 _MAX_CELLS_PER_AXIS = 2 ** 31 - 1
-_READ_CHUNK = 1 << 22     # bytes of a field entry read at a time
+_READ_CHUNK = 1 << 18     # bytes of a field entry read at a time (as np.load reads)
 
 
 def is_native(path) -> bool:
