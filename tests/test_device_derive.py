@@ -83,3 +83,32 @@ def test_grid_of_each_cell_is_the_host_repeat():
         offsets = np.concatenate([[0], np.cumsum(counts)])
         got = _grid_of_cells(dr.llvm.ad, offsets, 11).numpy()
         np.testing.assert_array_equal(got, np.repeat(np.arange(11, 11 + len(counts)), counts))
+
+
+@pytest.mark.parametrize("seed,ratios,holes", [(0, (2, 2), False), (2, (2, 4), True),
+                                               (1, (4, 2), False)])
+def test_device_interpolation_is_the_host_one(seed, ratios, holes):
+    """The device's trilinear interpolation (each point's 8 corners blended in one kernel,
+    the corners a level lacks from the coarser levels, recursively) gives
+    ``levels.interpolate(..., complete=True)`` bit for bit, at points all over the domain and
+    on the finest cells' centres and faces, on every level."""
+    from mi_amr.core import levels
+    from mi_amr.kernels import derive as device_derive
+
+    vol = _velocity_hierarchy(seed, ratios, np.float64, holes)
+    m = drjit.llvm.ad
+    comps = ("vx", "vy", "vz")
+    lo, hi = vol.bounds
+    rng = np.random.default_rng(seed)
+    h = vol.level_spacing(vol.num_levels - 1)
+    lattice = lo + np.round(rng.random((300, 3)) * (hi - lo) / (h / 2)) * (h / 2)
+    points = np.concatenate([lo + rng.random((700, 3)) * (hi - lo), lattice])
+    with levels.fields_fixed(vol):
+        tables = [device_derive._Level(vol, level, comps, m) for level in range(vol.num_levels)]
+        for level in range(vol.num_levels):
+            got = device_derive.interpolate(tables, level, [m.Float64(points[:, a])
+                                                            for a in range(3)])
+            want = levels.interpolate(vol, level, points, comps, complete=True)
+            for a in range(3):
+                np.testing.assert_array_equal(got[a].numpy(), want[a])
+            assert np.isfinite(want).any() and (level == 0 or not np.isfinite(want).all())

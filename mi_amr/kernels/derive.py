@@ -132,54 +132,69 @@ class _Level:
 
 def interpolate(tables, level, points):
     """Trilinear interpolation of level ``level`` at world ``points`` (three Float64 arrays):
-    :func:`levels.interpolate` with ``complete=True``, the 8 cells of each point read corner
-    after corner as one array, the cells the level lacks interpolated from the coarser level
-    (recursively). Three Float64 arrays, NaN where some cell with weight lacks data."""
+    :func:`levels.interpolate` with ``complete=True``; the cells the level lacks interpolated
+    from the coarser level (recursively). Three Float64 arrays, NaN where some cell with weight
+    lacks data.
+
+    Three passes, none holding a value per corner: which of each point's 8 cells the level
+    lacks (a bit each), the coarser level's values for those alone (listed point after point,
+    so a corner's place is the point's first plus the lacking corners before it), and one
+    kernel blending the 8 corners in order, each read from the level or from that list."""
     lv, m = tables[level], tables[level].m
     n = dr.width(points[0])
     u = [(points[a] - lv.anchor[a]) / lv.spacing[a] - 0.5 for a in range(3)]
     base = [m.Int32(dr.floor(x)) for x in u]
     frac = [u[a] - m.Float64(base[a]) for a in range(3)]
     dr.eval(base, frac)
-
-    def corner_cells(j):
-        """Level index of corner ``j // n`` of point ``j % n``."""
-        point, corner = j % dr.opaque(m.UInt32, n), j // dr.opaque(m.UInt32, n)
-        return [dr.gather(m.Int32, base[a], point) + m.Int32((corner >> (2 - a)) & 1)
-                for a in range(3)]
-
-    values, found = lv.cell_values(corner_cells(dr.arange(m.UInt32, 8 * n)), True)
-    dr.eval(values, found)
+    lacks, first, coarse = m.UInt32(0), None, None
     if level > 0:
-        missing = dr.compress(~found)
-        if dr.width(missing):
-            cells = corner_cells(missing)
+        for k in range(8):
+            lacks |= dr.select(lv.find(_corner(m, base, k), True)[1], 0, 1 << k)
+        dr.eval(lacks)
+        first = dr.prefix_reduce(dr.ReduceOp.Add, dr.popcnt(lacks))     # exclusive
+        j = dr.arange(m.UInt32, 8 * n)
+        point, corner = j >> 3, j & 7
+        pairs = dr.compress(((dr.gather(m.UInt32, lacks, point) >> corner) & 1) == 1)
+        if dr.width(pairs):
+            at = pairs >> 3
+            cells = [dr.gather(m.Int32, base[a], at) + m.Int32((pairs >> (2 - a)) & 1)
+                     for a in range(3)]
             centres = [lv.anchor[a] + (m.Float64(cells[a]) + 0.5) * lv.spacing[a]
                        for a in range(3)]
             coarse = interpolate(tables, level - 1, centres)
-            for v, c in zip(values, coarse):
-                dr.scatter(v, c, missing)
-    return _weighted(m, values, frac, n)
+    return _blend(lv, base, frac, lacks, first, coarse)
 
 
-def _weighted(m, values, frac, n):
-    """The trilinear blend of the corner values (corner ``k`` of point ``i`` at ``k n + i``),
-    a corner with a non-finite component given no weight; NaN where the weights left sum to
-    less than 1 (up to rounding), as in :func:`levels.interpolate`."""
-    i = dr.arange(m.UInt32, n)
+def _corner(m, base, k):
+    """Level index of corner ``k`` (bits x, y, z from the highest) of the cells ``base``."""
+    return [base[a] + ((k >> (2 - a)) & 1) for a in range(3)]
+
+
+def _blend(lv, base, frac, lacks, first, coarse):
+    """The trilinear blend of each point's 8 corners, corner after corner: the level's value,
+    or where ``lacks`` has the corner's bit, the coarser level's (``coarse[first + lacking
+    corners before it]``); a corner with a non-finite component gets no weight. NaN where the
+    weights left sum to less than 1 (up to rounding), as in :func:`levels.interpolate`."""
+    m = lv.m
     num = [m.Float64(0.0) for _ in range(3)]
     den = m.Float64(0.0)
     for k in range(8):
         w = m.Float64(1.0)
         for a in range(3):
             w *= frac[a] if (k >> (2 - a)) & 1 else 1.0 - frac[a]
-        v = [dr.gather(m.Float64, c, k * n + i) for c in values]
+        v, _ = lv.cell_values(_corner(m, base, k), True)
+        if coarse is not None:
+            use = ((lacks >> k) & 1) == 1
+            at = first + dr.popcnt(lacks & ((1 << k) - 1))
+            v = [dr.select(use, dr.gather(m.Float64, c, at, use), x) for c, x in zip(coarse, v)]
         ok = dr.isfinite(v[0]) & dr.isfinite(v[1]) & dr.isfinite(v[2])
         w = dr.select(ok, w, 0.0)
         num = [s + dr.select(ok, w * x, 0.0) for s, x in zip(num, v)]
         den += w
     enough = den > 1.0 - 1e-9
-    return [dr.select(enough, s / den, dr.nan) for s in num]
+    out = [dr.select(enough, s / den, dr.nan) for s in num]
+    dr.eval(out)
+    return out
 
 
 class _Cells:
