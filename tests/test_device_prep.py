@@ -112,3 +112,20 @@ def test06_a_volume_of_another_structure_compiles_no_kernel():
     prepare("random2", 11)
     _, compiled = kernels_compiled(lambda: prepare("ratio4-2", 12))
     assert compiled == 0
+
+
+def test06b_a_launch_of_one_pair_compiles_no_kernel(monkeypatch):
+    """A last launch of the ranges holding a single (leaf, grid) pair runs the kernel the
+    others compiled (a one-lane input would compile into a broadcast), with the same ranges."""
+    from conftest import kernels_compiled
+    from mi_amr.kernels import ranges
+    from mi_amr.kernels.prepared import PreparedVolume
+
+    m = dr.llvm.ad
+    vol = AMRVolume.from_grids(with_missing(HIERARCHIES["random2"](), 11), allow_nonfinite=True)
+    want = PreparedVolume(vol, "f", m=m).device.node_ranges(True)
+    pairs = len(PreparedVolume(vol, "f", m=m).tree.leaf_windows("f", "basis")[0])
+    monkeypatch.setattr(ranges, "CHUNK_PAIRS", pairs - 1)          # launches of pairs - 1, 1
+    got, compiled = kernels_compiled(lambda: PreparedVolume(vol, "f", m=m).device.node_ranges(True))
+    assert compiled == 0
+    np.testing.assert_array_equal(got, want)

@@ -39,13 +39,16 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None):
     leaf = device_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
         if reconstruction == "basis" and len(pl) else None
     for a in range(0, len(pl), CHUNK_PAIRS):
-        part = slice(a, a + CHUNK_PAIRS)
-        shape = vol.shapes()[pg[part]]
-        top = block_tops(lo[part], hi[part], shape)
-        start = vol.cell_offsets()[pg[part]]
-        lo_part, hi_part = _window_extremes(m, values, leaf, start, shape, lo[part], top)
+        # A launch of one pair is given it twice: Dr.Jit compiles a one-lane input into a
+        # broadcast, which would be another kernel.
+        part = np.arange(a, min(a + CHUNK_PAIRS, len(pl)))
+        lanes = np.repeat(part, 2) if len(part) == 1 else part
+        shape = vol.shapes()[pg[lanes]]
+        top = block_tops(lo[lanes], hi[lanes], shape)
+        start = vol.cell_offsets()[pg[lanes]]
+        lo_part, hi_part = _window_extremes(m, values, leaf, start, shape, lo[lanes], top)
         dr.eval(lo_part, hi_part)
-        vmin[part], vmax[part] = lo_part.numpy(), hi_part.numpy()
+        vmin[part], vmax[part] = lo_part.numpy()[:len(part)], hi_part.numpy()[:len(part)]
     # Per leaf, the extremes over its pairs (listed leaf after leaf), on the host: a scatter
     # on the device would compile its target's size (the number of leaves) into the kernel.
     out_lo = np.full(tree.num_leaves, np.inf, dtype=np.float32)
