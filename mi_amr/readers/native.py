@@ -166,7 +166,7 @@ def _level_layout(index) -> tuple:
 def _field(path: Path, archive, name: str, total: int, runs) -> np.ndarray:
     """Field ``name`` (one row of every grid's values in the file) read into a new aligned
     buffer laid out by :func:`_level_layout`'s ``runs``, the zip entry streamed (CRC checked)
-    straight into its places: as one read of the row, no second copy."""
+    into its places a chunk at a time, as ``np.load`` reads an entry: the same one copy."""
     key = f"field:{name}"
     info, shape, dtype, header_size = _entry_header(path, archive, key)
     if len(shape) != 1:
