@@ -82,8 +82,9 @@ def load(path, fields=None) -> AMRVolume:
         runs, starts = _level_layout(index)
         data = {n: _field(path, archive, n, index["offsets"][-1], runs) for n in wanted}
     offsets, shape = index["offsets"], index["shape"]
-    grids = [{"level": int(index["level"][i]), "origin": index["origin"][i],
-              "spacing": index["spacing"][i],
+    # Plain Python numbers (lists, ints), the form AMRVolume.from_grids checks fastest.
+    level, origin, spacing = (index[k].tolist() for k in ("level", "origin", "spacing"))
+    grids = [{"level": level[i], "origin": origin[i], "spacing": spacing[i],
               "fields": {n: data[n][starts[i]:starts[i] + offsets[i + 1] - offsets[i]]
                          .reshape(shape[i]) for n in wanted}}
              for i in range(len(shape))]
