@@ -9,10 +9,11 @@ level that holds it, else trilinearly interpolated from the coarser level (recur
 same "complete" interpolation as :func:`levels.interpolate`), else a one-sided difference. The
 same-level lookup is :class:`levels.LevelIndex`'s dense block table, gathered from.
 
-Per chunk of a level, three steps: one kernel computes every cell's fields with the ghosts
-the level itself holds and marks the cells that lack one; for those alone, the missing ghosts
-are interpolated from the coarser levels (a few kernels, one a level of recursion); one more
-kernel computes those cells again with them. Every per-level number is an opaque kernel input,
+Per chunk of a level, three steps: one kernel computes the fields of the cells inside their
+grid (no ghost needed: most cells), another those of the cells on a face, with the ghosts the
+level itself holds, marking the cells that lack one; for those alone, the missing ghosts are
+interpolated from the coarser levels (a few kernels, one a level of recursion); one more kernel
+computes those cells again with them. Every per-level number is an opaque kernel input,
 so each kernel compiles once per dtype, whatever the level or dataset.
 
 Index coordinates are those of :meth:`AMRVolume.index_boxes`; derivatives are per world unit.
@@ -203,9 +204,9 @@ class _Cells:
     index), the steps ``stride`` to the next cell along each axis and the grid's cell size
     ``h`` (world units)."""
 
-    def __init__(self, lv, c, p):
+    def __init__(self, lv, c, p, interior=False):
         m = self.m = lv.m
-        self.c, self.p = c, p
+        self.c, self.p, self.interior = c, p, interior
         self.n = [m.UInt32(dr.gather(m.Int32, lv.dims[a], p)) for a in range(3)]
         off = c - dr.gather(m.UInt32, lv.start, p)
         plane = self.n[1] * self.n[2]
@@ -220,8 +221,18 @@ class _Cells:
         self.lo = [dr.gather(m.Int32, lv.lo[a], p) for a in range(3)]
 
     def face(self, axis, side):
-        """Cells on the grid's lower (side 0) or upper (side 1) face along ``axis``."""
+        """Cells on the grid's lower (side 0) or upper (side 1) face along ``axis`` (none, as a
+        literal that the kernel folds away, for cells known to be ``interior``)."""
+        if self.interior:
+            return self.m.Bool(False)
         return self.local[axis] == 0 if side == 0 else self.local[axis] == self.n[axis] - 1
+
+    def inside(self):
+        """Cells on no face of their grid: all six neighbours in the grid."""
+        out = self.m.Bool(True)
+        for a in range(3):
+            out &= (self.local[a] >= 1) & (self.local[a] + 1 < self.n[a])
+        return out
 
     def ghost(self, axis, side):
         """Level index of the ghost cell beyond that face (three Int32 arrays)."""
@@ -232,12 +243,14 @@ class _Cells:
 
 def _fields(lv, cells, ghost_of, wanted):
     """Fields ``wanted`` (Float64 arrays, by name) at ``cells`` from the velocity gradient;
-    ``ghost_of(axis, side)`` gives the three components beyond each face (NaN where none)."""
+    ``ghost_of(axis, side)`` gives the three components beyond each face (NaN where none;
+    None for ``interior`` cells, which have no face)."""
     grad = [[None] * 3 for _ in range(3)]
     own = [lv.own(cells.c, comp) for comp in range(3)]
+    none = [lv.m.Float64(dr.nan)] * 3       # for cells on no face (ghost_of None)
     for axis in range(3):
         faces = cells.face(axis, 0), cells.face(axis, 1)
-        ghosts = ghost_of(axis, 0), ghost_of(axis, 1)
+        ghosts = (ghost_of(axis, 0), ghost_of(axis, 1)) if ghost_of else (none, none)
         s = cells.stride[axis]
         for comp in range(3):
             below = dr.select(faces[0], ghosts[0][comp],
@@ -283,13 +296,46 @@ def _one_sided(lv, cells, axis, comp, f0, sign, other, use):
 
 def _chunk_fields(tables, level, start, stop, wanted):
     """Fields ``wanted`` (by name: Dr.Jit arrays of the dtype ``wanted`` gives) of the cells
-    of grids ``start:stop`` of ``level``, in the order of :func:`levels.level_values`."""
+    of grids ``start:stop`` of ``level``, in the order of :func:`levels.level_values`. The
+    cells inside their grid (most of them) are computed by a kernel without ghost lookups,
+    those on a face by one with them; both are :func:`_fields`, the same arithmetic."""
     lv, m = tables[level], tables[level].m
     counts = np.prod(lv.host.hi - lv.host.lo, axis=1)[start:stop]
     first, n = int(lv.host.offsets[start]), int(counts.sum())
     p = _grid_of_cells(m, np.concatenate([[0], np.cumsum(counts)]), start)
-    c = dr.opaque(m.UInt32, first) + dr.arange(m.UInt32, n)
-    cells = _Cells(lv, c, p)
+    dr.eval(p)
+    inside = _Cells(lv, dr.opaque(m.UInt32, first) + dr.arange(m.UInt32, n), p).inside()
+    dr.eval(inside)
+    out = {k: dr.empty(m.Float32 if np.dtype(t) == np.float32 else m.Float64, n)
+           for k, t in wanted.items()}
+    inner, outer = dr.compress(inside), dr.compress(~inside)
+    if dr.width(inner):
+        cells = _Cells(lv, dr.opaque(m.UInt32, first) + inner, dr.gather(m.UInt32, p, inner),
+                       interior=True)
+        for k, v in _fields(lv, cells, None, wanted).items():
+            dr.scatter(out[k], _as(m, v, wanted[k]), inner)
+    need = m.Bool(False)
+    if dr.width(outer):
+        need = _face_cells(tables, level, first, outer, dr.gather(m.UInt32, p, outer), wanted,
+                           out)
+    dr.eval(out, need)
+    redo = dr.gather(m.UInt32, outer, dr.compress(need)) if level > 0 and dr.width(outer) \
+        else None
+    if redo is not None and dr.width(redo):
+        again = _with_coarse_ghosts(tables, level, dr.opaque(m.UInt32, first) + redo,
+                                    dr.gather(m.UInt32, p, redo), wanted)
+        for k, v in again.items():
+            dr.scatter(out[k], _as(m, v, wanted[k]), redo)
+        dr.eval(out)
+    return out
+
+
+def _face_cells(tables, level, first, at, p, wanted, out):
+    """Write :func:`_fields` of the chunk's face cells ``at`` (positions from the chunk's
+    ``first`` cell; grids ``p``) into ``out``, with the ghosts their own level holds; the
+    cells that lack one (on levels above 0) are marked in what it returns."""
+    lv, m = tables[level], tables[level].m
+    cells = _Cells(lv, dr.opaque(m.UInt32, first) + at, p)
     lack = [m.Bool(False)]
 
     def same_level(axis, side):
@@ -298,17 +344,9 @@ def _chunk_fields(tables, level, start, stop, wanted):
         lack[0] |= face & ~found
         return values
 
-    out = {k: _as(m, v, wanted[k]) for k, v in _fields(lv, cells, same_level, wanted).items()}
-    need = lack[0] if level > 0 else m.Bool(False)
-    dr.eval(out, need)
-    redo = dr.compress(need) if level > 0 else None
-    if redo is not None and dr.width(redo):
-        again = _with_coarse_ghosts(tables, level, dr.gather(m.UInt32, c, redo),
-                                    dr.gather(m.UInt32, p, redo), wanted)
-        for k, v in again.items():
-            dr.scatter(out[k], _as(m, v, wanted[k]), redo)
-        dr.eval(out)
-    return out
+    for k, v in _fields(lv, cells, same_level, wanted).items():
+        dr.scatter(out[k], _as(m, v, wanted[k]), at)
+    return lack[0] if level > 0 else m.Bool(False)
 
 
 def _grid_of_cells(m, offsets, start):
