@@ -112,3 +112,28 @@ def test_device_interpolation_is_the_host_one(seed, ratios, holes):
             for a in range(3):
                 np.testing.assert_array_equal(got[a].numpy(), want[a])
             assert np.isfinite(want).any() and (level == 0 or not np.isfinite(want).all())
+
+
+@pytest.mark.parametrize("how", ["mapped", "copied", "no-buffer"])
+def test_kernels_write_the_host_buffers_or_are_copied_over(monkeypatch, how):
+    """The derivation's kernels scatter into the host buffers of the fields, mapped; where the
+    target turns out not to be that memory (Dr.Jit copied it: its probes still hold their
+    payload) or there is no single buffer, the values are copied over: the same numbers."""
+    from mi_amr.kernels import derive as device_derive
+
+    vol = _velocity_hierarchy(2, (2, 4), np.float32, True)
+    want = mi_amr.derive(vol, *NAMES)
+    settled = []
+    real_settle = device_derive._settle
+    monkeypatch.setattr(device_derive, "_settle",
+                        lambda m, t, record: settled.append(record[1] is not None) or
+                        real_settle(m, t, record))
+    if how == "copied":
+        monkeypatch.setattr(device_derive, "_map", lambda T, host: T(host.copy()))
+    if how == "no-buffer":
+        monkeypatch.setattr(device_derive, "joined", lambda parts, dtype: None)
+    out = device_derive.derive(vol, *NAMES, m=drjit.llvm.ad)
+    assert settled == [how != "no-buffer"] * 2
+    for a, b in zip(out.grids, want.grids):
+        for name in NAMES:
+            np.testing.assert_array_equal(a.fields[name], b.fields[name])

@@ -26,7 +26,7 @@ import numpy as np
 
 from mi_amr.core import derive as host_derive
 from mi_amr.core import levels
-from mi_amr.core.buffers import ALIGN
+from mi_amr.core.buffers import ALIGN, joined
 from mi_amr.kernels.arrays import device_table
 
 # Cells a chunk of grids holds at least (the last of a level may hold fewer): bounds the
@@ -36,6 +36,9 @@ from mi_amr.kernels.arrays import device_table
 # 2.4-3.2 s, and 360 MB less at its peak.
 CHUNK_CELLS = 1 << 20
 LEVEL_CELLS_MAX = 1 << 31   # cells a level may hold: flat positions are 32-bit on the device
+PROBES = 64                 # positions of a field's host buffer checked after the kernels wrote it
+# NaN bit patterns (by item size) that no arithmetic produces (its NaNs are the quiet default).
+_PAYLOAD = {4: np.uint32(0x7FA5A5A5), 8: np.uint64(0x7FF5A5A5A5A5A5A5)}
 
 
 def derive(volume, *names: str, m, velocity=None):
@@ -53,17 +56,62 @@ def derive(volume, *names: str, m, velocity=None):
 
 def _fill(volume, comps, wanted, flat, m):
     """Write fields ``wanted`` (Q, vorticity: those needing the gradient) of every level into
-    ``flat[name][level]`` (NumPy arrays of the level's values), chunk by chunk."""
+    ``flat[name][level]`` (NumPy arrays of the level's values), chunk by chunk: the kernels
+    scatter straight into the host buffer, which Dr.Jit maps (:func:`_written`)."""
     with levels.fields_fixed(volume):
         tables = [_Level(volume, level, comps, m) for level in range(volume.num_levels)]
+        targets = {name: _written(m, flat[name]) for name in wanted}
         for level, lv in enumerate(tables):
             dtypes = {name: flat[name][level].dtype for name in wanted}
             for start, stop in levels.grid_chunks(lv.host, CHUNK_CELLS):
-                at = int(lv.host.offsets[start])
-                out = _chunk_fields(tables, level, start, stop, dtypes)
-                for name, values in out.items():
-                    target = flat[name][level]
-                    target[at:at + len(values)] = values.numpy()
+                base = sum(len(a) for a in flat[wanted[0]][:level]) + int(lv.host.offsets[start])
+                _chunk_fields(tables, level, start, stop, dtypes,
+                              {name: t[0] for name, t in targets.items()}, base)
+        for target, host in targets.values():
+            _settle(m, target, host)
+
+
+def _written(m, parts):
+    """``(target, record)``: a Dr.Jit array the kernels scatter a field into, and what
+    :func:`_settle` needs. ``parts`` are a field's per-level arrays, consecutive slices of one
+    host buffer (:func:`mi_amr.core.derive._level_buffers`): the target maps that buffer, so
+    what is scattered lands there. A few probe positions of it are first set to a NaN payload
+    that no arithmetic gives, to tell afterwards that it did. Without one buffer, the target
+    is a new array, copied over at the end."""
+    dtype = parts[0].dtype
+    T = m.Float64 if dtype == np.float64 else m.Float32
+    host = joined(parts, dtype)
+    if host is None or host.size < 2:
+        return dr.empty(T, max(sum(len(a) for a in parts), 2)), (parts, None, None)
+    probe = np.unique(np.linspace(0, host.size - 1, PROBES).astype(np.int64))
+    bits = host.view(np.uint64 if dtype == np.float64 else np.uint32)
+    bits[probe] = _PAYLOAD[dtype.itemsize]
+    return _map(T, host), (parts, host, probe)
+
+
+def _map(T, host):
+    """``host`` as a Dr.Jit array of type ``T`` over the same memory (Dr.Jit maps NumPy's
+    buffer; tests replace this with a copy to check :func:`_settle`'s fallback)."""
+    return T(host)
+
+
+def _settle(m, target, record) -> None:
+    """Make sure the host holds what the kernels scattered into ``target``: where the target
+    did not map the host buffer (no single buffer, or Dr.Jit copied it: a probe still holds
+    its payload), the values are copied over."""
+    parts, host, probe = record
+    dr.eval(target)
+    dr.sync_thread()
+    if host is not None:
+        bits = host.view(np.uint64 if host.dtype == np.float64 else np.uint32)
+        if np.all(bits[probe] != _PAYLOAD[host.dtype.itemsize]):
+            return
+        host[:] = target.numpy()[:host.size]
+        return
+    values, at = target.numpy(), 0
+    for a in parts:
+        a[:] = values[at:at + len(a)]
+        at += len(a)
 
 
 def _mapped(m, values):
@@ -294,11 +342,12 @@ def _one_sided(lv, cells, axis, comp, f0, sign, other, use):
     return dr.select(thick >= 3, second, dr.select(thick == 2, first, lone))
 
 
-def _chunk_fields(tables, level, start, stop, wanted):
-    """Fields ``wanted`` (by name: Dr.Jit arrays of the dtype ``wanted`` gives) of the cells
-    of grids ``start:stop`` of ``level``, in the order of :func:`levels.level_values`. The
-    cells inside their grid (most of them) are computed by a kernel without ghost lookups,
-    those on a face by one with them; both are :func:`_fields`, the same arithmetic."""
+def _chunk_fields(tables, level, start, stop, wanted, out, base):
+    """Fields ``wanted`` (by name: the dtype of each) of the cells of grids ``start:stop`` of
+    ``level``, in the order of :func:`levels.level_values`, scattered into ``out[name]`` from
+    position ``base`` on. The cells inside their grid (most of them) are computed by a kernel
+    without ghost lookups, those on a face by one with them; both are :func:`_fields`, the
+    same arithmetic."""
     lv, m = tables[level], tables[level].m
     counts = np.prod(lv.host.hi - lv.host.lo, axis=1)[start:stop]
     first, n = int(lv.host.offsets[start]), int(counts.sum())
@@ -306,18 +355,17 @@ def _chunk_fields(tables, level, start, stop, wanted):
     dr.eval(p)
     inside = _Cells(lv, dr.opaque(m.UInt32, first) + dr.arange(m.UInt32, n), p).inside()
     dr.eval(inside)
-    out = {k: dr.empty(m.Float32 if np.dtype(t) == np.float32 else m.Float64, n)
-           for k, t in wanted.items()}
+    at = dr.opaque(m.UInt32, base)
     inner, outer = dr.compress(inside), dr.compress(~inside)
     if dr.width(inner):
         cells = _Cells(lv, dr.opaque(m.UInt32, first) + inner, dr.gather(m.UInt32, p, inner),
                        interior=True)
         for k, v in _fields(lv, cells, None, wanted).items():
-            dr.scatter(out[k], _as(m, v, wanted[k]), inner)
+            dr.scatter(out[k], _as(m, v, wanted[k]), at + inner)
     need = m.Bool(False)
     if dr.width(outer):
         need = _face_cells(tables, level, first, outer, dr.gather(m.UInt32, p, outer), wanted,
-                           out)
+                           out, at)
     dr.eval(out, need)
     redo = dr.gather(m.UInt32, outer, dr.compress(need)) if level > 0 and dr.width(outer) \
         else None
@@ -325,15 +373,14 @@ def _chunk_fields(tables, level, start, stop, wanted):
         again = _with_coarse_ghosts(tables, level, dr.opaque(m.UInt32, first) + redo,
                                     dr.gather(m.UInt32, p, redo), wanted)
         for k, v in again.items():
-            dr.scatter(out[k], _as(m, v, wanted[k]), redo)
+            dr.scatter(out[k], _as(m, v, wanted[k]), at + redo)
         dr.eval(out)
-    return out
 
 
-def _face_cells(tables, level, first, at, p, wanted, out):
+def _face_cells(tables, level, first, at, p, wanted, out, base):
     """Write :func:`_fields` of the chunk's face cells ``at`` (positions from the chunk's
-    ``first`` cell; grids ``p``) into ``out``, with the ghosts their own level holds; the
-    cells that lack one (on levels above 0) are marked in what it returns."""
+    ``first`` cell; grids ``p``) into ``out`` (from ``base`` on), with the ghosts their own
+    level holds; the cells that lack one (on levels above 0) are marked in what it returns."""
     lv, m = tables[level], tables[level].m
     cells = _Cells(lv, dr.opaque(m.UInt32, first) + at, p)
     lack = [m.Bool(False)]
@@ -345,7 +392,7 @@ def _face_cells(tables, level, first, at, p, wanted, out):
         return values
 
     for k, v in _fields(lv, cells, same_level, wanted).items():
-        dr.scatter(out[k], _as(m, v, wanted[k]), at)
+        dr.scatter(out[k], _as(m, v, wanted[k]), base + at)
     return lack[0] if level > 0 else m.Bool(False)
 
 
