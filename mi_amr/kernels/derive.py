@@ -67,8 +67,8 @@ def _fill(volume, comps, wanted, flat, m):
                 base = sum(len(a) for a in flat[wanted[0]][:level]) + int(lv.host.offsets[start])
                 _chunk_fields(tables, level, start, stop, dtypes,
                               {name: t[0] for name, t in targets.items()}, base)
-        for target, host in targets.values():
-            _settle(m, target, host)
+        for target, record in targets.values():
+            _settle(m, target, record)
 
 
 def _written(m, parts):
