@@ -61,12 +61,14 @@ def _fill(volume, comps, wanted, flat, m):
     with levels.fields_fixed(volume):
         tables = [_Level(volume, level, comps, m) for level in range(volume.num_levels)]
         targets = {name: _written(m, flat[name]) for name in wanted}
+        out = {name: t[0] for name, t in targets.items()}
+        level_start = 0                 # where the level's values begin in the buffers
         for level, lv in enumerate(tables):
             dtypes = {name: flat[name][level].dtype for name in wanted}
             for start, stop in levels.grid_chunks(lv.host, CHUNK_CELLS):
-                base = sum(len(a) for a in flat[wanted[0]][:level]) + int(lv.host.offsets[start])
-                _chunk_fields(tables, level, start, stop, dtypes,
-                              {name: t[0] for name, t in targets.items()}, base)
+                _chunk_fields(tables, level, start, stop, dtypes, out,
+                              level_start + int(lv.host.offsets[start]))
+            level_start += len(flat[wanted[0]][level])
         for target, record in targets.values():
             _settle(m, target, record)
 
@@ -79,14 +81,23 @@ def _written(m, parts):
     that no arithmetic gives, to tell afterwards that it did. Without one buffer, the target
     is a new array, copied over at the end."""
     dtype = parts[0].dtype
-    T = m.Float64 if dtype == np.float64 else m.Float32
+    T = _float_type(m, dtype)
     host = joined(parts, dtype)
     if host is None or host.size < 2:
         return dr.empty(T, max(sum(len(a) for a in parts), 2)), (parts, None, None)
     probe = np.unique(np.linspace(0, host.size - 1, PROBES).astype(np.int64))
-    bits = host.view(np.uint64 if dtype == np.float64 else np.uint32)
-    bits[probe] = _PAYLOAD[dtype.itemsize]
+    _bits(host)[probe] = _PAYLOAD[dtype.itemsize]
     return _map(T, host), (parts, host, probe)
+
+
+def _float_type(m, dtype):
+    """The Dr.Jit float type of backend ``m`` for float64 (``Float64``) or else float32."""
+    return m.Float64 if np.dtype(dtype) == np.float64 else m.Float32
+
+
+def _bits(a):
+    """Float array ``a`` viewed as unsigned integers of its size (its bit patterns)."""
+    return a.view(np.uint64 if a.dtype == np.float64 else np.uint32)
 
 
 def _map(T, host):
@@ -103,8 +114,7 @@ def _settle(m, target, record) -> None:
     dr.eval(target)
     dr.sync_thread()
     if host is not None:
-        bits = host.view(np.uint64 if host.dtype == np.float64 else np.uint32)
-        if np.all(bits[probe] != _PAYLOAD[host.dtype.itemsize]):
+        if np.all(_bits(host)[probe] != _PAYLOAD[host.dtype.itemsize]):
             return
         host[:] = target.numpy()[:host.size]
         return
@@ -117,7 +127,7 @@ def _settle(m, target, record) -> None:
 def _mapped(m, values):
     """A level's flat values as a Dr.Jit array of their own precision, mapped without a copy
     where NumPy's buffer is aligned (:mod:`mi_amr.core.buffers`)."""
-    T = m.Float64 if values.dtype == np.float64 else m.Float32
+    T = _float_type(m, values.dtype)
     a = np.ascontiguousarray(values, dtype=np.float64 if T is m.Float64 else np.float32)
     if a.ctypes.data % ALIGN or a.size < 2:
         return device_table(T, a, a.dtype)
@@ -127,8 +137,8 @@ def _mapped(m, values):
 class _Level:
     """One level's lookup on the device: the values of the velocity components (flat, grid
     after grid as :func:`levels.level_values`), its dense block table and per grid (position in
-    :class:`levels.LevelIndex`) its lower index corner, size, first value and cell size; the
-    per-level numbers are opaque one-element arrays."""
+    :class:`levels.LevelIndex`) its lower index corner, size, cell count, first value and cell
+    size; the per-level numbers are opaque one-element arrays."""
 
     def __init__(self, volume, level, comps, m):
         t = levels.level_index(volume, level)
@@ -136,6 +146,7 @@ class _Level:
         self.values = [_mapped(m, levels.level_values(volume, level, n)) for n in comps]
         self.table = device_table(m.Int32, t.table, np.int32)
         dims = t.hi - t.lo
+        self.counts = np.prod(dims, axis=1)         # cells of each grid
         h = volume.spacings()[t.grids]
         self.lo = [device_table(m.Int32, t.lo[:, a], np.int32) for a in range(3)]
         self.dims = [device_table(m.Int32, dims[:, a], np.int32) for a in range(3)]
@@ -349,7 +360,7 @@ def _chunk_fields(tables, level, start, stop, wanted, out, base):
     without ghost lookups, those on a face by one with them; both are :func:`_fields`, the
     same arithmetic."""
     lv, m = tables[level], tables[level].m
-    counts = np.prod(lv.host.hi - lv.host.lo, axis=1)[start:stop]
+    counts = lv.counts[start:stop]
     first, n = int(lv.host.offsets[start]), int(counts.sum())
     p = _grid_of_cells(m, np.concatenate([[0], np.cumsum(counts)]), start)
     dr.eval(p)
