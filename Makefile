@@ -3,7 +3,7 @@
 PY    := .venv/bin/python
 STAMP := .venv/.mi_amr-setup
 
-.PHONY: setup demo test bench data clean
+.PHONY: setup demo test docs bench data clean
 
 setup: $(STAMP)
 
@@ -17,8 +17,13 @@ demo: setup
 test: setup
 	$(PY) -m pytest -q
 
+# The documentation site, into docs/_build/html; a Sphinx warning fails the build (make test
+# builds it too, in tests/test_docs.py).
+docs: setup
+	$(PY) -m sphinx -W --keep-going -q -b html docs docs/_build/html
+
 bench: setup
 	$(PY) -m mi_amr bench
 
 clean:
-	rm -rf out .pytest_cache
+	rm -rf out .pytest_cache docs/_build
