@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import math
+import textwrap
 
 from docutils import nodes
 from docutils.parsers.rst import directives
@@ -26,6 +27,7 @@ from sphinx.util.docutils import SphinxDirective
 
 PARAM_HEADERS = ("Parameter", "Type", "Default", "Allowed values", "Traversable", "Meaning")
 CLI_HEADERS = ("Argument", "Meaning", "Default")
+USAGE_WIDTH = 88             # a usage line's wrap, so that it fits the page without scrolling
 
 
 def _number(x, kind: str) -> str:
@@ -86,7 +88,10 @@ def _subparsers(parser: argparse.ArgumentParser):
 
 def _argument(parser, action) -> tuple:
     """``(invocation, meaning, default)`` of one argparse action."""
-    invocation = parser._get_formatter()._format_action_invocation(action)
+    if action.option_strings:
+        invocation = parser._get_formatter()._format_action_invocation(action)
+    else:                          # a positional: its name (its choices go in the meaning)
+        invocation = action.metavar or action.dest
     meaning = action.help or ""
     if action.choices and not isinstance(action, argparse._SubParsersAction):
         meaning += ("; " if meaning else "") + "one of " + ", ".join(map(str, action.choices))
@@ -110,8 +115,10 @@ def cli_commands(parser: argparse.ArgumentParser):
     for name, sub, help_text in _subparsers(parser):
         rows = [_argument(sub, a) for a in sub._actions
                 if not isinstance(a, argparse._HelpAction)]
-        usage = " ".join(sub.format_usage().split())
-        out.append((name, usage.removeprefix("usage: "), help_text, rows))
+        usage = " ".join(sub.format_usage().split()).removeprefix("usage: ")
+        usage = textwrap.fill(usage, USAGE_WIDTH, subsequent_indent="    ",
+                              break_on_hyphens=False)
+        out.append((name, usage, help_text, rows))
     return out
 
 
