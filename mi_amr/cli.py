@@ -175,7 +175,8 @@ def _data_scene(args, source, resolution=None):
     from mi_amr.workflows.datafile import scene_file
 
     return scene_file(source, field=args.field, isovalue=args.isovalue, resolution=resolution,
-                      save_scene=args.save_scene, force=getattr(args, "force", False))
+                      spp=getattr(args, "spp", None), save_scene=args.save_scene,
+                      force=getattr(args, "force", False))
 
 
 def _render(args) -> None:

@@ -10,8 +10,8 @@ The camera's distance is solved in closed form: a box corner ``p`` at depth ``p.
 the viewing direction, ``D`` the distance) lands at ``x = (p.r) / (p.f + D) / tan(fov_x / 2)``
 across the image ([-1, 1] edge to edge), so ``D = max_p |p.r| / (FILL tan(fov_x/2)) - p.f``
 (and the same with ``y``) puts the box's farthest corner at :data:`FILL` of the half width or
-height. The up axis is the data's z unless another axis lets the box fill more of the width
-(a tall column in a wide image lies down).
+:data:`FILL_Y` of the half height. The up axis is the data's z unless another axis lets the
+box fill more of the width (a tall column in a wide image lies down).
 """
 
 from __future__ import annotations
@@ -24,7 +24,9 @@ import numpy as np
 from mi_amr.errors import AMRError
 
 FOV_X_DEG = 35.0          # horizontal field of view (Mitsuba's fov_axis "x"), degrees
-FILL = 0.8                # the box's farthest corner at this share of the half width / height
+FILL = 0.8                # the box's farthest corner at this share of the half width ...
+FILL_Y = 0.88             # ... and of the half height (an image much wider than the data is
+                          # bound by its height: this keeps a cube above 30 % of a 2.5:1 width)
 AZIMUTH_DEG = 35.0        # three-quarter view: turned this far from the first side axis ...
 ELEVATION_DEG = 25.0      # ... and raised this far above the side axes' plane
 WIDE_ENOUGH = 0.4         # take the first up axis whose box fills this share of the width
@@ -89,7 +91,7 @@ def _view(axis: int, corners: np.ndarray, aspect: float):
     tx = math.tan(math.radians(FOV_X_DEG) / 2)
     ty = tx / aspect
     pf, pr, pu = corners @ forward, corners @ right, corners @ cam_up
-    distance = max(np.max(np.abs(pr) / (FILL * tx) - pf), np.max(np.abs(pu) / (FILL * ty) - pf))
+    distance = max(np.max(np.abs(pr) / (FILL * tx) - pf), np.max(np.abs(pu) / (FILL_Y * ty) - pf))
     depth = pf + distance
     x, y = pr / depth / tx, pu / depth / ty
     light = -(back + up - 0.5 * right)

@@ -61,12 +61,12 @@ class DataScene:
         import mitsuba as mi
 
         f = self.framing
+        look = mi.ScalarTransform4d().look_at(origin=list(f.origin), target=list(f.target),
+                                              up=list(f.up))
         integrator = {"type": "amr_iso", **self.integrator_values(),
-                      "to_world": mi.ScalarTransform4f(f.to_world.tolist())}
+                      "to_world": _single(mi, mi.ScalarTransform4d(f.to_world.tolist()))}
         sensor = {"type": "perspective", "fov": f.fov_x, "fov_axis": "x",
-                  "to_world": mi.ScalarTransform4f().look_at(origin=list(f.origin),
-                                                             target=list(f.target),
-                                                             up=list(f.up)),
+                  "to_world": _single(mi, look),
                   "sampler": {"type": "independent", "sample_count": self.spp},
                   "film": {"type": "hdrfilm", "width": self.resolution[0],
                            "height": self.resolution[1], "pixel_format": "rgba"}}
@@ -108,6 +108,17 @@ class DataScene:
                   f'        <rgb name="irradiance" value="{IRRADIANCE!r}"/>', '    </emitter>',
                   '</scene>', '']
         return "\n".join(lines)
+
+
+def _single(mi, transform):
+    """A double-precision transform in single precision, matrix and inverse each rounded, as
+    Mitsuba's XML parser makes them (a transform built in single precision inverts in single
+    precision: other last bits, other pixels)."""
+    import numpy as np
+
+    return mi.ScalarTransform4f(
+        mi.ScalarMatrix4f(np.array(transform.matrix, dtype=np.float32)),
+        mi.ScalarMatrix4f(np.array(transform.inverse_transpose, dtype=np.float32)))
 
 
 def _vec(v) -> str:

@@ -21,8 +21,8 @@ def is_scene_file(path) -> bool:
 
 
 @contextlib.contextmanager
-def scene_file(source, *, field=None, isovalue=None, resolution=None, save_scene=None,
-               force: bool = False, say=print, **params):
+def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
+               save_scene=None, force: bool = False, say=print, **params):
     """The path of a scene XML for ``source``: ``source`` itself when it is a scene (then
     ``field``, ``isovalue`` and ``save_scene`` must be None), else the scene made for the data
     file, written to ``save_scene`` (kept; replaced only with ``force``) or to a temporary
@@ -38,8 +38,8 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, save_scene
     if save_scene is not None:
         save_scene = check_output(save_scene, suffixes=(SCENE_SUFFIX,), overwrite=force,
                                   make_folders=True)
-    made = make_scene(source, field=field, isovalue=isovalue, resolution=resolution, say=say,
-                      **params)
+    made = make_scene(source, field=field, isovalue=isovalue, resolution=resolution, spp=spp,
+                      say=say, **params)
     if save_scene is not None:
         with replacing(save_scene) as tmp:
             Path(tmp).write_text(made.xml())
@@ -52,12 +52,14 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, save_scene
         yield path
 
 
-def make_scene(source, *, field=None, isovalue=None, resolution=None, say=print, **params):
+def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, say=print,
+               **params):
     """The :class:`~mi_amr.plugin.autoscene.DataScene` of ``source``, with what was picked
     printed."""
-    from mi_amr.plugin.autoscene import RESOLUTION, data_scene
+    from mi_amr.plugin.autoscene import RESOLUTION, SPP, data_scene
 
-    made = data_scene(source, field, isovalue, resolution=resolution or RESOLUTION, **params)
+    made = data_scene(source, field, isovalue, resolution=resolution or RESOLUTION,
+                      spp=spp or SPP, **params)
     how = "given"
     if made.picked:
         others = ", ".join(f"{v:.6g}" for v in made.suggested[1:])
