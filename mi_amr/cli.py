@@ -46,9 +46,11 @@ def _parser(prog: str) -> argparse.ArgumentParser:
 
 def _add_data_commands(sub) -> None:
     """``info``, ``dataset``, ``data``."""
-    s = sub.add_parser("info", help="print the summary of an AMR file")
+    s = sub.add_parser("info", help="print the summary of an AMR file, each field's range, "
+                                    "percentiles and suggested isovalues")
     s.add_argument("path")
-    s.add_argument("--fields", nargs="+", help="read only these fields")
+    s.add_argument("--fields", nargs="+", help="only these fields (stored, or derived: "
+                                               "q_criterion, speed, vorticity)")
     s.set_defaults(run=_info)
 
     from mi_amr.synthetic.datasets import DATASETS, SIZES
@@ -92,6 +94,12 @@ def _add_render(sub) -> None:
     s.add_argument("--field", required=True, help="stored or derived field")
     s.add_argument("-o", "--output", required=True, help="PNG to write")
     s.add_argument("--bins", type=int, default=256)
+    axis = s.add_mutually_exclusive_group()
+    axis.add_argument("--log-value", dest="value_scale", action="store_const", const="log",
+                      default="auto", help="a log value axis (symlog where values reach 0); "
+                                           "default: log when the values span 3+ decades")
+    axis.add_argument("--linear-value", dest="value_scale", action="store_const",
+                      const="linear", help="a linear value axis")
     s.add_argument("--force", action="store_true", help="replace an existing image")
     s.set_defaults(run=_histogram)
 
@@ -141,10 +149,9 @@ def _add_bench(sub) -> None:
 
 
 def _info(args) -> None:
-    from mi_amr.readers import load
+    from mi_amr.workflows.info import info_text
 
-    vol = load(args.path, fields=args.fields)
-    print(vol.summary())
+    print(info_text(args.path, args.fields))
 
 
 def _dataset(args) -> None:
@@ -194,7 +201,7 @@ def _histogram(args) -> None:
     if args.bins < 2:
         raise AMRError(f"--bins must be >= 2, got {args.bins}")
     out = histogram_figure(args.path, args.field, args.output, bins=args.bins,
-                           overwrite=args.force)
+                           overwrite=args.force, value_scale=args.value_scale)
     print(f"wrote {out}")
 
 

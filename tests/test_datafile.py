@@ -172,7 +172,7 @@ def test06_derived_fields_are_named_on_the_command_line(mi, tmp_path, capsys):
         assert np.array(mi.Bitmap(str(out)))[..., 3].max() > 0
     rc, _, err = render_cli(["render", str(AMREX / "plt_eb_3d"), "--field", "q_criterion",
                              "-o", str(tmp_path / "x.png")], capsys)
-    assert rc == 2 and "no field 'q_criterion'" in err and "plt_eb_3d" in err
+    assert rc == 2 and "no field(s) 'q_criterion'" in err and "plt_eb_3d" in err
 
 
 # The LLVM backend's run-to-run jitter: rendering one scene twice now and then differs in the
@@ -318,3 +318,30 @@ def test11_movie_frames_and_viewer_saves_are_rgba_pngs_as_render_makes(mi, tmp_p
         assert px.shape == (16, 24, 4), f"{k}: {px.shape}"
         assert px[..., 3].min() == 0 and px[..., 3].max() == 255, k
     assert np.array_equal(pixels["movie"][..., 3], pixels["render"][..., 3])
+
+
+def velocity_volume():
+    """A shear flow vx = z, vy = x, vz = 0 on one grid (Q derivable), plus a stored field."""
+    def fn_of(name):
+        return {"vx": lambda p: p[..., 2], "vy": lambda p: p[..., 0],
+                "vz": lambda p: 0 * p[..., 0], "rho": lambda p: 1 + p[..., 0] ** 2}[name]
+
+    records = [grid(0, (0, 0, 0), (2, 2, 2), 0.25, fn_of(n), (n,)) for n in
+               ("vx", "vy", "vz", "rho")]
+    fields = {k: v for r in records for k, v in r["fields"].items()}
+    return AMRVolume.from_grids([dict(records[0], fields=fields)])
+
+
+def test12_info_prints_each_fields_percentiles_levels_and_isovalues(tmp_path, capsys):
+    path = save(velocity_volume(), tmp_path / "flow.npz")
+    rc, text, err = render_cli(["info", path, "--fields", "q_criterion", "vorticity", "rho"],
+                               capsys)
+    assert rc == 0, err
+    for word in ("q_criterion: [", "vorticity_magnitude: [", "rho: [", "p1 ", "p10 ", "p50 ",
+                 "p90 ", "p99 ", "level 0:", "leaf cells", "suggested isovalues:"):
+        assert word in text, word
+    rho = text[text.index("rho: ["):]
+    p50 = float(rho.split("p50 ")[1].split()[0])
+    assert p50 == pytest.approx(np.median(1 + (0.125 + 0.25 * np.arange(8)) ** 2), rel=1e-5)
+    one_error(render_cli(["info", path, "--fields", "nope"], capsys), "'nope'", "flow.npz",
+              "q_criterion")

@@ -28,8 +28,8 @@ MIN_SPAN = 0.01            # ... and in value (share of the 2-98 percentile rang
 @dataclass
 class FieldStats:
     """``field``'s range, its values at :data:`PERCENTILES` and its suggested isovalues (the
-    first is the pick), over ``cells`` finite leaf cells, per level ``(level, cells, leaf
-    cells)``."""
+    first is the pick), over ``cells`` finite leaf cells; ``levels`` holds per level ``(level,
+    finite leaf cells, min, max)`` (min and max None for a level with none)."""
 
     field: str
     cells: int
@@ -40,18 +40,21 @@ class FieldStats:
     levels: list
 
     def text(self) -> str:
-        pct = "  ".join(f"p{q}={v:.6g}" for q, v in self.percentiles.items())
+        pct = "  ".join(f"p{q} {v:.6g}" for q, v in self.percentiles.items())
         lines = [f"{self.field}: [{self.vmin:.6g}, {self.vmax:.6g}] over {self.cells:,} leaf "
-                 f"cells", f"  percentiles: {pct}"]
-        lines += [f"  level {lv}: {n:,} cells, {leaf:,} leaf" for lv, n, leaf in self.levels]
+                 f"cells", f"  percentiles  {pct}"]
+        for level, n, lo, hi in self.levels:
+            where = f"[{lo:.6g}, {hi:.6g}]" if n else "-"
+            lines.append(f"  level {level}: {n:>12,} leaf cells  {where}")
         lines.append("  suggested isovalues: " + ", ".join(f"{v:.6g}" for v in self.suggested))
         return "\n".join(lines)
 
 
-def leaf_values(volume, field: str) -> np.ndarray:
-    """``field``'s finite values over the volume's leaf cells (float64, each cell once)."""
+def leaf_values(volume, field: str, level=None) -> np.ndarray:
+    """``field``'s finite values over the volume's leaf cells (float64, each cell once), of
+    level ``level`` only when given."""
     out = [np.asarray(g.fields[field], dtype=np.float64)[volume.leaf_mask(i)]
-           for i, g in enumerate(volume.grids)]
+           for i, g in enumerate(volume.grids) if level is None or g.level == level]
     values = np.concatenate(out) if out else np.zeros(0)
     return values[np.isfinite(values)]
 
@@ -65,9 +68,9 @@ def field_stats(volume, field: str, count: int = 3) -> FieldStats:
         raise AMRError(f"{volume._label()}field '{field}' has no finite leaf cells")
     levels = []
     for level in range(volume.num_levels):
-        ids = np.flatnonzero(volume.levels == level)
-        levels.append((level, int(sum(volume.grids[i].num_cells for i in ids)),
-                       int(sum(int(volume.leaf_mask(i).sum()) for i in ids))))
+        v = leaf_values(volume, field, level)
+        levels.append((level, int(v.size), float(v.min()) if v.size else None,
+                       float(v.max()) if v.size else None))
     pct = dict(zip(PERCENTILES, np.percentile(values, PERCENTILES).tolist()))
     return FieldStats(field=field, cells=int(values.size), vmin=float(values.min()),
                       vmax=float(values.max()), percentiles=pct,

@@ -19,7 +19,6 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from mi_amr.core.derive import DERIVED_FIELDS, VELOCITY_NAMES, derive
 from mi_amr.core.framing import Framing, frame_box
 from mi_amr.core.suggest import suggest_isovalues
 from mi_amr.errors import AMRError
@@ -28,7 +27,6 @@ RESOLUTION = (768, 576)      # pixels (width, height) unless asked otherwise
 SPP = 4
 ISO_COLOR = "0.78 0.74 0.68"  # linear RGB: a light neutral, lit by the one light
 IRRADIANCE = 1.6             # the directional light's irradiance (linear RGB, all channels)
-ALIASES = {"vorticity": "vorticity_magnitude"}
 COLORMAP = "viridis"         # the map a colour field gets (-D color_field=NAME turns it on)
 # The integrator's parameters the XML takes from <default>s (so -D sets them).
 DEFAULTS = ("filename", "isovalue", "color_field", "colormap")
@@ -190,23 +188,17 @@ def _source(source):
 
 
 def _field_volume(path: str, volume, field, need_values: bool):
-    """``(field name, volume holding it)``; the field is checked against the file."""
-    from mi_amr.kernels.prepared import fields_to_read
-    from mi_amr.readers import available_fields, load
+    """``(field name, volume holding it)``; the field is checked against the file (default:
+    the first stored field)."""
+    from mi_amr.plugin.datafields import load_with_fields
+    from mi_amr.readers import available_fields
 
-    stored = available_fields(path)
-    field = ALIASES.get(field, field) if field not in stored else field
     if field is None:
+        stored = available_fields(path)
         if not stored:
             raise AMRError(f"{path}: holds no fields")
         field = stored[0]
-    has_velocity = any(all(n in stored for n in names) for names in VELOCITY_NAMES)
-    if field not in stored and not (field in DERIVED_FIELDS and has_velocity):
-        derived = f" and, from its velocity, {', '.join(DERIVED_FIELDS)}" if has_velocity else ""
-        raise AMRError(f"{path}: no field '{field}'; it holds {', '.join(stored)}{derived}")
-    if volume is None or field not in volume.field_names and \
-            not all(n in volume.field_names for n in fields_to_read(field, None, stored)):
-        volume = load(path, fields=fields_to_read(field, None, stored))
-    if field not in volume.field_names and need_values:
-        volume = derive(volume, field)
-    return field, volume
+    if volume is not None and field in volume.field_names:
+        return field, volume
+    volume, names = load_with_fields(path, [field], derive_them=need_values)
+    return names[0], volume
