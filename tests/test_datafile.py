@@ -345,3 +345,26 @@ def test12_info_prints_each_fields_percentiles_levels_and_isovalues(tmp_path, ca
     assert p50 == pytest.approx(np.median(1 + (0.125 + 0.25 * np.arange(8)) ** 2), rel=1e-5)
     one_error(render_cli(["info", path, "--fields", "nope"], capsys), "'nope'", "flow.npz",
               "q_criterion")
+
+
+def test13_show_takes_a_data_file_a_dict_or_a_scene_file_alike(mi, tmp_path):
+    import mi_amr
+    from mi_amr.errors import AMRError
+
+    path = save(box_volume((0, 0, 0), (1, 2, 1)), tmp_path / "b.npz")
+    made = mi_amr.scene(path, field="f", isovalue=0.6, resolution=(48, 32), spp=1)
+    from mi_amr.plugin.autoscene import data_scene
+
+    xml = tmp_path / "b.xml"
+    xml.write_text(data_scene(path, "f", 0.6, resolution=(48, 32), spp=1).xml())
+    images = [mi_amr.show(path, field="f", isovalue=0.6, resolution=(48, 32), spp=1),
+              mi_amr.show(made, spp=1), mi_amr.show(xml, spp=1)]
+    for image in images:
+        assert image.size == (48, 32) and image.numpy().shape == (32, 48, 4)
+        assert image._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert_same_pixels(image.numpy(), images[0].numpy())
+    assert images[0].numpy()[..., 3].max() == 1.0
+    with pytest.raises(AMRError, match="missing.npz"):
+        mi_amr.show(tmp_path / "missing.npz")
+    with pytest.raises(AMRError, match="missing.npz"):
+        mi_amr.explore(tmp_path / "missing.npz")
