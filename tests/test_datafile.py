@@ -368,3 +368,42 @@ def test13_show_takes_a_data_file_a_dict_or_a_scene_file_alike(mi, tmp_path):
         mi_amr.show(tmp_path / "missing.npz")
     with pytest.raises(AMRError, match="missing.npz"):
         mi_amr.explore(tmp_path / "missing.npz")
+
+
+def test14_view_serves_a_data_file(tmp_path):
+    """``view FILE --field F``: the page's state is the made scene's; Ctrl-C stops it and the
+    scene written for it is gone."""
+    import json
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    path = save(box_volume((0, 0, 0), (1, 1, 2)), tmp_path / "v.npz")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]),
+               TMPDIR=str(tmp_path))
+    proc = subprocess.Popen([sys.executable, "-m", "mi_amr", "view", path, "--field", "f",
+                             "--isovalue", "0.5", "--port", "0", "--no-browser", "--out",
+                             str(tmp_path / "out")], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        url, seen, deadline = None, [], time.time() + 300
+        while url is None and time.time() < deadline:
+            line = proc.stdout.readline()
+            assert line, "".join(seen)
+            seen.append(line)
+            found = re.search(r"serving (http://\S+)", line)
+            url = found and found.group(1)
+        assert url, "".join(seen)
+        with urllib.request.urlopen(url + "api/state", timeout=60) as reply:
+            state = json.loads(reply.read())["state"]
+        assert state["field"] == "f" and state["isovalues"] == pytest.approx([0.5])
+        assert state["data_file"] == str(Path(path).resolve())
+        assert list(tmp_path.glob("mi_amr_scene_*/v.npz.xml")), "the scene is made in TMPDIR"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)
+    assert not list(tmp_path.glob("mi_amr_scene_*")), "the made scene is left behind"
