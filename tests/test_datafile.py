@@ -279,7 +279,8 @@ RGB_SCENE = """<scene version="3.0.0">
     </integrator>
     <sensor type="perspective">
         <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="3, -2, 2" target="0.5, 0.5, 0.5" up="0, 0, 1"/></transform>
+        <transform name="to_world">
+            <lookat origin="3, -2, 2" target="0.5, 0.5, 0.5" up="0, 0, 1"/></transform>
         <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
         <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="16"/>
             <string name="pixel_format" value="rgb"/></film>

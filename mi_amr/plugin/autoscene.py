@@ -78,9 +78,10 @@ class DataScene:
         values = self.integrator_values()
         defaults = {k: values.pop(k) for k in DEFAULTS}
         defaults.update(spp=self.spp, resx=self.resolution[0], resy=self.resolution[1])
+        how = " (picked from the histogram)" if self.picked else ""
         lines = ['<scene version="3.0.0">',
                  f"    <!-- Made by mi_amr for {_comment(self.path)}: field {_comment(self.field)}"
-                 f", isovalue {self.isovalue!r}{' (picked from the histogram)' if self.picked else ''}. -->"]
+                 f", isovalue {self.isovalue!r}{how}. -->"]
         lines += [f"    <default name={quoteattr(k)} value={quoteattr(str(v))}/>"
                   for k, v in defaults.items()]
         lines += ['', '    <integrator type="amr_iso" id="integrator">']
