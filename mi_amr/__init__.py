@@ -3,7 +3,9 @@
 The data model (:class:`AMRVolume`), readers (:func:`load`; :func:`from_yt` for a dataset yt
 has opened, importing yt only when called), the kd-tree (:class:`KDTree`) and derived fields
 (:func:`derive`) need only NumPy: ``import mi_amr`` imports neither Dr.Jit nor Mitsuba.
-:func:`trace` (ray queries, Dr.Jit) and :func:`load_scene` (Mitsuba) are imported on first use.
+:func:`trace` (ray queries, Dr.Jit), :func:`load_scene` and :func:`scene` (the scene made for a
+data file, a dict for ``mi.load_dict``; Mitsuba), and :func:`show` and :func:`explore`
+(Jupyter: an inline image, the viewer in an output cell) are imported on first use.
 The Mitsuba integrator ``amr_iso`` is registered by :func:`register` (called on import when a
 Mitsuba variant is already set).
 
@@ -23,7 +25,8 @@ from mi_amr.readers.ytsource import from_yt
 from mi_amr.synthetic import datasets
 
 _LAZY = {"trace": "mi_amr.kernels.trace", "TraceResult": "mi_amr.kernels.trace",
-         "load_scene": "mi_amr.plugin.scene"}
+         "load_scene": "mi_amr.plugin.scene", "scene": "mi_amr.plugin.autoscene",
+         "show": "mi_amr.workflows.notebook", "explore": "mi_amr.workflows.notebook"}
 
 
 def __getattr__(name):
@@ -50,5 +53,5 @@ def _register_if_variant_set():
 _register_if_variant_set()
 
 __all__ = ["AMRError", "AMRVolume", "Grid", "KDTree", "load", "from_yt", "derive", "datasets",
-           "register", "trace", "TraceResult", "load_scene"]
+           "register", "trace", "TraceResult", "load_scene", "scene", "show", "explore"]
 __version__ = "0.1.0"

@@ -46,9 +46,11 @@ def _parser(prog: str) -> argparse.ArgumentParser:
 
 def _add_data_commands(sub) -> None:
     """``info``, ``dataset``, ``data``."""
-    s = sub.add_parser("info", help="print the summary of an AMR file")
+    s = sub.add_parser("info", help="print the summary of an AMR file, each field's range, "
+                                    "percentiles and suggested isovalues")
     s.add_argument("path")
-    s.add_argument("--fields", nargs="+", help="read only these fields")
+    s.add_argument("--fields", nargs="+", help="only these fields (stored, or derived: "
+                                               "q_criterion, speed, vorticity)")
     s.set_defaults(run=_info)
 
     from mi_amr.synthetic.datasets import DATASETS, SIZES
@@ -68,8 +70,8 @@ def _add_data_commands(sub) -> None:
 
 def _add_render(sub) -> None:
     """``render``, ``movie``, ``histogram``."""
-    s = sub.add_parser("render", help="render a scene file")
-    s.add_argument("scene", help="Mitsuba scene XML")
+    s = sub.add_parser("render", help="render a scene file or a data file")
+    s.add_argument("scene", help="Mitsuba scene XML, or a data file (a scene is made for it)")
     s.add_argument("-o", "--output", required=True, help="image to write (.png or .exr)")
     s.add_argument("--spp", type=int, help="samples per pixel (the scene's 'spp' default)")
     s.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
@@ -82,6 +84,7 @@ def _add_render(sub) -> None:
     s.add_argument("--aovs", action="store_true",
                    help="also write the isosurface's depth, normal, position, values, level and "
                         "grid as channels of the (.exr) image")
+    _add_data_scene(s)
     s.set_defaults(run=_render)
     _add_movie(sub)
 
@@ -91,6 +94,12 @@ def _add_render(sub) -> None:
     s.add_argument("--field", required=True, help="stored or derived field")
     s.add_argument("-o", "--output", required=True, help="PNG to write")
     s.add_argument("--bins", type=int, default=256)
+    axis = s.add_mutually_exclusive_group()
+    axis.add_argument("--log-value", dest="value_scale", action="store_const", const="log",
+                      default="auto", help="a log value axis (symlog where values reach 0); "
+                                           "default: log when the values span 3+ decades")
+    axis.add_argument("--linear-value", dest="value_scale", action="store_const",
+                      const="linear", help="a linear value axis")
     s.add_argument("--force", action="store_true", help="replace an existing image")
     s.set_defaults(run=_histogram)
 
@@ -140,10 +149,9 @@ def _add_bench(sub) -> None:
 
 
 def _info(args) -> None:
-    from mi_amr.readers import load
+    from mi_amr.workflows.info import info_text
 
-    vol = load(args.path, fields=args.fields)
-    print(vol.summary())
+    print(info_text(args.path, args.fields))
 
 
 def _dataset(args) -> None:
@@ -160,12 +168,31 @@ def _data(args) -> None:
     project.ensure_scene_data()
 
 
+def _add_data_scene(s) -> None:
+    """The options of a data file given where a scene goes."""
+    s.add_argument("--field", help="data file: the field to show, stored or derived "
+                                   "(q_criterion, speed, vorticity); default: the first stored")
+    s.add_argument("--isovalue", type=float,
+                   help="data file: the isovalue (default: picked from the histogram)")
+    s.add_argument("--save-scene", metavar="XML", help="data file: also write the scene made "
+                                                      "for it here (for editing)")
+
+
+def _data_scene(args, source, resolution=None):
+    from mi_amr.workflows.datafile import scene_file
+
+    return scene_file(source, field=args.field, isovalue=args.isovalue, resolution=resolution,
+                      spp=getattr(args, "spp", None), save_scene=args.save_scene,
+                      force=getattr(args, "force", False))
+
+
 def _render(args) -> None:
     from mi_amr.workflows.render import render_file
 
-    render_file(args.scene, args.output, spp=args.spp, resolution=args.resolution,
-                defines=_defines(args.defines), variant=args.variant, overwrite=args.force,
-                aovs=args.aovs)
+    with _data_scene(args, args.scene, args.resolution) as scene:
+        render_file(scene, args.output, spp=args.spp, resolution=args.resolution,
+                    defines=_defines(args.defines), variant=args.variant,
+                    overwrite=args.force, aovs=args.aovs)
 
 
 def _histogram(args) -> None:
@@ -174,7 +201,7 @@ def _histogram(args) -> None:
     if args.bins < 2:
         raise AMRError(f"--bins must be >= 2, got {args.bins}")
     out = histogram_figure(args.path, args.field, args.output, bins=args.bins,
-                           overwrite=args.force)
+                           overwrite=args.force, value_scale=args.value_scale)
     print(f"wrote {out}")
 
 
@@ -191,7 +218,9 @@ def _defines(items) -> dict:
 def _add_movie(sub) -> None:
     s = sub.add_parser("movie", help="render a movie: an orbit, an isovalue sweep, keyframes or "
                                      "a time series of files, in parallel on Dask")
-    s.add_argument("scene", help="Mitsuba scene XML")
+    s.add_argument("scene", nargs="+", metavar="SCENE|FILE",
+                   help="Mitsuba scene XML, or the data files of a time series (globs too; a "
+                        "scene is made for the first)")
     s.add_argument("-o", "--output", required=True, help="folder for frame_00000.png ...")
     s.add_argument("--files", help="the time series: a glob or a comma-separated list (natural "
                                    "order); replaces the scene's data file frame by frame")
@@ -219,6 +248,7 @@ def _add_movie(sub) -> None:
                    help="set a <default> of the scene (repeatable)")
     s.add_argument("--variant", default="llvm_ad_rgb")
     s.add_argument("--force", action="store_true", help="render (and encode) again what exists")
+    _add_data_scene(s)
     s.set_defaults(run=_movie)
 
 
@@ -238,21 +268,29 @@ def _color_range(values):
 
 
 def _movie(args) -> int:
-    from mi_amr.workflows.movie import render_movie
+    from mi_amr.workflows.datafile import movie_inputs
 
     if args.workers < 1:
         raise AMRError(f"--workers must be >= 1, got {args.workers}")
-    summary = render_movie(args.scene, args.output, frames=args.frames, files=args.files,
-                           orbit=args.orbit, isovalues=args.isovalues, keyframes=args.keyframes,
-                           color_range=_color_range(args.color_range),
-                           resolution=args.resolution, spp=args.spp, fmt=args.format,
-                           workers=args.workers, scheduler=args.scheduler, mp4=args.mp4,
-                           fps=args.fps, force=args.force, defines=_defines(args.defines),
-                           variant=args.variant)
+    source, files = movie_inputs(args.scene, args.files)
+    with _data_scene(args, source, args.resolution) as scene:
+        summary = _run_movie(scene, files, args)
     print(summary.text())
     if args.mp4 and not summary.failed:
         print(f"wrote {args.mp4}")
     return 1 if summary.failed else 0
+
+
+def _run_movie(scene, files, args):
+    from mi_amr.workflows.movie import render_movie
+
+    return render_movie(scene, args.output, frames=args.frames, files=files,
+                        orbit=args.orbit, isovalues=args.isovalues, keyframes=args.keyframes,
+                        color_range=_color_range(args.color_range),
+                        resolution=args.resolution, spp=args.spp, fmt=args.format,
+                        workers=args.workers, scheduler=args.scheduler, mp4=args.mp4,
+                        fps=args.fps, force=args.force, defines=_defines(args.defines),
+                        variant=args.variant)
 
 
 def _bench(args) -> None:
@@ -339,7 +377,7 @@ def _add_view(sub) -> None:
         help="only the viewer's slider-to-image round trip in a browser (512^2)")
     s = sub.add_parser("view", help="explore a scene in the browser: isovalues, method, "
                                     "colours, camera, light; save images, scenes, keyframes")
-    s.add_argument("scene", help="Mitsuba scene XML rendered by amr_iso")
+    s.add_argument("scene", help="Mitsuba scene XML rendered by amr_iso, or a data file")
     s.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: a free one)")
     s.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only)")
@@ -355,6 +393,7 @@ def _add_view(sub) -> None:
     s.add_argument("--preview-scale", type=int, default=2,
                    help="while a control moves, 1 spp at 1/N of the size (default 2)")
     s.add_argument("--variant", default="llvm_ad_rgb")
+    _add_data_scene(s)
     s.set_defaults(run=_view)
 
 
@@ -363,6 +402,7 @@ def _view(args) -> None:
 
     if args.spp < 1 or args.preview_scale < 1 or (args.resolution and min(args.resolution) < 1):
         raise AMRError("view: --spp, --preview-scale and --resolution must be positive")
-    serve(args.scene, host=args.host, port=args.port, open_browser=not args.no_browser,
-          out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,
-          preview_scale=args.preview_scale, variant=args.variant)
+    with _data_scene(args, args.scene) as scene:
+        serve(scene, host=args.host, port=args.port, open_browser=not args.no_browser,
+              out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,
+              preview_scale=args.preview_scale, variant=args.variant)

@@ -236,7 +236,7 @@ def test07_a_worker_killed_mid_run_loses_no_frame(series, tmp_path):
     summary = result["s"]
     assert not summary.failed, summary.text()
     assert [p.name for p in frames_in(out)] == [f"frame_{i:05d}.png" for i in range(12)]
-    assert all(read(p).shape == (32, 32, 3) for p in frames_in(out))
+    assert all(read(p).shape == (32, 32, 4) for p in frames_in(out))   # RGBA, as render writes
     assert not [p for p in out.iterdir() if ".tmp-" in p.name]
 
 

@@ -15,6 +15,7 @@ from mi_amr.core.transfer2d import parse_blobs, parse_range
 from mi_amr.errors import AMRError
 
 FLOAT32_MAX = 3.4028234663852886e38
+NO_COLOR_FIELD = ("none", "")    # color_field values that mean "no colour field"
 
 
 @dataclass
@@ -80,6 +81,9 @@ def parse(values: dict) -> Options:
                   band_support=_supports(values, isovalues),
                   transfer2d_range=_range4(values), **read)
     _check_transfer2d(opt, values)
+    if opt.color_field is not None and opt.color_field.strip().lower() in NO_COLOR_FIELD:
+        # "none" switches the colour field off (-D color_field=none), with its map and range.
+        opt.color_field = opt.colormap = opt.color_range = None
     if (opt.color_field is None) != (opt.colormap is None):
         raise AMRError("amr_iso: 'color_field' and 'colormap' go together; give both or neither")
     if opt.layers != "composite" and opt.mode != "surface":

@@ -34,6 +34,18 @@ def load_scene(path, *, integrator=None, pixel_format=None, **params):
     return scene
 
 
+def load_dict(scene: dict):
+    """``mi.load_dict`` that reports an amr_iso mistake as :class:`AMRError` and keeps the
+    cameras opaque, as :func:`load_scene` does (so a dict and its XML render the same
+    pixels)."""
+    try:
+        loaded = mi.load_dict(scene)
+    except RuntimeError as e:
+        raise _unwrap(e, "the scene") from None
+    _opaque_cameras(loaded)
+    return loaded
+
+
 def _load_edited(path, integrator: dict, pixel_format, values):
     """The scene file with the amr_iso integrator's and films' settings changed in memory,
     loaded with the file's folder first on the file resolver (relative paths as before)."""

@@ -34,9 +34,46 @@ def value_and_gradient(volume, field: str):
     return np.concatenate(values), np.concatenate(grads)
 
 
-def histogram_figure(path, field: str, output, *, bins: int = 256,
-                     overwrite: bool = False) -> Path:
-    """Write the histogram of ``field`` of the file ``path`` to ``output`` (PNG, atomically)."""
+DECADES = 3.0        # auto: a log axis for values spanning at least this many decades
+
+
+def value_axis(values, scale: str = "auto"):
+    """``(kind, linthresh)`` of the value axis: ``linear``, ``log`` (all values > 0) or
+    ``symlog`` (linear within +-``linthresh``, logarithmic beyond). ``scale`` ``auto`` picks
+    a log axis for values spanning :data:`DECADES` decades or more (of their magnitude, where
+    they reach or cross 0), ``log`` a log or symlog axis, ``linear`` a linear one."""
+    if scale not in ("auto", "linear", "log"):
+        raise AMRError(f"value axis must be auto, linear or log, got {scale!r}")
+    mag = np.abs(values[values != 0])
+    if scale == "linear" or mag.size == 0:
+        return "linear", None
+    small = float(np.percentile(mag, 1))
+    spans = np.log10(mag.max() / small) >= DECADES if small > 0 else False
+    if scale == "auto" and not spans:
+        return "linear", None
+    if values.min() > 0:
+        return "log", None
+    return "symlog", small
+
+
+def _value_edges(values, bins: int, kind: str, linthresh):
+    """``bins + 1`` bin edges over the values, evenly spaced on the axis ``kind``."""
+    lo, hi = float(values.min()), float(values.max())
+    if kind == "linear" or lo == hi:
+        return bins
+    from matplotlib.scale import LogTransform, SymmetricalLogTransform
+
+    tr = LogTransform(10) if kind == "log" else SymmetricalLogTransform(10, linthresh, 1.0)
+    ends = tr.transform(np.array([lo, hi]))
+    edges = tr.inverted().transform(np.linspace(ends[0], ends[1], bins + 1))
+    edges[0], edges[-1] = lo, hi        # (the round trip may move the ends by an ulp)
+    return edges
+
+
+def histogram_figure(path, field: str, output, *, bins: int = 256, overwrite: bool = False,
+                     value_scale: str = "auto") -> Path:
+    """Write the histogram of ``field`` of the file ``path`` to ``output`` (PNG, atomically);
+    ``value_scale`` as :func:`value_axis` takes it."""
     output = check_output(output, suffixes=(".png",), overwrite=overwrite, make_folders=True)
     from mi_amr.core.derive import DERIVED_FIELDS, derive
     from mi_amr.kernels.prepared import fields_to_read
@@ -54,11 +91,19 @@ def histogram_figure(path, field: str, output, *, bins: int = 256,
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
 
+    kind, linthresh = value_axis(v, value_scale)
+    gkind, gthresh = value_axis(g, "auto")        # |grad| spans decades as often
     fig, ax = plt.subplots(figsize=(6.4, 4.8), dpi=120)
-    counts, xe, ye, image = ax.hist2d(v, g, bins=bins, norm=LogNorm(), cmap="magma")
+    counts, xe, ye, image = ax.hist2d(v, g, bins=[_value_edges(v, bins, kind, linthresh),
+                                                  _value_edges(g, bins, gkind, gthresh)],
+                                      norm=LogNorm(), cmap="magma")
+    for set_scale, k, t in ((ax.set_xscale, kind, linthresh), (ax.set_yscale, gkind, gthresh)):
+        if k != "linear":
+            set_scale(k, **({"linthresh": t} if k == "symlog" else {}))
     fig.colorbar(image, ax=ax, label="leaf cells (log)")
-    ax.set_xlabel(f"{field}")
-    ax.set_ylabel(f"|grad {field}| (per world unit)")
+    ax.set_xlabel(f"{field}" + ("" if kind == "linear" else f" ({kind} axis)"))
+    ax.set_ylabel(f"|grad {field}| (per world unit" + ("" if gkind == "linear" else
+                                                        f", {gkind} axis") + ")")
     ax.set_title(f"{Path(path).name}: {len(v):,} leaf cells")
     fig.tight_layout()
     with replacing(output) as tmp:

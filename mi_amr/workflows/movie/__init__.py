@@ -71,7 +71,11 @@ def _scene_fields(scene_path, defines):
         return re.sub(r"\$(\w+)", lambda m: str(values.get(m.group(1), m.group(0))),
                       node.get("value"))
 
-    return value("field"), value("color_field") if value("colormap") else None
+    from mi_amr.plugin.options import NO_COLOR_FIELD
+
+    color = value("color_field") if value("colormap") else None
+    off = color is not None and color.strip().lower() in NO_COLOR_FIELD
+    return value("field"), None if off else color
 
 
 def _has_filename_default(scene_path) -> bool:

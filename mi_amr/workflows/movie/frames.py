@@ -38,7 +38,7 @@ class FrameRenderer:
         if spp is not None:
             params["spp"] = str(spp)
         self.scene_path = Path(scene_path)
-        self.scene = load_scene(scene_path, **params)
+        self.scene = load_scene(scene_path, pixel_format="rgba", **params)   # RGBA frames
         self.integ = self.scene.integrator()
         if not hasattr(self.integ, "load_volume"):
             raise AMRError(f"{scene_path}: the scene's integrator is not amr_iso")
@@ -73,7 +73,7 @@ class FrameRenderer:
         return timings
 
     def render(self, spec: FrameSpec) -> np.ndarray:
-        """Frame ``spec`` as a linear RGB ``(H, W, 3)`` array; the sampler's seed is the frame
+        """Frame ``spec`` as a linear RGBA ``(H, W, 4)`` array; the sampler's seed is the frame
         number, so a frame is the same wherever it is rendered."""
         import drjit as dr
 

@@ -41,13 +41,14 @@ def write_bytes_atomic(path, data: bytes) -> None:
 
 
 def write_image_atomic(path, image: np.ndarray) -> None:
-    """Write a linear RGB float image ``(H, W, 3)`` as 8-bit sRGB PNG or float EXR (by the
-    suffix), whole or not at all."""
+    """Write a linear RGBA (or RGB) float image ``(H, W, 4 or 3)`` as 8-bit sRGB PNG or float
+    EXR (by the suffix), whole or not at all; alpha stays alpha (the film's coverage, as
+    ``render`` writes it)."""
     import mitsuba as mi
 
-    bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32),
-                       pixel_format=mi.Bitmap.PixelFormat.RGB)
+    fmt = mi.Bitmap.PixelFormat.RGBA if image.shape[-1] == 4 else mi.Bitmap.PixelFormat.RGB
+    bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32), pixel_format=fmt)
     if Path(path).suffix.lower() == ".png":
-        bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
+        bitmap = bitmap.convert(fmt, mi.Struct.Type.UInt8, srgb_gamma=True)
     with replacing(path) as tmp:
         bitmap.write(str(tmp))

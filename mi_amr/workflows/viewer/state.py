@@ -118,7 +118,7 @@ class Session:
 
     def _open(self, scene_path, resolution, spp: int) -> ViewState:
         scene_path = Path(scene_path).resolve()
-        scene = load_scene(scene_path)
+        scene = load_scene(scene_path, pixel_format="rgba")    # saves are RGBA, as render's
         self._adopt(scene, scene_path)
         self.base_path = scene_path
         film = tuple(int(x) for x in self.params[self._film_key])
@@ -259,7 +259,7 @@ class Session:
         path = self.workdir / f"reload_{self._reload_count}.xml"
         path.write_text(scene_text(self.base_path, state, spp=state.spp,
                                    resolution=self.resolution))
-        scene = load_scene(path)
+        scene = load_scene(path, pixel_format="rgba")
         saved = dict(self.__dict__)
         try:
             self._adopt(scene, path)
@@ -335,7 +335,7 @@ class Session:
     # ------------------------------------------------------------------ rendering
     def render(self, size, spp: int, seed: int = 0) -> np.ndarray:
         """One ``mi.render`` of the current state at ``size`` pixels ``(width, height)``: a
-        linear RGB float32 array ``(height, width, 3)``."""
+        linear RGBA float32 array ``(height, width, 4)`` (alpha: coverage by surfaces)."""
         size = (int(size[0]), int(size[1]))
         if size != self._film:
             self._write_sensor(self.state.camera, size)
@@ -344,7 +344,7 @@ class Session:
         image = mi.render(self.scene, spp=spp, seed=seed)
         dr.eval(image)
         dr.sync_thread()
-        return np.array(image, dtype=np.float32)[..., :3]
+        return np.array(image, dtype=np.float32)
 
     def render_refined(self, size, spp: int, before_pass=None) -> Optional[np.ndarray]:
         """The ``spp``-sample image, in the passes of :func:`refine_passes`; None when

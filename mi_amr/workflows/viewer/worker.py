@@ -21,14 +21,17 @@ import traceback
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from mi_amr.errors import AMRError
 from mi_amr.workflows.viewer.state import structure
 
 
 def png_bytes(image) -> bytes:
-    """8-bit sRGB PNG of a linear RGB float image, converted as
+    """8-bit sRGB PNG of a linear RGB float image (the colour of an RGBA one: the page shows
+    the film's black background), converted as
     :func:`mi_amr.workflows.movie.output.write_image_atomic` converts it."""
+    image = np.ascontiguousarray(image[..., :3], dtype=np.float32)
     bitmap = mi.Bitmap(image, pixel_format=mi.Bitmap.PixelFormat.RGB)
     bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.UInt8, srgb_gamma=True)
     stream = mi.MemoryStream()

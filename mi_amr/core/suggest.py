@@ -1,0 +1,133 @@
+"""A field's statistics over its leaf cells and the isovalues worth trying first (NumPy only).
+
+An isovalue is scored by how many pairs of neighbouring leaf cells (inside a grid, along each
+axis) it separates: a value between the pair's two values puts the surface between them, so
+the count is a proxy for the surface's area. The candidates are the values at evenly spaced
+percentiles and evenly spaced values between the 2nd and 98th percentiles; the pick is the
+best-scoring, and among near-ties (within :data:`TIE` of the best) the one nearest their
+middle in percentile rank (a field that jumps from 0 to 1 through cut cells gets a value
+halfway through them, not 0.01; a heavy tail does not pull the pick into it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mi_amr.errors import AMRError
+
+PERCENTILES = (1, 10, 50, 90, 99)
+MAX_PAIRS = 1 << 21        # neighbour pairs scored at most (an even subsample beyond)
+TIE = 0.9                  # candidates scoring at least this share of the best are near-ties
+DISTINCT = 0.15            # suggestions lie at least this far apart in percentile rank ...
+MIN_SPAN = 0.01            # ... and in value (share of the 2-98 percentile range); a pair of
+                           # cells counts only when its values differ by more than this
+
+
+@dataclass
+class FieldStats:
+    """``field``'s range, its values at :data:`PERCENTILES` and its suggested isovalues (the
+    first is the pick), over ``cells`` finite leaf cells; ``levels`` holds per level ``(level,
+    finite leaf cells, min, max)`` (min and max None for a level with none)."""
+
+    field: str
+    cells: int
+    vmin: float
+    vmax: float
+    percentiles: dict
+    suggested: list
+    levels: list
+
+    def text(self) -> str:
+        pct = "  ".join(f"p{q} {v:.6g}" for q, v in self.percentiles.items())
+        lines = [f"{self.field}: [{self.vmin:.6g}, {self.vmax:.6g}] over {self.cells:,} leaf "
+                 f"cells", f"  percentiles  {pct}"]
+        for level, n, lo, hi in self.levels:
+            where = f"[{lo:.6g}, {hi:.6g}]" if n else "-"
+            lines.append(f"  level {level}: {n:>12,} leaf cells  {where}")
+        lines.append("  suggested isovalues: " + ", ".join(f"{v:.6g}" for v in self.suggested))
+        return "\n".join(lines)
+
+
+def leaf_values(volume, field: str, level=None) -> np.ndarray:
+    """``field``'s finite values over the volume's leaf cells (float64, each cell once), of
+    level ``level`` only when given."""
+    out = [np.asarray(g.fields[field], dtype=np.float64)[volume.leaf_mask(i)]
+           for i, g in enumerate(volume.grids) if level is None or g.level == level]
+    values = np.concatenate(out) if out else np.zeros(0)
+    return values[np.isfinite(values)]
+
+
+def field_stats(volume, field: str, count: int = 3) -> FieldStats:
+    """The statistics of ``field`` (stored or already derived in ``volume``)."""
+    if field not in volume.field_names:
+        raise AMRError(f"{volume._label()}no field '{field}'; it holds {list(volume.field_names)}")
+    values = leaf_values(volume, field)
+    if values.size == 0:
+        raise AMRError(f"{volume._label()}field '{field}' has no finite leaf cells")
+    levels = []
+    for level in range(volume.num_levels):
+        v = leaf_values(volume, field, level)
+        levels.append((level, int(v.size), float(v.min()) if v.size else None,
+                       float(v.max()) if v.size else None))
+    pct = dict(zip(PERCENTILES, np.percentile(values, PERCENTILES).tolist()))
+    return FieldStats(field=field, cells=int(values.size), vmin=float(values.min()),
+                      vmax=float(values.max()), percentiles=pct,
+                      suggested=suggest_isovalues(volume, field, values, count), levels=levels)
+
+
+def suggest_isovalues(volume, field: str, values=None, count: int = 3) -> list:
+    """Up to ``count`` isovalues of ``field``, best first (see the module docstring)."""
+    values = np.sort(leaf_values(volume, field) if values is None else values)
+    if values[0] == values[-1]:
+        return [float(values[0])]
+    lo, hi = np.percentile(values, (2, 98))
+    if lo == hi:
+        lo, hi = values[0], values[-1]
+    candidates = np.unique(np.concatenate([np.percentile(values, np.arange(5, 96, 5)),
+                                           np.linspace(lo, hi, 35)[1:-1]]))
+    scores = _crossings(volume, field, candidates, MIN_SPAN * (hi - lo))
+    if scores.max() == 0:
+        return [float(np.median(values))]
+    ranks = np.searchsorted(values, candidates) / values.size
+    near = np.flatnonzero(scores >= TIE * scores.max())
+    middle = (ranks[near].min() + ranks[near].max()) / 2
+    first = near[np.argmin(np.abs(ranks[near] - middle))]
+    picked = [first]
+    for i in np.argsort(-scores, kind="stable"):
+        if len(picked) >= count:
+            break
+        if scores[i] > 0 and all(abs(ranks[i] - ranks[j]) >= DISTINCT and
+                                 abs(candidates[i] - candidates[j]) >= MIN_SPAN * (hi - lo)
+                                 for j in picked):
+            picked.append(i)
+    return [float(candidates[i]) for i in picked]
+
+
+def _crossings(volume, field: str, candidates: np.ndarray, min_span: float) -> np.ndarray:
+    """For each candidate, the number of neighbouring leaf-cell pairs it separates, counting
+    only pairs whose values differ by more than ``min_span`` (noise in a flat region would
+    otherwise outvote every real surface)."""
+    lows, highs = [], []
+    step = max(1, -(-3 * volume.num_cells // MAX_PAIRS))   # an even subsample of the pairs
+    for i, g in enumerate(volume.grids):
+        f = np.asarray(g.fields[field], dtype=np.float64)
+        keep = volume.leaf_mask(i) & np.isfinite(f)
+        for axis in range(3):
+            if f.shape[axis] < 2:
+                continue
+            a = np.take(f, range(f.shape[axis] - 1), axis=axis)
+            b = np.take(f, range(1, f.shape[axis]), axis=axis)
+            both = np.take(keep, range(f.shape[axis] - 1), axis=axis) & \
+                np.take(keep, range(1, f.shape[axis]), axis=axis) & (np.abs(b - a) > min_span)
+            lows.append(np.minimum(a, b)[both][::step])
+            highs.append(np.maximum(a, b)[both][::step])
+    if not lows:
+        return np.zeros(len(candidates))
+    low, high = np.concatenate(lows), np.concatenate(highs)
+    # A pair is separated by c when low < c <= high: count lows below c minus highs below c.
+    low.sort()
+    high.sort()
+    return (np.searchsorted(low, candidates, side="left")
+            - np.searchsorted(high, candidates, side="left")).astype(np.int64)

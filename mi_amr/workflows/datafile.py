@@ -1,0 +1,90 @@
+"""``render``, ``view`` and ``movie`` given a data file instead of a scene: the scene made for it
+(:mod:`mi_amr.plugin.autoscene`) written as a Mitsuba XML file that the usual scene workflows
+then take, either where ``--save-scene`` says or in a temporary folder that is removed after.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+from pathlib import Path
+
+from mi_amr.core.atomic import check_output, replacing
+from mi_amr.errors import AMRError
+
+SCENE_SUFFIX = ".xml"
+
+
+def is_scene_file(path) -> bool:
+    """Whether ``path`` names a Mitsuba scene (``.xml``) rather than a data file."""
+    return Path(path).suffix.lower() == SCENE_SUFFIX
+
+
+@contextlib.contextmanager
+def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
+               save_scene=None, force: bool = False, say=print, **params):
+    """The path of a scene XML for ``source``: ``source`` itself when it is a scene (then
+    ``field``, ``isovalue`` and ``save_scene`` must be None), else the scene made for the data
+    file, written to ``save_scene`` (kept; replaced only with ``force``) or to a temporary
+    folder (removed when the block ends). Prints the field and isovalue it picked."""
+    if is_scene_file(source):
+        given = [n for n, v in (("--field", field), ("--isovalue", isovalue),
+                                ("--save-scene", save_scene)) if v is not None]
+        if given:
+            raise AMRError(f"{source} is a scene file: {', '.join(given)} apply to data files "
+                           f"only (set a scene's <default>s with -D NAME=VALUE)")
+        yield Path(source)
+        return
+    if save_scene is not None:
+        save_scene = check_output(save_scene, suffixes=(SCENE_SUFFIX,), overwrite=force,
+                                  make_folders=True)
+    made = make_scene(source, field=field, isovalue=isovalue, resolution=resolution, spp=spp,
+                      say=say, **params)
+    if save_scene is not None:
+        with replacing(save_scene) as tmp:
+            Path(tmp).write_text(made.xml())
+        say(f"wrote the scene {save_scene}")
+        yield save_scene
+        return
+    with tempfile.TemporaryDirectory(prefix="mi_amr_scene_") as folder:
+        path = Path(folder) / f"{Path(made.path).name}{SCENE_SUFFIX}"
+        path.write_text(made.xml())
+        yield path
+
+
+def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, say=print,
+               **params):
+    """The :class:`~mi_amr.plugin.autoscene.DataScene` of ``source``, with what was picked
+    printed."""
+    from mi_amr.plugin.autoscene import RESOLUTION, SPP, data_scene
+
+    made = data_scene(source, field, isovalue, resolution=resolution or RESOLUTION,
+                      spp=spp or SPP, **params)
+    how = "given"
+    if made.picked:
+        others = ", ".join(f"{v:.6g}" for v in made.suggested[1:])
+        how = "picked from the histogram" + (f"; also try {others}" if others else "") + \
+            "; --isovalue sets it"
+    say(f"{made.path}: field {made.field}, isovalue {made.isovalue:.6g} ({how})")
+    return made
+
+
+def movie_inputs(sources, files=None):
+    """``(scene or first data file, time series)`` of ``movie``'s arguments: one scene file
+    (with ``--files`` as given), or data files and globs (the series, in natural order)."""
+    from mi_amr.workflows.movie.spec import expand_files
+
+    sources = list(sources)
+    scenes = [s for s in sources if is_scene_file(s)]
+    if scenes and len(sources) == 1:
+        return sources[0], files
+    if scenes:
+        raise AMRError(f"movie: give one scene file, or data files; got {', '.join(sources)}")
+    if files:
+        raise AMRError("movie: --files goes with a scene file; list the data files themselves "
+                       "instead")
+    try:
+        series = expand_files(sources)
+    except AMRError as e:           # (its messages name the --files option)
+        raise AMRError(str(e).replace("--files: ", "movie: ", 1)) from None
+    return series[0], series

@@ -1,0 +1,410 @@
+"""A data file is a scene: ``render``/``movie`` FILE with no XML, the camera that frames the data
+(checked through Mitsuba's own camera projection and one real render), the isovalue picked from
+the histogram, ``--save-scene`` and :func:`mi_amr.scene` giving the same pixels, and the bad
+inputs that each get one error naming them."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import grid
+from mi_amr import AMRVolume
+from mi_amr.cli import main
+from mi_amr.core.framing import frame_box
+from mi_amr.core.suggest import field_stats, suggest_isovalues
+
+AMREX = Path(__file__).resolve().parents[2] / "shared" / "data" / "amrex"
+PLOTFILES = sorted(p for p in AMREX.glob("*") if (p / "Header").is_file()) \
+    if AMREX.is_dir() else []
+
+
+@pytest.fixture(scope="module")
+def mi():
+    import mitsuba
+
+    mitsuba.set_variant("llvm_ad_rgb")
+    import mi_amr
+
+    mi_amr.register()
+    return mitsuba
+
+
+def box_volume(lo, hi, cells=16, names=("f",)):
+    """One grid over ``lo``..``hi`` whose field ``f`` is the max-norm distance from the centre
+    in half extents: the isosurface ``f = c`` is the box shrunk by ``c`` about its centre."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    h = float((hi - lo).max()) / cells
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+
+    def fn(p):
+        return np.max(np.abs(p - centre) / half, axis=-1)
+
+    return AMRVolume.from_grids([grid(0, lo, hi, h, fn, names)])
+
+
+def save(volume, path):
+    volume.save(path)
+    return str(path)
+
+
+def projected_columns(mi, made, shrink=1.0):
+    """The pixel columns (min, max) and rows (min, max) of the data box's corners (shrunk
+    about its centre by ``shrink``), projected by Mitsuba's camera of the made scene."""
+    d = made.as_dict()
+    sensor = mi.load_dict(d["sensor"])
+    lo, hi = (np.asarray(b, float) for b in made_bounds(made))
+    c, half = (lo + hi) / 2, (hi - lo) / 2 * shrink
+    corners = np.array([c + half * np.array([sx, sy, sz]) for sx in (-1, 1) for sy in (-1, 1)
+                        for sz in (-1, 1)])
+    to_world = d["integrator"]["to_world"]
+    pts = [to_world @ mi.ScalarPoint3f(*p) for p in corners]
+    it = mi.Interaction3f()
+    it.p = mi.Point3f([p[0] for p in pts], [p[1] for p in pts], [p[2] for p in pts])
+    ds, weight = sensor.sample_direction(it, mi.Point2f(0.5, 0.5))
+    uv = np.array(ds.uv)
+    assert np.all(np.array(weight)[0] > 0), "a corner is behind the camera"
+    return uv[0].min(), uv[0].max(), uv[1].min(), uv[1].max()
+
+
+def made_bounds(made):
+    from mi_amr import load
+
+    return load(made.path).bounds
+
+
+SHAPES = [((0, 0, 0), (1, 1, 1)), ((0, 0, 0), (0.08, 0.04, 0.02)), ((-1, -1, 0), (1, 1, 8)),
+          ((0, 0, 0), (8, 1, 1)), ((5, 5, 5), (6, 13, 6)), ((0, 0, 0), (4, 4, 0.25))]
+ASPECTS = [(160, 120), (160, 90), (90, 160), (200, 80), (120, 120)]
+
+
+def test01_the_camera_frames_the_data_at_30_to_90_percent_of_the_width(mi, tmp_path):
+    from mi_amr.plugin.autoscene import data_scene
+
+    for i, (lo, hi) in enumerate(SHAPES):
+        path = save(box_volume(lo, hi, cells=16), tmp_path / f"shape{i}.npz")
+        for width, height in ASPECTS:
+            made = data_scene(path, "f", 0.5, resolution=(width, height))
+            u0, u1, v0, v1 = projected_columns(mi, made)
+            fill = (u1 - u0) / width
+            where = f"box {lo}..{hi} at {width}x{height}"
+            assert 0.3 <= fill <= 0.9, f"{where}: the data covers {fill:.0%} of the width"
+            assert 0 <= u0 and u1 <= width and 0 <= v0 and v1 <= height, \
+                f"{where}: the data leaves the image ({u0:.1f}..{u1:.1f}, {v0:.1f}..{v1:.1f})"
+            assert (v1 - v0) / height <= 0.9, f"{where}: {(v1 - v0) / height:.0%} of the height"
+            # The framing's own figure is the camera's projection, not a guess.
+            assert made.framing.width_fill == pytest.approx(fill, abs=0.01), where
+
+
+def test02_a_real_render_covers_the_projected_bounds(mi, tmp_path):
+    """The isosurface f = 0.9 of the max-norm field is the data box shrunk by 0.9: its alpha
+    covers the columns Mitsuba's camera projects it to (within 2 pixels)."""
+    from mi_amr.plugin.autoscene import data_scene
+    from mi_amr.workflows.render import render_file
+
+    path = save(box_volume((0, 0, 0), (0.08, 0.04, 0.02)), tmp_path / "slab.npz")
+    scene = tmp_path / "slab.xml"
+    made = data_scene(path, "f", 0.9, resolution=(128, 72), spp=1)
+    scene.write_text(made.xml())
+    out = tmp_path / "slab.exr"
+    render_file(scene, out, quiet=True)
+    alpha = np.array(mi.Bitmap(str(out)))[..., 3]
+    cols = np.flatnonzero(alpha.max(axis=0) > 0.5)
+    u0, u1, _, _ = projected_columns(mi, made, shrink=0.9)
+    assert abs(cols.min() - u0) <= 2 and abs(cols.max() + 1 - u1) <= 2, (cols, u0, u1)
+    assert 0.3 <= (cols.max() + 1 - cols.min()) / 128 <= 0.9
+
+
+def test03_framing_is_refused_for_empty_bounds():
+    from mi_amr.errors import AMRError
+
+    with pytest.raises(AMRError, match="cannot frame bounds"):
+        frame_box((0, 0, 0), (0, 0, 0), 1.0)
+
+
+def test04_the_isovalue_is_picked_where_the_surface_is_not_in_noise():
+    """A field that is 0 on one side and 1 on the other, with the 0 side's cells jittered by
+    1e-9: the pick lies between the sides (a score that counted the noise's crossings would
+    pick a value within 1e-9 of 0)."""
+    rng = np.random.default_rng(0)
+
+    def fn(p):
+        step = np.clip((p[..., 0] - 3.5) / 1.0 + 0.5, 0, 1)
+        return step + np.where(step == 0, rng.normal(0, 1e-9, step.shape), 0)
+
+    vol = AMRVolume.from_grids([grid(0, (0, 0, 0), (8, 8, 8), 0.5, fn)])
+    picked = suggest_isovalues(vol, "f")
+    assert 0.2 <= picked[0] <= 0.8, picked
+    stats = field_stats(vol, "f")
+    assert stats.vmin < 1e-8 and stats.vmax == 1.0 and set(stats.percentiles) == {1, 10, 50,
+                                                                                 90, 99}
+    assert "suggested isovalues" in stats.text()
+
+
+def render_cli(argv, capsys):
+    rc = main(argv)
+    captured = capsys.readouterr()
+    return rc, captured.out, captured.err
+
+
+@pytest.mark.skipif(not PLOTFILES, reason="../shared/data/amrex is absent")
+@pytest.mark.parametrize("plotfile", PLOTFILES, ids=lambda p: p.name)
+def test05_each_plotfile_goes_to_a_png_with_one_command(mi, plotfile, tmp_path, capsys):
+    out = tmp_path / "out.png"
+    rc, text, err = render_cli(["render", str(plotfile), "-o", str(out), "--resolution", "96",
+                                "72", "--spp", "1"], capsys)
+    assert rc == 0, err
+    assert "picked from the histogram" in text
+    image = np.array(mi.Bitmap(str(out)))
+    assert image.shape == (72, 96, 4)
+    covered = (image[..., 3] > 0).mean()
+    assert 0.01 < covered < 0.95, f"{plotfile.name}: surface covers {covered:.1%} of the image"
+
+
+@pytest.mark.skipif(not PLOTFILES, reason="../shared/data/amrex is absent")
+def test06_derived_fields_are_named_on_the_command_line(mi, tmp_path, capsys):
+    plotfile = AMREX / "example_plt_3d"
+    for field in ("q_criterion", "vorticity"):
+        out = tmp_path / f"{field}.png"
+        rc, text, err = render_cli(["render", str(plotfile), "--field", field, "-o", str(out),
+                                    "--resolution", "64", "48", "--spp", "1"], capsys)
+        assert rc == 0, err
+        assert np.array(mi.Bitmap(str(out)))[..., 3].max() > 0
+    rc, _, err = render_cli(["render", str(AMREX / "plt_eb_3d"), "--field", "q_criterion",
+                             "-o", str(tmp_path / "x.png")], capsys)
+    assert rc == 2 and "no field(s) 'q_criterion'" in err and "plt_eb_3d" in err
+
+
+# The LLVM backend's run-to-run jitter: rendering one scene twice now and then differs in the
+# last bit of a few pixels (so does a scene against its own reload).
+JITTER_ABS, JITTER_SHARE = 1e-6, 0.05
+
+
+def assert_same_pixels(a, b):
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    assert a.shape == b.shape
+    diff = np.abs(a - b)
+    assert diff.max() <= JITTER_ABS and (diff > 0).mean() <= JITTER_SHARE, \
+        f"differ by up to {diff.max():.3g} in {(diff > 0).mean():.2%} of the values"
+
+
+def test07_the_saved_scene_and_the_dict_render_the_same_pixels(mi, tmp_path, capsys):
+    import mi_amr
+    from mi_amr.plugin.scene import load_dict
+
+    path = save(box_volume((0, 0, 0), (2, 1, 1)), tmp_path / "box.npz")
+    a, b, xml = tmp_path / "a.png", tmp_path / "b.png", tmp_path / "made.xml"
+    rc, text, err = render_cli(["render", path, "--field", "f", "--save-scene", str(xml),
+                                "-o", str(a), "--resolution", "64", "40", "--spp", "2"], capsys)
+    assert rc == 0, err
+    rc, _, err = render_cli(["render", str(xml), "-o", str(b)], capsys)
+    assert rc == 0, err
+    first, second = np.array(mi.Bitmap(str(a))), np.array(mi.Bitmap(str(b)))
+    assert first.shape == (40, 64, 4) and first[..., 3].max() > 0
+    assert np.abs(first.astype(int) - second).max() <= 1 and (first != second).mean() < 0.001
+    picked = float(text.split("isovalue ")[1].split()[0])
+    scene_dict = mi_amr.scene(path, field="f", resolution=(64, 40), spp=2)
+    assert float(scene_dict["integrator"]["isovalue"]) == pytest.approx(picked, rel=1e-5)
+    for from_dict, from_xml in ((mi.load_dict(scene_dict), mi.load_file(str(xml))),
+                                (load_dict(scene_dict), mi_amr.load_scene(xml))):
+        # (1 spp a render: two samples of a pixel are summed in the film in thread order)
+        d, x = mi.render(from_dict, spp=1, seed=0), mi.render(from_xml, spp=1, seed=0)
+        assert np.array(d)[..., 3].max() > 0
+        assert_same_pixels(d, x)
+
+
+def one_error(result, *words):
+    rc, _, err = result
+    lines = [l for l in err.splitlines() if l.strip()]
+    assert rc == 2 and len(lines) == 1 and lines[0].startswith("error: "), err
+    assert "Traceback" not in err
+    for w in words:
+        assert w in lines[0], (w, lines[0])
+
+
+def test08_bad_inputs_each_get_one_error_naming_them(mi, tmp_path, capsys):
+    f_file = save(box_volume((0, 0, 0), (1, 1, 1)), tmp_path / "f1.npz")
+    g_file = save(box_volume((0, 0, 0), (1, 1, 1), names=("g",)), tmp_path / "f2.npz")
+    out = str(tmp_path / "frames")
+    pattern = str(tmp_path / "nothing*.npz")
+    one_error(render_cli(["movie", pattern, "--field", "f", "-o", out], capsys), pattern,
+              "matches no file")
+    one_error(render_cli(["render", f_file, "--field", "nope", "-o", str(tmp_path / "x.png")],
+                          capsys), f_file, "'nope'", "f")
+    one_error(render_cli(["movie", f_file, g_file, "--field", "f", "-o", out, "--resolution",
+                           "16", "16"], capsys), "f2.npz", "'f'")
+    one_error(render_cli(["render", str(tmp_path / "missing.npz"), "-o",
+                           str(tmp_path / "x.png")], capsys), "missing.npz")
+    scene = tmp_path / "s.xml"
+    scene.write_text("<scene version='3.0.0'/>")
+    one_error(render_cli(["render", str(scene), "--field", "f", "-o", str(tmp_path / "x.png")],
+                          capsys), "--field", "scene file")
+    assert not (tmp_path / "frames").exists() or not any((tmp_path / "frames").iterdir())
+
+
+def test09_a_movie_of_data_files_needs_no_scene(mi, tmp_path, capsys):
+    files = [save(box_volume((0, 0, 0), (1, 1, 1 + 0.5 * t)), tmp_path / f"plt{t}.npz")
+             for t in (1, 2, 10)]
+    out = tmp_path / "frames"
+    rc, text, err = render_cli(["movie", str(tmp_path / "plt*.npz"), "--field", "f",
+                                "--isovalue", "0.8", "-o", str(out), "--resolution", "32",
+                                "24", "--spp", "1"], capsys)
+    assert rc == 0, text + err
+    frames = sorted(out.glob("frame_*.png"))
+    assert len(frames) == len(files)
+    import mitsuba
+
+    first = np.array(mitsuba.Bitmap(str(frames[0])))
+    assert first.shape == (24, 32, 4), "movie frames are RGBA PNGs, as render's"
+    assert first[..., 3].min() == 0 and first[..., 3].max() == 255
+    assert "isovalue 0.8 (given)" in text
+
+
+def test10_color_field_none_switches_the_colour_field_off():
+    from mi_amr.plugin.options import parse
+
+    base = {"filename": "x.npz", "field": "f", "isovalue": "0.5"}
+    opt = parse(dict(base, color_field="none", colormap="viridis", color_range="0 1"))
+    assert opt.color_field is None and opt.colormap is None and opt.color_range is None
+    opt = parse(dict(base, color_field="g", colormap="viridis"))
+    assert opt.color_field == "g" and opt.colormap == "viridis"
+
+
+RGB_SCENE = """<scene version="3.0.0">
+    <default name="filename" value="box.npz"/>
+    <integrator type="amr_iso">
+        <string name="filename" value="$filename"/>
+        <string name="field" value="f"/>
+        <float name="isovalue" value="0.7"/>
+    </integrator>
+    <sensor type="perspective">
+        <float name="fov" value="40"/>
+        <transform name="to_world">
+            <lookat origin="3, -2, 2" target="0.5, 0.5, 0.5" up="0, 0, 1"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="16"/>
+            <string name="pixel_format" value="rgb"/></film>
+    </sensor>
+    <emitter type="directional"><vector name="direction" value="-0.4, 0.5, -1.0"/>
+        <rgb name="irradiance" value="2.5"/></emitter>
+</scene>
+"""
+
+
+def test11_movie_frames_and_viewer_saves_are_rgba_pngs_as_render_makes(mi, tmp_path, capsys):
+    """One convention for every PNG: RGBA with the film's coverage as alpha, also from a scene
+    whose film is RGB."""
+    from mi_amr.workflows.movie.output import write_image_atomic
+    from mi_amr.workflows.viewer.state import Session
+
+    save(box_volume((0, 0, 0), (1, 1, 1)), tmp_path / "box.npz")
+    scene = tmp_path / "scene.xml"
+    scene.write_text(RGB_SCENE)
+    images = {}
+    rc, _, err = render_cli(["render", str(scene), "-o", str(tmp_path / "r.png")], capsys)
+    assert rc == 0, err
+    images["render"] = tmp_path / "r.png"
+    rc, _, err = render_cli(["movie", str(scene), "-o", str(tmp_path / "m"), "--frames", "1"],
+                            capsys)
+    assert rc == 0, err
+    images["movie"] = tmp_path / "m" / "frame_00000.png"
+    session = Session(scene, resolution=(24, 16), spp=1)
+    try:
+        write_image_atomic(tmp_path / "v.png", session.render_refined((24, 16), 1))
+    finally:
+        session.close()
+    images["viewer"] = tmp_path / "v.png"
+    pixels = {k: np.array(mi.Bitmap(str(p))) for k, p in images.items()}
+    for k, px in pixels.items():
+        assert px.shape == (16, 24, 4), f"{k}: {px.shape}"
+        assert px[..., 3].min() == 0 and px[..., 3].max() == 255, k
+    assert np.array_equal(pixels["movie"][..., 3], pixels["render"][..., 3])
+
+
+def velocity_volume():
+    """A shear flow vx = z, vy = x, vz = 0 on one grid (Q derivable), plus a stored field."""
+    def fn_of(name):
+        return {"vx": lambda p: p[..., 2], "vy": lambda p: p[..., 0],
+                "vz": lambda p: 0 * p[..., 0], "rho": lambda p: 1 + p[..., 0] ** 2}[name]
+
+    records = [grid(0, (0, 0, 0), (2, 2, 2), 0.25, fn_of(n), (n,)) for n in
+               ("vx", "vy", "vz", "rho")]
+    fields = {k: v for r in records for k, v in r["fields"].items()}
+    return AMRVolume.from_grids([dict(records[0], fields=fields)])
+
+
+def test12_info_prints_each_fields_percentiles_levels_and_isovalues(tmp_path, capsys):
+    path = save(velocity_volume(), tmp_path / "flow.npz")
+    rc, text, err = render_cli(["info", path, "--fields", "q_criterion", "vorticity", "rho"],
+                               capsys)
+    assert rc == 0, err
+    for word in ("q_criterion: [", "vorticity_magnitude: [", "rho: [", "p1 ", "p10 ", "p50 ",
+                 "p90 ", "p99 ", "level 0:", "leaf cells", "suggested isovalues:"):
+        assert word in text, word
+    rho = text[text.index("rho: ["):]
+    p50 = float(rho.split("p50 ")[1].split()[0])
+    assert p50 == pytest.approx(np.median(1 + (0.125 + 0.25 * np.arange(8)) ** 2), rel=1e-5)
+    one_error(render_cli(["info", path, "--fields", "nope"], capsys), "'nope'", "flow.npz",
+              "q_criterion")
+
+
+def test13_show_takes_a_data_file_a_dict_or_a_scene_file_alike(mi, tmp_path):
+    import mi_amr
+    from mi_amr.errors import AMRError
+
+    path = save(box_volume((0, 0, 0), (1, 2, 1)), tmp_path / "b.npz")
+    made = mi_amr.scene(path, field="f", isovalue=0.6, resolution=(48, 32), spp=1)
+    from mi_amr.plugin.autoscene import data_scene
+
+    xml = tmp_path / "b.xml"
+    xml.write_text(data_scene(path, "f", 0.6, resolution=(48, 32), spp=1).xml())
+    images = [mi_amr.show(path, field="f", isovalue=0.6, resolution=(48, 32), spp=1),
+              mi_amr.show(made, spp=1), mi_amr.show(xml, spp=1)]
+    for image in images:
+        assert image.size == (48, 32) and image.numpy().shape == (32, 48, 4)
+        assert image._repr_png_()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert_same_pixels(image.numpy(), images[0].numpy())
+    assert images[0].numpy()[..., 3].max() == 1.0
+    with pytest.raises(AMRError, match="missing.npz"):
+        mi_amr.show(tmp_path / "missing.npz")
+    with pytest.raises(AMRError, match="missing.npz"):
+        mi_amr.explore(tmp_path / "missing.npz")
+
+
+def test14_view_serves_a_data_file(tmp_path):
+    """``view FILE --field F``: the page's state is the made scene's; Ctrl-C stops it and the
+    scene written for it is gone."""
+    import json
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    import time
+    import urllib.request
+
+    path = save(box_volume((0, 0, 0), (1, 1, 2)), tmp_path / "v.npz")
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[1]),
+               TMPDIR=str(tmp_path))
+    proc = subprocess.Popen([sys.executable, "-m", "mi_amr", "view", path, "--field", "f",
+                             "--isovalue", "0.5", "--port", "0", "--no-browser", "--out",
+                             str(tmp_path / "out")], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env)
+    try:
+        url, seen, deadline = None, [], time.time() + 300
+        while url is None and time.time() < deadline:
+            line = proc.stdout.readline()
+            assert line, "".join(seen)
+            seen.append(line)
+            found = re.search(r"serving (http://\S+)", line)
+            url = found and found.group(1)
+        assert url, "".join(seen)
+        with urllib.request.urlopen(url + "api/state", timeout=60) as reply:
+            state = json.loads(reply.read())["state"]
+        assert state["field"] == "f" and state["isovalues"] == pytest.approx([0.5])
+        assert state["data_file"] == str(Path(path).resolve())
+        assert list(tmp_path.glob("mi_amr_scene_*/v.npz.xml")), "the scene is made in TMPDIR"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=60)
+    assert not list(tmp_path.glob("mi_amr_scene_*")), "the made scene is left behind"
