@@ -326,3 +326,37 @@ def test11_the_command_line(series, tmp_path):
     proc = run("-o", tmp_path / "n", "--isovalues", "0.1:x")
     assert proc.returncode == 2 and proc.stderr.startswith("error: --isovalues")
     assert "Traceback" not in proc.stderr
+
+
+def _http_status(port, path):
+    """The HTTP status of ``GET http://127.0.0.1:port/path`` (None: nothing listens)."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5) as r:
+            return r.status
+    except urllib.error.HTTPError as e:
+        return e.code
+    except OSError:
+        return None
+
+
+def test12_the_dask_cluster_of_a_movie_serves_no_pages():
+    """The LocalCluster a movie starts serves no dashboard, info, JSON or metrics page, on
+    8787 or anywhere, from its scheduler or its workers (issue 33: Dask's HTTP server answered
+    on 127.0.0.1:8787 though the dashboard was off)."""
+    from mi_amr.workflows.movie.farm import _connect
+
+    client, cluster, _ = _connect(2, None, "llvm_ad_rgb")
+    try:
+        ports = [cluster.scheduler.http_server.port]
+        ports += list(client.run(lambda dask_worker: dask_worker.http_server.port).values())
+        assert 8787 not in ports and len(ports) == 3
+        for port in ports:
+            for path in ("/health", "/metrics", "/info/main/workers.html", "/json/counts.json",
+                         "/status"):
+                assert _http_status(port, path) in (None, 404), (port, path)
+    finally:
+        client.close()
+        cluster.close()

@@ -147,8 +147,19 @@ def _connect(workers, scheduler, variant):
             raise AMRError(f"--scheduler {scheduler}: cannot reach the Dask scheduler within "
                            f"{CONNECT_TIMEOUT} ({e})") from None
         return client, None, None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=40)
+    import dask
+
+    # dashboard_address=None turns off the dashboard's pages, but Dask still starts an HTTP
+    # server (on 8787, with its info, JSON and metrics pages; dask/distributed#7207). Give it
+    # no routes, and a free loopback port, in the scheduler and in every worker (a worker's
+    # nanny hands the configuration set here to its process).
+    no_pages = {"distributed.scheduler.http.routes": [], "distributed.worker.http.routes": []}
+    with dask.config.set(no_pages):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address=None,
+                               scheduler_kwargs={"dashboard": False,
+                                                 "dashboard_address": "127.0.0.1:0"},
+                               silence_logs=40)
     threads = max(1, (os.cpu_count() or 1) // workers)
     return Client(cluster), cluster, threads
 
