@@ -62,7 +62,8 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
     _write_image(mi, image.astype(np.float32), output, _channels(scene, aovs))
     say(f"  rendered in {t2 - t1:.2f} s (includes compiling the kernels on first use)")
     say(f"wrote {output.resolve()}  [total {t2 - t0:.1f} s]")
-    if not np.all(np.isfinite(image)):
+    # (The AOVs' depth is inf where no isosurface was hit: only the colour must be finite.)
+    if not np.all(np.isfinite(image[..., :4])):
         raise AMRError(f"{output}: the image has NaN/Inf pixels; this is a bug, please report it")
     return image[..., :3]
 
@@ -142,7 +143,9 @@ def pass_samples(total: int, least: int = 1) -> list:
 
 
 def _render_passes(mi, dr, np, scene, total_spp, quiet):
-    """The image (all film channels), rendered in the passes of :func:`pass_samples`."""
+    """The image (all film channels), rendered in the passes of :func:`pass_samples`: the
+    colour and alpha averaged over the passes, the AOVs (the same every pass, unfiltered, see
+    :mod:`mi_amr.plugin.aovs`) as the last pass gave them, whole numbers kept whole."""
     from tqdm import tqdm
 
     per_pass = pass_samples(total_spp, least_pass_spp(scene.integrator()))
@@ -153,10 +156,11 @@ def _render_passes(mi, dr, np, scene, total_spp, quiet):
             img = mi.render(scene, spp=n, seed=i)
             dr.eval(img)
             dr.sync_thread()
-            part = np.array(img) * n
+            last = np.array(img)
+            part = last[..., :4] * n
             accum = part if accum is None else accum + part
             bar.update(n)
-    return accum / total_spp
+    return np.concatenate([accum / total_spp, last[..., 4:]], axis=-1)
 
 
 def _channels(scene, aovs):
