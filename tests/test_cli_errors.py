@@ -2,6 +2,7 @@
 (issue 33, items 8, 9 and 11): each is now one ``error:`` line (exit status 2), or is mended the
 way Mitsuba itself would."""
 
+import numpy as np
 import pytest
 
 from mi_amr.cli import main
@@ -136,3 +137,49 @@ def test07_histogram_bins_out_of_range_is_one_line(scenes, tmp_path, capsys, bin
     one_error(capsys, ["histogram", str(scenes / "s.npz"), "--field", "f", "-o",
                        str(tmp_path / "h.png"), "--bins", bins], "--bins must be ")
     assert not (tmp_path / "h.png").exists()
+
+
+def test08_a_scene_saved_by_the_viewer_keeps_no_stale_defaults(tmp_path, variant, capsys):
+    """The viewer writes its values into the scene: a parameter the file gave as ``$name``
+    stays so, with the ``<default>`` holding the view's value (``-D`` still applies); a default
+    nothing refers to any more is dropped (it used to stay, with the file's old value, and
+    ``-D`` accepted its name and changed nothing)."""
+    import mitsuba as mi
+
+    from mi_amr.plugin.camera import Camera
+    from mi_amr.plugin.scene import load_scene
+    from mi_amr.workflows import project
+    from mi_amr.workflows.viewer.sceneio import scene_text
+    from mi_amr.workflows.viewer.state import ViewState
+
+    project.ensure_scene_data(verbose=False)
+    base = project.scenes_dir() / "analytic_sphere.xml"
+    text = base.read_text().replace('<float name="fov" value="22"/>',
+                                    '<float name="fov" value="$fov"/>')
+    text = text.replace('<default name="spp"', '<default name="fov" value="22"/>\n'
+                                               '    <default name="spp"')
+    scene = tmp_path / "with_fov.xml"
+    scene.write_text(text)
+    state = ViewState(data_file=str((base.parent / "data" / "sphere.npz").resolve()),
+                      field="f", color_field=None, colormap=None, color_range=None,
+                      isovalues=(0.2,), iso_colors=((1.0, 0.5, 0.25),), iso_opacity=(1.0,),
+                      mode="surface", method="bisect", reconstruction="basis",
+                      layers="composite", step_scale=0.25, band_width=(0.01,),
+                      band_offsets=((-0.02, 0.02),), band_peak=(1.6,), shadows=True,
+                      camera=Camera((1.6, -0.9, 1.4), (0.5, 0.5, 0.5), (0.0, 0.0, 1.0), 30.0),
+                      light_direction=None, light_irradiance=None, spp=2)
+    saved = tmp_path / "saved.xml"
+    saved.write_text(scene_text(scene, state, spp=2, resolution=(16, 12)))
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(str(saved)).getroot()
+    defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
+    assert defaults == {"filename": state.data_file, "spp": "2", "resx": "16", "resy": "12",
+                        "isovalue": "0.2", "method": "bisect", "reconstruction": "basis",
+                        "step_scale": "0.25"}
+    integ = root.find("integrator")
+    assert integ.find("*[@name='isovalue']").get("value") == "$isovalue"
+    loaded = load_scene(saved, isovalue="0.25")
+    assert float(np.array(mi.traverse(loaded)["integrator.isovalue"]).ravel()[0]) == 0.25
+    one_error(capsys, ["render", str(saved), "-o", str(tmp_path / "x.png"), "-D", "fov=10"],
+              f"-D fov: the scene {saved} has no default 'fov'")
