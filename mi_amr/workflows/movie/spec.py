@@ -2,9 +2,10 @@
 first isovalue and colour range), planned from a time series, an orbit, an isovalue sweep or a
 keyframe file. NumPy and the standard library only: specs travel to Dask workers as plain dicts.
 
-Keyframe files (TOML or JSON) list keyframes with a ``frame`` number (increasing) and any of
-``origin``, ``target``, ``up`` (3 numbers, scene world space), ``fov`` (degrees), ``isovalue``
-and ``color_range`` (2 numbers)::
+Keyframe files (UTF-8 TOML or JSON) list keyframes with a ``frame`` number (increasing, 0 to
+2^32 - 1: a frame's number is its sampler's 32-bit seed) and any of ``origin``, ``target``,
+``up`` (3 numbers, scene world space; ``up`` not zero), ``fov`` (degrees, between 0 and 180),
+``isovalue`` and ``color_range`` (2 numbers, low < high), every number finite within float32::
 
     [[keyframe]]
     frame = 0
