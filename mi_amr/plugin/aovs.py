@@ -66,7 +66,8 @@ def iso_aovs(integ, ray, o, d, t_mesh, jitter, active, miss_depth=0.0) -> list:
     def out(x):
         return dr.select(on, mi.Float(x), 0.0)
 
-    return [dr.select(on, t, miss_depth), out(n.x), out(n.y), out(n.z), out(P.x), out(P.y), out(P.z),
+    return [dr.select(on, t, miss_depth), out(n.x), out(n.y), out(n.z),
+            out(P.x), out(P.y), out(P.z),
             out(bridge.to_mi(vals[0], mi.Float)), out(bridge.to_mi(vals[1], mi.Float)),
             out(bridge.to_mi(m.Float(level), mi.Float)),
             dr.select(bridge.to_mi(owned, mi.Bool), bridge.to_mi(m.Float(grid), mi.Float), 0.0)]

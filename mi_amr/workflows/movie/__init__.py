@@ -6,8 +6,8 @@ frame per task, rendered in this process or on Dask, every per-frame value a ker
 ...                        resolution=(512, 512), workers=2, mp4="out/orbit.mp4")
 
 The frame specs (:mod:`.spec`) are plain values: build them with :func:`plan` (a lazy
-sequence: each frame is planned as it is rendered) or by hand, and pass them as ``specs``; the viewer's "add keyframe" button appends to a keyframe file with
-:func:`append_keyframe`.
+sequence: each frame is planned as it is rendered) or by hand, and pass them as ``specs``;
+the viewer's "add keyframe" button appends to a keyframe file with :func:`append_keyframe`.
 """
 
 from __future__ import annotations

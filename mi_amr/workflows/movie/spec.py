@@ -144,7 +144,8 @@ def parse_sweep(spec: str) -> tuple:
     if not all(math.isfinite(x) and abs(x) <= FLOAT32_MAX for x in (start, stop)):
         raise AMRError(f"--isovalues: '{spec}' needs finite numbers (within float32)")
     if log and start * stop <= 0:
-        raise AMRError(f"--isovalues: a log sweep needs two non-zero ends of one sign, got '{spec}'")
+        raise AMRError(f"--isovalues: a log sweep needs two non-zero ends of one sign, got "
+                       f"'{spec}'")
     return start, stop, log
 
 
