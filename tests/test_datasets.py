@@ -283,3 +283,20 @@ def test17_ball_mesh_is_written_atomically(tmp_path, monkeypatch):
         datasets.write_ball_mesh(path, subdivisions=1)
     assert [p.name for p in tmp_path.iterdir()] == ["ball.ply"]
     assert path.read_bytes() == before
+
+
+def test18_dataset_keeps_an_existing_ball_mesh_without_force(tmp_path, capsys, monkeypatch):
+    """``dataset sphere_wake`` writes ``ball.ply`` beside its output: an existing one (another
+    run's, or the user's) is kept, with one ``error:`` line before any work, unless --force."""
+    monkeypatch.setattr(datasets, "sphere_wake", lambda **kw: datasets.sphere())
+    ball = tmp_path / "ball.ply"
+    ball.write_bytes(b"the user's mesh")
+    out = tmp_path / "wake.npz"
+    assert main(["dataset", "sphere_wake", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == [f"error: {ball}: file exists; pass overwrite=True (--force on the command "
+                   f"line) to replace it"]
+    assert ball.read_bytes() == b"the user's mesh" and not out.exists()
+    assert main(["dataset", "sphere_wake", "-o", str(out), "--force"]) == 0
+    capsys.readouterr()
+    assert ball.read_bytes().startswith(b"ply") and out.exists()

@@ -130,7 +130,7 @@ def test02_aovs_and_alpha_describe_the_isosurface(variant, folder):
     assert 0.1 < hit.mean() < 0.9
     np.testing.assert_array_equal(img[..., 3] > 0.5, hit)
     np.testing.assert_allclose(ch["iso_depth.T"][hit], r.t.reshape(RES, RES)[hit], atol=1e-4)
-    assert np.all(ch["iso_depth.T"][~hit] == 0)
+    assert np.all(ch["iso_depth.T"][~hit] == np.inf)
     pos = np.stack([ch["iso_pos.X"], ch["iso_pos.Y"], ch["iso_pos.Z"]], axis=-1)[hit]
     want = (o + r.t[:, None] * d).reshape(RES, RES, 3)[hit]
     np.testing.assert_allclose(pos, want, atol=1e-4)
@@ -138,3 +138,40 @@ def test02_aovs_and_alpha_describe_the_isosurface(variant, folder):
     normal = np.stack([ch["iso_normal.X"], ch["iso_normal.Y"], ch["iso_normal.Z"]], -1)[hit]
     np.testing.assert_allclose(np.linalg.norm(normal, axis=1), 1.0, atol=1e-4)
     assert set(np.unique(ch["iso_level.L"][hit])) <= {0.0, 1.0}
+
+
+def test03_label_aovs_are_exact_under_the_default_filter(variant, folder):
+    """With Mitsuba's default Gaussian filter and 16 random samples a pixel, the AOVs are those
+    of the ray through each pixel's centre, unfiltered: level and grid id are whole numbers,
+    the finest grid at the hit (the sphere's grid 1, level 1, covers x >= 0.5); depth equals
+    :func:`mi_amr.trace` on hits and is ``inf`` on misses. (The filter used to blend ids into
+    numbers such as 0.27 along the grids' boundary, and put depth 0 on misses.)"""
+    mi = variant
+    import mi_amr
+    from mi_amr.evaluation.references import pixel_rays
+    from mi_amr.plugin.aovs import NAMES
+    from mi_amr.plugin.scene import load_scene
+
+    path = folder / "labels.xml"
+    integ = ('<integrator type="amr_iso"><string name="filename" value="sphere.npz"/>'
+             '<string name="field" value="f"/><float name="isovalue" value="0.3"/></integrator>')
+    text = scene_text("", integ).replace(f'value="{SPP}"', 'value="16"')
+    path.write_text(text[:text.index("<shape")] + text[text.index("</shape>") + 8:])
+    scene = load_scene(path, integrator={"aovs": True}, pixel_format="rgba")
+    img = np.array(mi.render(scene, seed=3))
+    ch = {name: img[..., 4 + i] for i, name in enumerate(NAMES)}
+    ray = pixel_rays(scene.sensors()[0])
+    o = np.stack([np.array(ray.o.x), np.array(ray.o.y), np.array(ray.o.z)], axis=1)
+    d = np.stack([np.array(ray.d.x), np.array(ray.d.y), np.array(ray.d.z)], axis=1)
+    r = mi_amr.trace(mi_amr.load(folder / "sphere.npz"), o, d, field="f", isovalue=0.3)
+    hit = r.hit.reshape(RES, RES)
+    x = (o + r.t[:, None] * d)[:, 0].reshape(RES, RES)
+    want = np.where(hit, (x >= 0.5).astype(np.float32), 0.0)
+    assert 0 < want[hit].mean() < 1, "the view must show both grids"
+    np.testing.assert_array_equal(ch["iso_grid.G"], want)
+    np.testing.assert_array_equal(ch["iso_level.L"], want)
+    np.testing.assert_allclose(ch["iso_depth.T"][hit], r.t.reshape(RES, RES)[hit], atol=1e-4)
+    assert np.all(ch["iso_depth.T"][~hit] == np.inf)
+    # The colour is still filtered and sampled: it differs from seed to seed.
+    assert not np.array_equal(img[..., :4], np.array(mi.render(scene, seed=4))[..., :4])
+    np.testing.assert_array_equal(img[..., 4:], np.array(mi.render(scene, seed=4))[..., 4:])

@@ -326,3 +326,189 @@ def test11_the_command_line(series, tmp_path):
     proc = run("-o", tmp_path / "n", "--isovalues", "0.1:x")
     assert proc.returncode == 2 and proc.stderr.startswith("error: --isovalues")
     assert "Traceback" not in proc.stderr
+
+
+def _http_status(port, path):
+    """The HTTP status of ``GET http://127.0.0.1:port/path`` (None: nothing listens)."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=5) as r:
+            return r.status
+    except urllib.error.HTTPError as e:
+        return e.code
+    except OSError:
+        return None
+
+
+def test12_the_dask_cluster_of_a_movie_serves_no_pages():
+    """The LocalCluster a movie starts serves no dashboard, info, JSON or metrics page, on
+    8787 or anywhere, from its scheduler or its workers (issue 33: Dask's HTTP server answered
+    on 127.0.0.1:8787 though the dashboard was off)."""
+    from mi_amr.workflows.movie.farm import _connect
+
+    client, cluster, _ = _connect(2, None, "llvm_ad_rgb")
+    try:
+        ports = [cluster.scheduler.http_server.port]
+        ports += list(client.run(lambda dask_worker: dask_worker.http_server.port).values())
+        assert 8787 not in ports and len(ports) == 3
+        for port in ports:
+            for path in ("/health", "/metrics", "/info/main/workers.html", "/json/counts.json",
+                         "/status"):
+                assert _http_status(port, path) in (None, 404), (port, path)
+    finally:
+        client.close()
+        cluster.close()
+
+
+# ---------------------------------------------------------------------- checks (issue 33)
+
+BAD_KEYFRAMES = {
+    "fov0": ({"frame": 0, "fov": 0}, "'fov' is the horizontal field of view"),
+    "fov180": ({"frame": 0, "fov": 180}, "'fov' is the horizontal field of view"),
+    "huge frame": ({"frame": 2 ** 70}, "a whole number from 0 to 4294967295"),
+    "boolean frame": ({"frame": True}, "needs 'frame'"),
+    "zero up": ({"frame": 0, "up": [0, 0, 0]}, "'up' must not be the zero vector"),
+    "isovalue beyond float32": ({"frame": 0, "isovalue": 1e39}, "'isovalue' needs 1 finite"),
+}
+
+
+@pytest.mark.parametrize("args,says", [
+    (["--orbit", "nan"], "--orbit: the turn in degrees must be a finite number, got nan"),
+    (["--orbit", "inf"], "--orbit: the turn in degrees must be a finite number, got inf"),
+    (["--orbit=-inf", "--files", "step*.npz"], "--orbit: the turn"),
+    (["--frames", "0"], "--frames must be a whole number from 1 to 4294967296"),
+    (["--frames", str(2 ** 32 + 1)], "--frames must be a whole number from 1 to 4294967296"),
+    (["--fps", "0"], "--fps must be a whole number from 1 to 1000"),
+    (["--resolution", "0", "8"], "--resolution must be two positive numbers"),
+    (["--spp", "0"], "--spp must be >= 1"),
+    (["--isovalues", "0:1e39"], "--isovalues: '0:1e39' needs finite numbers"),
+    *[(["--keyframes", name], says) for name, (_, says) in BAD_KEYFRAMES.items()],
+    (["--keyframes", "latin1"], "not a UTF-8 text file"),
+])
+def test13_nonsense_movie_values_are_one_line_and_render_nothing(series, tmp_path, capsys,
+                                                                 monkeypatch, args, says):
+    """Each is one ``error:`` line and exit status 2, before any frame (``--orbit nan`` used
+    to render black frames and report success; ``inf``, a keyframe ``fov = 0``, a frame
+    number beyond int64 or a Latin-1 keyframe file gave tracebacks or nonsense)."""
+    from mi_amr.cli import main
+    from mi_amr.workflows.movie import farm
+
+    monkeypatch.chdir(series)
+    for name, (key, _) in BAD_KEYFRAMES.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps({"keyframe": [key]}))
+    (tmp_path / "latin1.json").write_bytes('{"keyframe": [{"frame": 0}]} \u00e9'.encode("latin-1"))
+    args = [str(tmp_path / f"{a}.json") if a in BAD_KEYFRAMES or a == "latin1" else a
+            for a in args]
+    monkeypatch.setattr(farm, "render_task", lambda job: pytest.fail("a frame was rendered"))
+    out = tmp_path / "out"
+    assert main(["movie", str(series / "scene.xml"), "-o", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and says in err[0], err
+    assert not out.exists() or not list(out.iterdir())
+
+
+def test14_a_long_movie_starts_at_once_in_little_memory(series, tmp_path, monkeypatch):
+    """``frames=10**6``: the first frames are handed to the renderer without planning the
+    others first (the plan is a lazy sequence; 10^8 frames used to take 1.15 GB before the
+    first frame), and the lazy plan gives the frames an eager one does."""
+    import tracemalloc
+
+    from mi_amr.workflows.movie import farm
+
+    class Stop(Exception):
+        pass
+
+    calls = []
+
+    def fake(job):
+        calls.append(job.spec["index"])
+        if len(calls) == 3:
+            raise Stop
+        return {"index": job.spec["index"], "file": None, "path": job.path}
+
+    monkeypatch.setattr(farm, "render_task", fake)
+    tracemalloc.start()
+    try:
+        with pytest.raises(Stop):
+            render_movie_quiet(series / "scene.xml", tmp_path / "long", orbit=360,
+                               isovalues="0.1:0.4", frames=10 ** 6)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert calls == [0, 1, 2]
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB traced before the third frame"
+    lazy = S.plan(7, camera=CAMERA, orbit_degrees=300, isovalues="log:0.01:1")
+    cams, isos = S.orbit(CAMERA, 300, 7), list(np.linspace(0.0, 1.0, 7))
+    assert [s.camera for s in lazy] == cams and len(lazy) == 7 and lazy[-1].index == 6
+    a, b = math.log(0.01), math.log(1.0)     # the eager sweep's numbers, bit for bit
+    assert [s.isovalue for s in lazy] == [float(math.exp(a + (b - a) * u)) for u in isos]
+    assert len(S.plan(10 ** 8, camera=CAMERA)) == 10 ** 8
+
+
+def test15_frames_of_another_size_in_the_folder_are_refused_before_any_work(series, tmp_path):
+    """Frames kept from a run at another size would be skipped, then the MP4 failed with a
+    traceback and left a temporary file: now one error before rendering, and ``force``
+    renders every frame again; the encoder refuses mixed sizes too."""
+    from mi_amr.workflows.movie.encode import encode_mp4
+
+    out, mp4 = tmp_path / "frames", tmp_path / "m.mp4"
+    render_movie_quiet(series / "scene.xml", out, orbit=90, frames=2)          # 32 x 32
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with pytest.raises(AMRError, match=r"frame_00000\.png is 32x32, this movie's frames are "
+                                       r"16x16; pass --force"):
+        render_movie_quiet(series / "scene.xml", out, orbit=90, frames=3, resolution=(16, 16),
+                           mp4=mp4)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert not mp4.exists() and not [p for p in tmp_path.iterdir() if ".tmp-" in p.name]
+    forced = render_movie_quiet(series / "scene.xml", out, orbit=90, frames=3,
+                                resolution=(16, 16), mp4=mp4, force=True)
+    assert len(forced.rendered) == 3 and mp4.exists()
+    assert {read(p).shape for p in frames_in(out)} == {(16, 16, 3)}
+    render_movie_quiet(series / "scene.xml", tmp_path / "big", frames=1)
+    with pytest.raises(AMRError, match=r"big/frame_00000.png is 32x32, the frames before it "
+                                       r"16x16"):
+        encode_mp4([out / "frame_00000.png", tmp_path / "big" / "frame_00000.png"],
+                   tmp_path / "mixed.mp4")
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith("mixed")]
+
+
+def test16_frames_are_bit_identical_between_runs_and_worker_counts(series, tmp_path):
+    """An orbit with an isovalue sweep: two runs in this process and one on two Dask workers
+    write the same pixels (a frame's seed is its number, every value a plain input)."""
+    kw = dict(orbit=200, isovalues="0.2:0.3", frames=4)
+    render_movie_quiet(series / "scene.xml", tmp_path / "a", **kw)
+    render_movie_quiet(series / "scene.xml", tmp_path / "b", **kw)
+    farmed = render_movie_quiet(series / "scene.xml", tmp_path / "c", workers=2, **kw)
+    assert len(farmed.rendered) == 4 and not farmed.failed
+    a, b, c = (frames_in(tmp_path / x) for x in "abc")
+    assert len(a) == len(b) == len(c) == 4
+    for x, y, z in zip(a, b, c):
+        assert read(x).max() > 0
+        np.testing.assert_array_equal(read(x), read(y))
+        np.testing.assert_array_equal(read(x), read(z))
+    assert not np.array_equal(read(a[0]), read(a[1]))
+
+
+def test17_a_frame_that_cannot_be_written_is_one_line(series, tmp_path, monkeypatch, capsys):
+    """A full disk: each frame fails with one line naming it (it used to be a multi-line
+    traceback per frame), the run exits with status 1 and no temporary file is left."""
+    import contextlib
+
+    from mi_amr.cli import main
+    from mi_amr.workflows.movie import output
+
+    @contextlib.contextmanager
+    def full(path):
+        raise OSError(28, "No space left on device")
+        yield
+
+    monkeypatch.setattr(output, "replacing", full)
+    out = tmp_path / "full"
+    assert main(["movie", str(series / "scene.xml"), "-o", str(out), "--frames", "2"]) == 1
+    text = capsys.readouterr().out.strip().splitlines()
+    assert text[0].startswith("0 frame(s) rendered, 0 skipped (already there), 2 failed")
+    assert text[1:] == [f"  frame {i}: {out / f'frame_{i:05d}.png'}: cannot write the frame "
+                        f"([Errno 28] No space left on device)" for i in range(2)]
+    assert not list(out.iterdir())

@@ -116,7 +116,7 @@ def test03_in_scanline_order_the_loop_renders_what_mitsubas_loop_renders(variant
     monkeypatch.setattr(wavefront, "supported", lambda sensor, spp: False)
     theirs = np.array(mi.render(scene, seed=5))
     assert ours.shape == theirs.shape and ours.shape[2] >= 3
-    assert ours.std() > 0.01, "the test scene shows nothing"
+    assert ours[..., :3].std() > 0.01, "the test scene shows nothing"   # (AOV depth: inf)
     np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-6)
 
 

@@ -1,21 +1,29 @@
 """Arbitrary output variables of the isosurface (Mitsuba's ``aov_names()`` mechanism), reported
-by ``amr_iso`` when its ``aovs`` parameter is true, for the first isosurface crossing along each
-camera ray (in volume mode: the first crossing of a band's centre, an isovalue):
+by ``amr_iso`` when its ``aovs`` parameter is true, for the first isosurface crossing along the
+ray through each pixel's centre (in volume mode: the first crossing of a band's centre, an
+isovalue):
 
 =================  =====================================================================
-channel            value (0 where the ray meets no isosurface in front of the meshes)
+channel            value (where that ray meets no isosurface in front of the meshes: depth
+                   ``inf``, the other channels 0)
 =================  =====================================================================
 ``iso_depth.T``    the ray's parameter at the hit: the distance along a unit camera ray
 ``iso_normal.X/Y/Z`` the shading normal (scene space, towards the viewer)
 ``iso_pos.X/Y/Z``  the hit point (scene space)
 ``iso_value.V``    the reconstructed field there (field units)
 ``iso_color.V``    the reconstructed colour field there
-``iso_level.L``    the AMR level of the finest grid there
-``iso_grid.G``     that grid's index in the volume (as a float)
+``iso_level.L``    the AMR level of the finest grid there (an exact whole number)
+``iso_grid.G``     that grid's index in the volume (an exact whole number, as a float)
 =================  =====================================================================
 
+The AOVs are not filtered: the film's pixel filter (Gaussian by default) would blend
+neighbouring pixels' labels into numbers such as 61.27 and a hit's depth with a miss. Each pixel
+holds the values of one ray through its centre, the same at every sample count and seed, so a
+level or grid id is exact and a depth is the surface's. (Vectorised variants; on scalar
+variants the AOVs are the film's filtered samples, with depth 0 where nothing was hit.)
+
 The film also gets alpha: the coverage of the pixel by any surface (isosurface, opacity band
-or mesh); see :meth:`~mi_amr.plugin.integrator` ``sample``.
+or mesh), filtered like the colour; see :meth:`~mi_amr.plugin.integrator` ``sample``.
 """
 
 from __future__ import annotations
@@ -32,9 +40,10 @@ NAMES = ["iso_depth.T", "iso_normal.X", "iso_normal.Y", "iso_normal.Z", "iso_pos
          "iso_pos.Y", "iso_pos.Z", "iso_value.V", "iso_color.V", "iso_level.L", "iso_grid.G"]
 
 
-def iso_aovs(integ, ray, o, d, t_mesh, jitter, active) -> list:
+def iso_aovs(integ, ray, o, d, t_mesh, jitter, active, miss_depth=0.0) -> list:
     """The values of :data:`NAMES` for the rays (Mitsuba floats), from the integrator
-    ``integ``'s kernels; ``o``, ``d``: the rays in volume space."""
+    ``integ``'s kernels; ``o``, ``d``: the rays in volume space; ``miss_depth``: the depth
+    where a ray meets no isosurface."""
     m, dev = integ.m, integ.dev
     cfg = integ.config()
     if cfg.band is not None:
@@ -57,7 +66,36 @@ def iso_aovs(integ, ray, o, d, t_mesh, jitter, active) -> list:
     def out(x):
         return dr.select(on, mi.Float(x), 0.0)
 
-    return [out(t), out(n.x), out(n.y), out(n.z), out(P.x), out(P.y), out(P.z),
+    return [dr.select(on, t, miss_depth), out(n.x), out(n.y), out(n.z),
+            out(P.x), out(P.y), out(P.z),
             out(bridge.to_mi(vals[0], mi.Float)), out(bridge.to_mi(vals[1], mi.Float)),
             out(bridge.to_mi(m.Float(level), mi.Float)),
             dr.select(bridge.to_mi(owned, mi.Bool), bridge.to_mi(m.Float(grid), mi.Float), 0.0)]
+
+
+def centre_aovs(integ, scene, sensor, image):
+    """Write :data:`NAMES` into the last channels of the developed film ``image`` (a
+    ``TensorXf`` of shape ``(H, W, C)``, the film's crop) in place: the values of the ray
+    through each pixel's centre (crop pixel ``(x, y)`` at film position ``(x + 1/2, y + 1/2)``
+    plus the crop offset), depth ``inf`` where it meets no isosurface. Unfiltered, so labels
+    stay whole numbers; deterministic (no sample number is drawn). Returns ``image``."""
+    film = sensor.film()
+    width, height = (int(v) for v in film.crop_size())
+    idx = dr.arange(mi.UInt32, width * height)
+    y = idx // width
+    x = idx - y * width
+    # The sensor takes positions relative to the crop window, in [0, 1]^2 (as Mitsuba's loop).
+    pos = mi.Point2f((mi.Float(x) + 0.5) / width, (mi.Float(y) + 0.5) / height)
+    ray, _ = sensor.sample_ray(mi.Float(sensor.shutter_open()), 0.0, pos, mi.Point2f(0.5))
+    active = mi.Bool(True)
+    si = scene.ray_intersect(ray, active)
+    t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
+    o, d = integ.frame.ray_to_volume(integ.m, ray.o, ray.d)
+    values = iso_aovs(integ, ray, o, d, t_mesh, integ.m.Float(0.5), active,
+                      miss_depth=dr.inf)
+    channels = image.shape[2]
+    first = channels - len(NAMES)
+    flat = image.array
+    for k, v in enumerate(values):
+        dr.scatter(flat, v, idx * channels + (first + k))
+    return image

@@ -37,7 +37,7 @@ from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import prepare_file
 from mi_amr.plugin import bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.aovs import NAMES as AOV_NAMES
-from mi_amr.plugin.aovs import iso_aovs
+from mi_amr.plugin.aovs import centre_aovs, iso_aovs
 from mi_amr.plugin.frame import VolumeFrame
 from mi_amr.plugin.inputs import FLAGS, PHONG, FrameInputs
 from mi_amr.plugin.scene import resolve_data_file
@@ -155,9 +155,18 @@ class _AMRIso:
         (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply."""
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         if not wavefront.supported(sensor, spp):
-            return mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop, evaluate)
-        return wavefront.render(self, scene, sensor, seed, spp, develop, evaluate,
-                                by_sample=self.picks_by_packet())
+            image = mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop,
+                                                 evaluate)
+        else:
+            image = wavefront.render(self, scene, sensor, seed, spp, develop, evaluate,
+                                     by_sample=self.picks_by_packet())
+        if self.opt.aovs and image is not None and dr.is_jit_v(mi.Float):
+            # The AOVs unfiltered: the film's filter blends labels (plugin.aovs).
+            centre_aovs(self, scene, sensor, image)
+            if evaluate:
+                dr.eval(image)
+                dr.sync_thread()
+        return image
 
     def picks_by_packet(self) -> bool:
         """Do frames of 2 or more spp share the numbers that pick by SIMD packet

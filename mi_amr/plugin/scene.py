@@ -11,25 +11,46 @@ import mitsuba as mi
 from mi_amr.errors import AMRError
 
 
-def load_scene(path, *, integrator=None, pixel_format=None, **params):
+def use_variant(variant: str) -> None:
+    """``mi.set_variant(variant)``, or one :class:`AMRError` when this Mitsuba lacks it or this
+    machine cannot run it (a CUDA variant without a CUDA device or driver)."""
+    if variant not in mi.variants():
+        raise AMRError(f"variant '{variant}' is not available; choose from {mi.variants()}")
+    try:
+        mi.set_variant(variant)
+    except (ImportError, RuntimeError) as e:
+        first = (str(e).strip().splitlines() or ["unknown error"])[0]
+        raise AMRError(f"variant '{variant}' cannot run on this machine ({first}); try "
+                       f"--variant llvm_ad_rgb") from None
+
+
+def load_scene(path, *, integrator=None, pixel_format=None, film_size=None,
+               sample_count=None, **params):
     """``mi.load_file`` that reports an amr_iso parameter or data mistake as :class:`AMRError`
     (Mitsuba wraps errors raised while building plugins in a RuntimeError with a traceback).
 
     ``params`` set the scene's ``<default>`` values (as ``-D``). ``integrator`` (a mapping)
     sets parameters of the ``amr_iso`` integrator that the file may not mention (e.g.
-    ``{"aovs": True}``) and ``pixel_format`` the films' format (e.g. ``"rgba"``), without
-    touching the file."""
+    ``{"aovs": True}``), ``pixel_format`` the films' format (e.g. ``"rgba"``), ``film_size``
+    ``(W, H)`` the films' size in pixels and ``sample_count`` the samplers' samples per pixel,
+    without touching the file and whether or not it has ``<default>``s for them. A sensor
+    without a ``<film>`` (or ``<sampler>``) that these change gets Mitsuba's default one
+    (``hdrfilm``, ``independent``). A scene without a sensor, or with a film of no pixels, is
+    refused."""
     path = Path(path)
     if not path.is_file():
         raise AMRError(f"{path}: no such scene file")
     values = {k: str(v) for k, v in params.items()}
+    edits = {"pixel_format": pixel_format, "film_size": film_size,
+             "sample_count": sample_count}
     try:
-        if integrator or pixel_format:
-            scene = _load_edited(path, integrator or {}, pixel_format, values)
+        if integrator or any(v is not None for v in edits.values()):
+            scene = _load_edited(path, integrator or {}, edits, values)
         else:
             scene = mi.load_file(str(path), **values)
     except RuntimeError as e:
         raise _unwrap(e, path) from None
+    _check_sensors(scene, path)
     _opaque_cameras(scene)
     return scene
 
@@ -46,9 +67,23 @@ def load_dict(scene: dict):
     return loaded
 
 
-def _load_edited(path, integrator: dict, pixel_format, values):
-    """The scene file with the amr_iso integrator's and films' settings changed in memory,
-    loaded with the file's folder first on the file resolver (relative paths as before)."""
+def _check_sensors(scene, path) -> None:
+    """Refuse a scene that has nothing to render from, or a film of no pixels."""
+    if not scene.sensors():
+        raise AMRError(f"{path}: the scene has no <sensor>; add one, e.g. <sensor "
+                       f"type=\"perspective\"> with a <transform name=\"to_world\"><lookat "
+                       f".../></transform> and a <film type=\"hdrfilm\">")
+    for sensor in scene.sensors():
+        w, h = (int(x) for x in sensor.film().size())
+        if w < 1 or h < 1:
+            raise AMRError(f"{path}: the film is {w}x{h} pixels; its width and height (the "
+                           f"'resx'/'resy' defaults, or --resolution) must be >= 1")
+
+
+def _load_edited(path, integrator: dict, edits: dict, values):
+    """The scene file with the amr_iso integrator's, films' and samplers' settings changed in
+    memory (``edits``: see :func:`load_scene`), loaded with the file's folder first on the file
+    resolver (relative paths as before)."""
     import xml.etree.ElementTree as ET
 
     try:
@@ -59,15 +94,9 @@ def _load_edited(path, integrator: dict, pixel_format, values):
     if node is None and integrator:
         raise AMRError(f"{path}: the scene has no amr_iso integrator")
     for name, value in integrator.items():
-        for old in node.findall(f"*[@name='{name}']"):
-            node.remove(old)
-        kind = "boolean" if isinstance(value, bool) else "string"
-        text = str(value).lower() if isinstance(value, bool) else str(value)
-        ET.SubElement(node, kind, name=name, value=text)
-    for film in root.iter("film") if pixel_format else ():
-        for old in film.findall("*[@name='pixel_format']"):
-            film.remove(old)
-        ET.SubElement(film, "string", name="pixel_format", value=pixel_format)
+        _set(node, "boolean" if isinstance(value, bool) else "string", name,
+             str(value).lower() if isinstance(value, bool) else str(value))
+    _edit_sensors(root, edits)
     resolver = mi.file_resolver()
     saved = [str(resolver[i]) for i in range(len(resolver))]
     resolver.prepend(str(path.resolve().parent))
@@ -77,6 +106,38 @@ def _load_edited(path, integrator: dict, pixel_format, values):
         resolver.clear()
         for folder in saved:
             resolver.append(folder)
+
+
+def _set(node, kind: str, name: str, value: str) -> None:
+    """Give the XML element ``node`` the one property ``<kind name=name value=value/>``."""
+    import xml.etree.ElementTree as ET
+
+    for old in node.findall(f"*[@name='{name}']"):
+        node.remove(old)
+    ET.SubElement(node, kind, name=name, value=value)
+
+
+def _edit_sensors(root, edits: dict) -> None:
+    """Apply ``pixel_format``, ``film_size`` and ``sample_count`` of ``edits`` (when not None)
+    to every sensor's film and sampler, adding Mitsuba's defaults where the sensor has none (so
+    the film's format is the one asked for, not the default film's RGB)."""
+    import xml.etree.ElementTree as ET
+
+    film_edits = edits["pixel_format"] is not None or edits["film_size"] is not None
+    for sensor in root.iter("sensor"):
+        film = sensor.find("film")
+        if film is None and film_edits:
+            film = ET.SubElement(sensor, "film", type="hdrfilm")
+        if edits["pixel_format"] is not None:
+            _set(film, "string", "pixel_format", edits["pixel_format"])
+        if edits["film_size"] is not None:
+            _set(film, "integer", "width", str(int(edits["film_size"][0])))
+            _set(film, "integer", "height", str(int(edits["film_size"][1])))
+        if edits["sample_count"] is not None:
+            sampler = sensor.find("sampler")
+            if sampler is None:
+                sampler = ET.SubElement(sensor, "sampler", type="independent")
+            _set(sampler, "integer", "sample_count", str(int(edits["sample_count"])))
 
 
 def _opaque_cameras(scene) -> None:

@@ -266,14 +266,18 @@ def make(name: str, path, *, size: str = "default", seed: int = 0, overwrite: bo
          progress: bool = True) -> list:
     """Build dataset ``name`` and write it to ``path`` (``.npz``); for ``sphere_wake`` also write
     the ball mesh ``ball.ply`` next to it. Returns the paths written. The paths are checked
-    (see :func:`mi_amr.core.atomic.check_output`) before the dataset is built."""
+    (see :func:`mi_amr.core.atomic.check_output`) before the dataset is built: an existing
+    ``.npz`` or ``ball.ply`` is replaced only with ``overwrite``."""
     if name not in DATASETS:
         raise AMRError(f"unknown dataset '{name}'; available: {list(DATASETS)}")
     path = check_output(path, suffixes=(".npz",), overwrite=overwrite,
                         exists_hint="pass overwrite=True (--force on the command line) to "
                                     "replace it")
     if name == "sphere_wake":
-        check_output(path.parent / "ball.ply", overwrite=True)
+        # The mesh shares a folder (and often a name) with other runs' data: same rule as .npz.
+        check_output(path.parent / "ball.ply", overwrite=overwrite,
+                     exists_hint="pass overwrite=True (--force on the command line) to "
+                                 "replace it")
     if name == "sphere_wake":
         vol = sphere_wake(size=size, seed=seed, progress=progress)
     else:

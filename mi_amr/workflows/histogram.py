@@ -16,6 +16,10 @@ import numpy as np
 from mi_amr.core.atomic import check_output, replacing
 from mi_amr.errors import AMRError
 
+# Bins per axis at most: the figure is 768 x 576 pixels, so finer bins show nothing more, and
+# the counts take bins^2 numbers.
+MAX_BINS = 4096
+
 
 def value_and_gradient(volume, field: str):
     """``(values, |grad|)`` of ``field`` over the volume's finite leaf cells (float64)."""
@@ -72,8 +76,11 @@ def _value_edges(values, bins: int, kind: str, linthresh):
 
 def histogram_figure(path, field: str, output, *, bins: int = 256, overwrite: bool = False,
                      value_scale: str = "auto") -> Path:
-    """Write the histogram of ``field`` of the file ``path`` to ``output`` (PNG, atomically);
-    ``value_scale`` as :func:`value_axis` takes it."""
+    """Write the histogram of ``field`` of the file ``path`` to ``output`` (PNG, atomically),
+    ``bins`` bins (2 to :data:`MAX_BINS`) on each axis; ``value_scale`` as :func:`value_axis`
+    takes it."""
+    if not 2 <= bins <= MAX_BINS:
+        raise AMRError(f"--bins must be between 2 and {MAX_BINS}, got {bins}")
     output = check_output(output, suffixes=(".png",), overwrite=overwrite, make_folders=True)
     from mi_amr.core.derive import DERIVED_FIELDS, derive
     from mi_amr.kernels.prepared import fields_to_read

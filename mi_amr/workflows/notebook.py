@@ -82,7 +82,7 @@ def show(scene_or_file, field=None, isovalue=None, resolution=RESOLUTION, spp: i
 
     from mi_amr.plugin.scene import load_dict, load_scene
     from mi_amr.workflows.datafile import is_scene_file
-    from mi_amr.workflows.render import _render_passes
+    from mi_amr.workflows.render import render_passes
 
     if int(spp) < 1:
         raise AMRError(f"spp must be >= 1, got {spp}")
@@ -98,7 +98,7 @@ def show(scene_or_file, field=None, isovalue=None, resolution=RESOLUTION, spp: i
         made = make_scene(scene_or_file, field=field, isovalue=isovalue, resolution=resolution,
                           spp=spp, **params)
         scene = load_dict(made.as_dict())
-    pixels = _render_passes(mi, dr, np, scene, int(spp), quiet=True)
+    pixels = render_passes(mi, dr, np, scene, int(spp), quiet=True)
     if pixels.shape[-1] == 3:           # a film without alpha: every pixel counts as covered
         pixels = np.concatenate([pixels, np.ones_like(pixels[..., :1])], axis=-1)
     return Image(pixels[..., :4])

@@ -11,6 +11,9 @@ from mi_amr.errors import AMRError
 IMAGE_TYPES = (".png", ".exr")
 # libpng refuses wider or taller images (its default user limit), after the render has run.
 PNG_MAX_SIDE = 1_000_000
+# Dr.Jit arrays hold fewer than 2^32 entries: a film's pixels times its channels, and its pixels
+# times the samples of one pass, must stay below.
+JIT_MAX_ENTRIES = 2 ** 32 - 1
 
 
 def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
@@ -19,24 +22,23 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
     """Render ``scene_path`` to ``output`` (.png: 8-bit sRGB with alpha; .exr: linear float
     RGBA) and return the RGB image as a NumPy array. Alpha is the pixel's coverage by surfaces.
     ``aovs=True`` (.exr only) adds the isosurface's AOV channels (:mod:`mi_amr.plugin.aovs`).
-    ``spp`` and ``resolution`` override the scene's ``spp``, ``resx`` and ``resy`` defaults;
-    ``defines`` sets other ``<default>`` values. Prints what it does and how long each part
-    took (the scene's preparation step by step, the render with a progress bar). The output
-    path is checked before anything else, and the image is written atomically: a failed write
-    leaves an existing ``output`` as it was."""
+    ``spp`` and ``resolution`` set the scene's sampler and film (whether or not it has
+    ``spp``, ``resx`` and ``resy`` defaults); ``defines`` sets ``<default>`` values. Prints
+    what it does and how long each part took (the scene's preparation step by step, the render
+    with a progress bar). The output path is checked before anything else, and the image is
+    written atomically: a failed write leaves an existing ``output`` as it was."""
     output = Path(output)
     params = _check_request(scene_path, output, spp, resolution, defines, overwrite, aovs)
     import drjit as dr
     import mitsuba as mi
     import numpy as np
 
-    if variant not in mi.variants():
-        raise AMRError(f"variant '{variant}' is not available; choose from {mi.variants()}")
+    from mi_amr.plugin.scene import load_scene, use_variant
+
+    use_variant(variant)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
-    mi.set_variant(variant)
     from mi_amr.kernels import prepared
     from mi_amr.plugin.integrator import register
-    from mi_amr.plugin.scene import load_scene
 
     register()
     t0 = time.perf_counter()
@@ -52,13 +54,16 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
     size = sensor.film().size()
     _check_png_size(output, size)
     total_spp = sensor.sampler().sample_count()
+    _check_film_entries(scene_path, size, len(_channels(scene, aovs)),
+                        max(pass_samples(total_spp, least_pass_spp(scene.integrator()))))
     say(f"  scene ready in {t1 - t0:.1f} s; rendering {size[0]}x{size[1]} at {total_spp} spp")
-    image = _render_passes(mi, dr, np, scene, total_spp, quiet)
+    image = render_passes(mi, dr, np, scene, total_spp, quiet)
     t2 = time.perf_counter()
     _write_image(mi, image.astype(np.float32), output, _channels(scene, aovs))
     say(f"  rendered in {t2 - t1:.2f} s (includes compiling the kernels on first use)")
     say(f"wrote {output.resolve()}  [total {t2 - t0:.1f} s]")
-    if not np.all(np.isfinite(image)):
+    # (The AOVs' depth is inf where no isosurface was hit: only the colour must be finite.)
+    if not np.all(np.isfinite(image[..., :4])):
         raise AMRError(f"{output}: the image has NaN/Inf pixels; this is a bug, please report it")
     return image[..., :3]
 
@@ -77,13 +82,22 @@ def _check_request(scene_path, output, spp, resolution, defines, overwrite, aovs
         raise AMRError(f"--resolution must be positive, got {resolution}")
     if resolution is not None:
         _check_png_size(output, resolution)
+        _check_film_entries(scene_path, resolution, 4, 1)
     params = dict(defines or {})
     _check_defines(scene_path, params)
-    if spp is not None:
-        params["spp"] = str(spp)
-    if resolution is not None:
-        params["resx"], params["resy"] = str(resolution[0]), str(resolution[1])
-    return params
+    # Set on the film and sampler directly: a scene need not have spp/resx/resy defaults.
+    return dict(params, film_size=None if resolution is None else tuple(resolution),
+                sample_count=spp)
+
+
+def _check_film_entries(scene_path, size, channels: int, pass_spp: int) -> None:
+    """Refuse a film too large for one Dr.Jit array before rendering (else a raw error comes
+    from deep inside the render)."""
+    pixels = int(size[0]) * int(size[1])
+    if pixels * max(channels, pass_spp) > JIT_MAX_ENTRIES:
+        raise AMRError(f"{scene_path}: a {size[0]}x{size[1]} image with {channels} channels at "
+                       f"{pass_spp} spp a pass is too large to render at once (Dr.Jit arrays "
+                       f"hold fewer than 2^32 values); choose a smaller --resolution")
 
 
 def _check_defines(scene_path, defines: dict) -> None:
@@ -128,8 +142,10 @@ def pass_samples(total: int, least: int = 1) -> list:
     return [total // passes + (1 if i < total % passes else 0) for i in range(passes)]
 
 
-def _render_passes(mi, dr, np, scene, total_spp, quiet):
-    """The image (all film channels), rendered in the passes of :func:`pass_samples`."""
+def render_passes(mi, dr, np, scene, total_spp, quiet):
+    """The image (all film channels), rendered in the passes of :func:`pass_samples`: the
+    colour and alpha averaged over the passes, the AOVs (the same every pass, unfiltered, see
+    :mod:`mi_amr.plugin.aovs`) as the last pass gave them, whole numbers kept whole."""
     from tqdm import tqdm
 
     per_pass = pass_samples(total_spp, least_pass_spp(scene.integrator()))
@@ -140,10 +156,11 @@ def _render_passes(mi, dr, np, scene, total_spp, quiet):
             img = mi.render(scene, spp=n, seed=i)
             dr.eval(img)
             dr.sync_thread()
-            part = np.array(img) * n
+            last = np.array(img)
+            part = last[..., :4] * n
             accum = part if accum is None else accum + part
             bar.update(n)
-    return accum / total_spp
+    return np.concatenate([accum / total_spp, last[..., 4:]], axis=-1)
 
 
 def _channels(scene, aovs):

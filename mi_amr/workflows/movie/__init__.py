@@ -5,9 +5,9 @@ frame per task, rendered in this process or on Dask, every per-frame value a ker
 >>> summary = render_movie("scenes_xml/sphere_wake.xml", "out/orbit", orbit=360, frames=48,
 ...                        resolution=(512, 512), workers=2, mp4="out/orbit.mp4")
 
-The frame specs (:mod:`.spec`) are plain values: build them with :func:`plan` (or by hand) and
-pass them as ``specs``; the viewer's "add keyframe" button appends to a keyframe file with
-:func:`append_keyframe`.
+The frame specs (:mod:`.spec`) are plain values: build them with :func:`plan` (a lazy
+sequence: each frame is planned as it is rendered) or by hand, and pass them as ``specs``;
+the viewer's "add keyframe" button appends to a keyframe file with :func:`append_keyframe`.
 """
 
 from __future__ import annotations
@@ -18,12 +18,13 @@ from pathlib import Path
 
 from mi_amr.errors import AMRError
 from mi_amr.workflows.movie.farm import Summary, jobs_for, run_jobs
-from mi_amr.workflows.movie.output import FORMATS, check_out_dir, frame_path
-from mi_amr.workflows.movie.spec import (FrameSpec, append_keyframe, expand_files, plan,
-                                         read_keyframes)
+from mi_amr.workflows.movie.output import (FORMATS, check_out_dir, existing_frames,
+                                           frame_path, image_size)
+from mi_amr.workflows.movie.spec import (FrameSpec, Plan, append_keyframe, check_frames,
+                                         check_orbit, expand_files, plan, read_keyframes)
 
 __all__ = ["render_movie", "plan", "FrameSpec", "append_keyframe", "read_keyframes",
-           "expand_files", "series_color_range", "Summary"]
+           "expand_files", "series_color_range", "Summary", "Plan", "check_values"]
 
 
 def series_color_range(files, scene_path, defines=None) -> tuple:
@@ -115,20 +116,27 @@ def render_movie(scene, out, *, frames=None, files=None, orbit=None, isovalues=N
         raise AMRError(f"{scene}: no such scene file")
     if fmt not in FORMATS:
         raise AMRError(f"--format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    check_values(frames=frames, orbit=orbit, resolution=resolution, spp=spp, fps=fps, mp4=mp4,
+                 force=force)
+    from mi_amr.plugin.scene import use_variant
+
+    use_variant(variant)
     out = check_out_dir(out)
     defines = dict(defines or {})
     if specs is None:
         specs = _plan(scene, frames, files, orbit, isovalues, keyframes, color_range, defines,
                       resolution, spp, variant)
-    first_file = next((s.file for s in specs if s.file), None)
+    first_file = _first_file(specs)
     if first_file and _has_filename_default(scene):
         defines.setdefault("filename", str(Path(first_file).resolve()))
-    jobs, skipped = jobs_for(scene, specs, out, fmt, resolution=resolution, spp=spp,
-                             defines=defines, variant=variant, force=force)
-    summary = Summary(skipped=skipped)
+    existing = {} if force else _existing(out, fmt, specs)
+    _check_existing(out, existing, _frame_size(scene, defines, resolution))
+    jobs = jobs_for(scene, specs, out, fmt, resolution=resolution, spp=spp, defines=defines,
+                    variant=variant, force=force, existing=existing)
+    summary = Summary(skipped=sorted(existing))
     try:
         for r in run_jobs(jobs, workers=workers, scheduler=scheduler, progress=progress,
-                          variant=variant):
+                          variant=variant, total=len(specs) - len(existing)):
             (summary.failed if "error" in r else summary.rendered).append(r)
     finally:
         # A worker killed while writing leaves its temporary file (never a frame's name).
@@ -137,9 +145,89 @@ def render_movie(scene, out, *, frames=None, files=None, orbit=None, isovalues=N
     if mp4 is not None and not summary.failed:
         from mi_amr.workflows.movie.encode import encode_mp4
 
-        encode_mp4([frame_path(out, s.index, fmt) for s in specs], mp4, fps, force=force)
+        encode_mp4((frame_path(out, s.index, fmt) for s in specs), mp4, fps, force=force)
     summary.seconds = time.perf_counter() - t0
     return summary
+
+
+def check_values(*, frames=None, orbit=None, resolution=None, spp=None, fps=24, mp4=None,
+                 force=False) -> None:
+    """The movie's numbers and its MP4's path, checked before anything is read or planned
+    (keyframe values are checked as their file is read)."""
+    from mi_amr.workflows.movie.encode import check_fps, check_mp4
+    from mi_amr.workflows.render import JIT_MAX_ENTRIES
+
+    if frames is not None:
+        check_frames(frames)
+    check_orbit(orbit)
+    if resolution is not None:
+        if len(resolution) != 2 or min(resolution) < 1:
+            raise AMRError(f"--resolution must be two positive numbers, got {resolution}")
+        if resolution[0] * resolution[1] * 4 > JIT_MAX_ENTRIES:
+            raise AMRError(f"--resolution {resolution[0]} {resolution[1]}: too large to render "
+                           f"at once (Dr.Jit arrays hold fewer than 2^32 values)")
+    if spp is not None and spp < 1:
+        raise AMRError(f"--spp must be >= 1, got {spp}")
+    check_fps(fps)
+    if mp4 is not None:
+        check_mp4(mp4, fps, force=force)
+
+
+def _first_file(specs):
+    """The first data file the frames show (None: the scene's own), without planning every
+    frame of a lazy :class:`Plan`."""
+    if isinstance(specs, Plan):
+        return specs.files[0] if specs.files else None
+    return next((s.file for s in specs if s.file), None)
+
+
+def _existing(out, fmt, specs) -> dict:
+    """``{index: path}`` of this movie's frames already in ``out``."""
+    found = existing_frames(out, fmt)
+    if isinstance(specs, Plan):
+        return {i: p for i, p in found.items() if i < len(specs)}
+    wanted = {s.index for s in specs}
+    return {i: p for i, p in found.items() if i in wanted}
+
+
+def _check_existing(out, existing: dict, size) -> None:
+    """Frames kept from an earlier run must be of this movie's size (else the MP4 cannot be
+    made of them): one error before any work, naming the first that is not."""
+    if size is None:
+        return
+    for index in sorted(existing):
+        have = image_size(existing[index])
+        if have != size:
+            what = "not a readable image" if have is None else f"{have[0]}x{have[1]}"
+            raise AMRError(f"-o {out}: {existing[index].name} is {what}, this movie's frames "
+                           f"are {size[0]}x{size[1]}; pass --force to render every frame "
+                           f"again, or choose another folder")
+
+
+def _frame_size(scene_path, defines, resolution):
+    """The frames' ``(width, height)``: ``resolution``, else the scene's film (``$name``
+    defaults and ``defines`` resolved; Mitsuba's 768 x 576 where it gives none); None where
+    the file does not say in plain numbers."""
+    import re
+
+    if resolution is not None:
+        return (int(resolution[0]), int(resolution[1]))
+    try:
+        root = ET.parse(str(scene_path)).getroot()
+    except (OSError, ET.ParseError):
+        return None
+    values = {d.get("name"): d.get("value") for d in root.iter("default")}
+    values.update(defines or {})
+    film = root.find("sensor/film")
+    size = []
+    for name, default in (("width", "768"), ("height", "576")):
+        node = film.find(f"*[@name='{name}']") if film is not None else None
+        text = default if node is None else re.sub(
+            r"\$(\w+)", lambda m: str(values.get(m.group(1), m.group(0))), node.get("value", ""))
+        if not text.strip().isdigit():
+            return None
+        size.append(int(text))
+    return tuple(size)
 
 
 def _plan(scene, frames, files, orbit, isovalues, keyframes, color_range, defines, resolution,

@@ -11,6 +11,7 @@ dies is retried elsewhere; since frames are written atomically, no half-written 
 
 from __future__ import annotations
 
+import itertools
 import os
 import time
 import traceback
@@ -22,6 +23,7 @@ from mi_amr.workflows.movie.spec import FrameSpec
 
 CONNECT_TIMEOUT = "10s"
 RETRIES = 2
+QUEUED = 4          # frames submitted ahead per worker
 _RENDERERS = {}
 
 
@@ -101,35 +103,34 @@ class MiAmrSetup:
         register()
 
 
-def jobs_for(scene, specs, out_dir, fmt, *, resolution, spp, defines, variant, force):
-    """The jobs still to do, and the frames skipped because their file exists."""
-    jobs, skipped = [], []
+def jobs_for(scene, specs, out_dir, fmt, *, resolution, spp, defines, variant, force,
+             existing=()):
+    """The jobs still to do, made one by one as they are asked for: a frame whose index is
+    in ``existing`` (frames already in the folder) is skipped unless ``force``."""
     for spec in specs:
-        path = frame_path(out_dir, spec.index, fmt)
-        if path.exists() and not force:
-            skipped.append(spec.index)
+        if spec.index in existing and not force:
             continue
-        jobs.append(Job(scene=str(scene), spec=spec.as_dict(), path=str(path),
-                        resolution=None if resolution is None else tuple(resolution), spp=spp,
-                        defines=dict(defines), variant=variant))
-    return jobs, skipped
+        yield Job(scene=str(scene), spec=spec.as_dict(),
+                  path=str(frame_path(out_dir, spec.index, fmt)),
+                  resolution=None if resolution is None else tuple(resolution), spp=spp,
+                  defines=dict(defines), variant=variant)
 
 
 def run_jobs(jobs, *, workers: int = 1, scheduler: str | None = None, progress: bool = True,
-             variant: str = "llvm_ad_rgb") -> list:
-    """Run ``jobs``: in this process with one worker and no scheduler, else on Dask. Returns
-    the tasks' results as they finish."""
+             variant: str = "llvm_ad_rgb", total: int | None = None):
+    """Run ``jobs`` (an iterable, taken as it goes): in this process with one worker and no
+    scheduler, else on Dask. Yields the tasks' results as they finish; the progress bar
+    (``total`` jobs) moves from the first frame."""
     from tqdm import tqdm
 
-    bar = tqdm(total=len(jobs), unit="frame", disable=not progress, smoothing=0.1)
+    bar = tqdm(total=total, unit="frame", disable=not progress, smoothing=0.1)
     try:
         if scheduler is None and workers <= 1:
-            results = []
             for job in jobs:
-                results.append(render_task(job))
+                yield render_task(job)
                 bar.update(1)
-            return results
-        return _run_dask(jobs, workers, scheduler, bar, variant)
+        else:
+            yield from _run_dask(jobs, workers, scheduler, bar, variant)
     finally:
         bar.close()
 
@@ -147,31 +148,54 @@ def _connect(workers, scheduler, variant):
             raise AMRError(f"--scheduler {scheduler}: cannot reach the Dask scheduler within "
                            f"{CONNECT_TIMEOUT} ({e})") from None
         return client, None, None
-    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=40)
+    import dask
+
+    # dashboard_address=None turns off the dashboard's pages, but Dask still starts an HTTP
+    # server (on 8787, with its info, JSON and metrics pages; dask/distributed#7207). Give it
+    # no routes, and a free loopback port, in the scheduler and in every worker (a worker's
+    # nanny hands the configuration set here to its process).
+    no_pages = {"distributed.scheduler.http.routes": [], "distributed.worker.http.routes": []}
+    with dask.config.set(no_pages):
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                               host="127.0.0.1", dashboard_address=None,
+                               scheduler_kwargs={"dashboard": False,
+                                                 "dashboard_address": "127.0.0.1:0"},
+                               silence_logs=40)
     threads = max(1, (os.cpu_count() or 1) // workers)
     return Client(cluster), cluster, threads
 
 
-def _run_dask(jobs, workers, scheduler, bar, variant) -> list:
+def _run_dask(jobs, workers, scheduler, bar, variant):
+    """Yield the results of ``jobs`` run on Dask, with at most :data:`QUEUED` tasks a worker
+    submitted at a time (a long movie is not planned up front)."""
     from dask.distributed import as_completed
 
     client, cluster, threads = _connect(workers, scheduler, variant)
     try:
         client.register_plugin(_worker_plugin(variant, threads))
-        futures = [client.submit(render_task, job, key=f"mi_amr-frame-{i}-{time.time_ns()}",
-                                 retries=RETRIES, pure=False) for i, job in enumerate(jobs)]
-        results = []
-        for future in as_completed(futures):
+        jobs = iter(jobs)
+        queued = QUEUED * max(workers, len(client.scheduler_info().get("workers", {})), 1)
+        pending, running = {}, as_completed()
+
+        def submit(count):
+            for job in itertools.islice(jobs, count):
+                future = client.submit(render_task, job, pure=False, retries=RETRIES,
+                                       key=f"mi_amr-frame-{job.spec['index']}-"
+                                           f"{time.time_ns()}")
+                pending[future] = job
+                running.add(future)
+
+        submit(queued)
+        for future in running:
+            job = pending.pop(future)
             try:
-                results.append(future.result())
+                yield future.result()
             except Exception as e:      # noqa: BLE001 -- a task lost after its retries
-                job = jobs[futures.index(future)]
                 spec = job.spec
-                results.append({"index": spec["index"], "file": spec.get("file"),
-                                "path": job.path, "error": f"{type(e).__name__}: {e}"})
+                yield {"index": spec["index"], "file": spec.get("file"), "path": job.path,
+                       "error": f"{type(e).__name__}: {e}"}
             bar.update(1)
-        return results
+            submit(1)
     finally:
         client.close()
         if cluster is not None:

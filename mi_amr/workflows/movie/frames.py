@@ -23,22 +23,20 @@ class FrameRenderer:
                  variant: str = "llvm_ad_rgb"):
         import mitsuba as mi
 
-        if variant not in mi.variants():
-            raise AMRError(f"variant '{variant}' is not available; choose from {mi.variants()}")
-        mi.set_variant(variant)
+        from mi_amr.plugin.scene import load_scene, use_variant
+
+        use_variant(variant)
         from mi_amr.plugin.camera import scene_camera
         from mi_amr.plugin.integrator import register
-        from mi_amr.plugin.scene import load_scene
 
         register()
         self.mi = mi
         params = dict(defines or {})
-        if resolution is not None:
-            params["resx"], params["resy"] = str(resolution[0]), str(resolution[1])
-        if spp is not None:
-            params["spp"] = str(spp)
         self.scene_path = Path(scene_path)
-        self.scene = load_scene(scene_path, pixel_format="rgba", **params)   # RGBA frames
+        # RGBA frames; size and samples set on the film and sampler, so the scene need not
+        # have resx/resy/spp defaults.
+        self.scene = load_scene(scene_path, pixel_format="rgba", film_size=resolution,
+                                sample_count=spp, **params)
         self.integ = self.scene.integrator()
         if not hasattr(self.integ, "load_volume"):
             raise AMRError(f"{scene_path}: the scene's integrator is not amr_iso")

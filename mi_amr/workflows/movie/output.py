@@ -3,6 +3,7 @@ name in its folder, then renamed), and nothing is replaced without ``force``."""
 
 from __future__ import annotations
 
+import os
 import tempfile
 from pathlib import Path
 
@@ -34,6 +35,40 @@ def check_out_dir(out_dir) -> Path:
     return out
 
 
+def existing_frames(out_dir, fmt: str) -> dict:
+    """The frames already in ``out_dir``: ``{index: path}`` (the folder listed once, not a
+    look-up per frame)."""
+    found = {}
+    prefix, suffix = "frame_", f".{fmt}"
+    with os.scandir(out_dir) as entries:
+        for entry in entries:
+            name = entry.name
+            digits = name[len(prefix):-len(suffix)]
+            if name.startswith(prefix) and name.endswith(suffix) and digits.isdigit():
+                index = int(digits)
+                if name == frame_path(out_dir, index, fmt).name:
+                    found[index] = Path(entry.path)
+    return found
+
+
+def image_size(path):
+    """``(width, height)`` of a PNG (from its header) or EXR frame; None when it cannot be
+    read as one."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".png":
+            with open(path, "rb") as f:
+                head = f.read(24)
+            if head[:8] != b"\x89PNG\r\n\x1a\n" or head[12:16] != b"IHDR":
+                return None
+            return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+        import mitsuba as mi
+
+        return tuple(int(v) for v in mi.Bitmap(str(path)).size())
+    except (OSError, RuntimeError):
+        return None
+
+
 def write_bytes_atomic(path, data: bytes) -> None:
     """Write ``data`` to ``path`` whole or not at all."""
     with replacing(path) as tmp:
@@ -50,5 +85,10 @@ def write_image_atomic(path, image: np.ndarray) -> None:
     bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32), pixel_format=fmt)
     if Path(path).suffix.lower() == ".png":
         bitmap = bitmap.convert(fmt, mi.Struct.Type.UInt8, srgb_gamma=True)
-    with replacing(path) as tmp:
-        bitmap.write(str(tmp))
+    try:
+        with replacing(path) as tmp:
+            bitmap.write(str(tmp))
+    except (RuntimeError, OSError) as e:
+        # A full disk: one line per frame (the frame is not there; a rerun renders it).
+        first = (str(e).strip().splitlines() or [type(e).__name__])[0]
+        raise AMRError(f"{path}: cannot write the frame ({first})") from None

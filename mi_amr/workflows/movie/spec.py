@@ -2,9 +2,10 @@
 first isovalue and colour range), planned from a time series, an orbit, an isovalue sweep or a
 keyframe file. NumPy and the standard library only: specs travel to Dask workers as plain dicts.
 
-Keyframe files (TOML or JSON) list keyframes with a ``frame`` number (increasing) and any of
-``origin``, ``target``, ``up`` (3 numbers, scene world space), ``fov`` (degrees), ``isovalue``
-and ``color_range`` (2 numbers)::
+Keyframe files (UTF-8 TOML or JSON) list keyframes with a ``frame`` number (increasing, 0 to
+2^32 - 1: a frame's number is its sampler's 32-bit seed) and any of ``origin``, ``target``,
+``up`` (3 numbers, scene world space; ``up`` not zero), ``fov`` (degrees, between 0 and 180),
+``isovalue`` and ``color_range`` (2 numbers, low < high), every number finite within float32::
 
     [[keyframe]]
     frame = 0
@@ -30,6 +31,7 @@ import json
 import math
 import os
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -40,6 +42,10 @@ from mi_amr.errors import AMRError
 
 KEYFRAME_KEYS = ("frame", "origin", "target", "up", "fov", "isovalue", "color_range")
 VECTORS = ("origin", "target", "up")
+# A frame's number is its sampler's seed, a 32-bit unsigned integer: frames 0 .. 2^32 - 1.
+MAX_FRAMES = 2 ** 32
+# Isovalues and colour ranges reach the kernels as float32.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(frozen=True)
@@ -102,23 +108,32 @@ def orbit(camera: dict, degrees: float, count: int) -> list:
     """``count`` cameras turning ``camera`` about its target, on its up axis, ``degrees`` in
     all: frame ``i`` is turned by ``degrees * i / count`` (a full turn loops without a repeated
     frame)."""
+    return [orbit_camera(camera, degrees, i, count) for i in range(count)]
+
+
+def orbit_camera(camera: dict, degrees: float, i: int, count: int) -> dict:
+    """Frame ``i``'s camera of :func:`orbit` (computed alone, for planning lazily)."""
     origin, target = np.asarray(camera["origin"], float), np.asarray(camera["target"], float)
     axis = np.asarray(camera["up"], float)
     axis = axis / np.linalg.norm(axis)
-    out = []
-    for i in range(count):
-        a = math.radians(degrees * i / count)
-        v = origin - target
-        # Rodrigues' rotation of v about axis.
-        v = (v * math.cos(a) + np.cross(axis, v) * math.sin(a) +
-             axis * np.dot(axis, v) * (1 - math.cos(a)))
-        out.append(dict(camera, origin=[float(x) for x in target + v]))
-    return out
+    a = math.radians(degrees * i / count)
+    v = origin - target
+    # Rodrigues' rotation of v about axis.
+    v = (v * math.cos(a) + np.cross(axis, v) * math.sin(a) +
+         axis * np.dot(axis, v) * (1 - math.cos(a)))
+    return dict(camera, origin=[float(x) for x in target + v])
 
 
 def sweep(spec: str, count: int) -> list:
     """``count`` values from ``"START:STOP"`` (both ends included), evenly or, with a ``log:``
     prefix, evenly in the logarithm (both ends must then have the same sign)."""
+    ends = parse_sweep(spec)
+    return [sweep_value(ends, i, count) for i in range(count)]
+
+
+def parse_sweep(spec: str) -> tuple:
+    """``(start, stop, log)`` of an ``--isovalues`` value, checked: finite numbers that fit
+    float32, of one non-zero sign for a log sweep."""
     text = str(spec).strip()
     log = text.startswith("log:")
     try:
@@ -126,16 +141,24 @@ def sweep(spec: str, count: int) -> list:
     except ValueError:
         raise AMRError(f"--isovalues: expected START:STOP or log:START:STOP, got '{spec}'") \
             from None
-    if not (math.isfinite(start) and math.isfinite(stop)):
-        raise AMRError(f"--isovalues: '{spec}' needs finite numbers")
-    u = np.linspace(0.0, 1.0, count) if count > 1 else np.zeros(1)
+    if not all(math.isfinite(x) and abs(x) <= FLOAT32_MAX for x in (start, stop)):
+        raise AMRError(f"--isovalues: '{spec}' needs finite numbers (within float32)")
+    if log and start * stop <= 0:
+        raise AMRError(f"--isovalues: a log sweep needs two non-zero ends of one sign, got "
+                       f"'{spec}'")
+    return start, stop, log
+
+
+def sweep_value(ends: tuple, i: int, count: int) -> float:
+    """Value ``i`` of ``count`` of the sweep ``ends`` (:func:`parse_sweep`); the same numbers as
+    ``np.linspace(0, 1, count)`` would give."""
+    start, stop, log = ends
+    u = 0.0 if count <= 1 else 1.0 if i == count - 1 else i * (1.0 / (count - 1))
     if not log:
-        return [float(start + (stop - start) * x) for x in u]
-    if start * stop <= 0:
-        raise AMRError(f"--isovalues: a log sweep needs two non-zero ends of one sign, got '{spec}'")
+        return float(start + (stop - start) * u)
     sign = math.copysign(1.0, start)
     a, b = math.log(abs(start)), math.log(abs(stop))
-    return [float(sign * math.exp(a + (b - a) * x)) for x in u]
+    return float(sign * math.exp(a + (b - a) * u))
 
 
 # ---------------------------------------------------------------------- keyframes
@@ -145,9 +168,12 @@ def read_keyframes(path) -> list:
     increasing frame numbers, numbers of the right shape."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except OSError as e:
         raise AMRError(f"{path}: cannot read the keyframe file ({e.strerror})") from None
+    except UnicodeDecodeError as e:
+        raise AMRError(f"{path}: not a UTF-8 text file (byte {e.start}); a keyframe file is "
+                       f"TOML or JSON text") from None
     try:
         if path.suffix.lower() == ".toml":
             import tomllib
@@ -171,22 +197,48 @@ def _check_keyframe(path, i, k) -> dict:
     if unknown:
         raise AMRError(f"{path}: keyframe {i + 1}: unknown key(s) {unknown}; allowed: "
                        f"{', '.join(KEYFRAME_KEYS)}")
-    if "frame" not in k or not isinstance(k["frame"], int) or k["frame"] < 0:
-        raise AMRError(f"{path}: keyframe {i + 1} needs 'frame', a whole number >= 0")
-    out = {"frame": k["frame"]}
+    frame = k.get("frame")
+    if not _whole(frame) or not 0 <= frame < MAX_FRAMES:
+        raise AMRError(f"{path}: keyframe {i + 1} needs 'frame', a whole number from 0 to "
+                       f"{MAX_FRAMES - 1}, got {_short(frame)}")
+    out = {"frame": frame}
     for name in k:
         if name == "frame":
             continue
         want = 3 if name in VECTORS else 2 if name == "color_range" else 1
         v = k[name] if want > 1 else [k[name]]
-        if not isinstance(v, list) or len(v) != want or \
-                not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
+        if not isinstance(v, list) or len(v) != want or not all(_number(x) for x in v):
             raise AMRError(f"{path}: keyframe {i + 1}: '{name}' needs {want} finite number(s), "
-                           f"got {k[name]!r}")
+                           f"got {_short(k[name])}")
         out[name] = [float(x) for x in v] if want > 1 else float(v[0])
     if "color_range" in out and not out["color_range"][0] < out["color_range"][1]:
         raise AMRError(f"{path}: keyframe {i + 1}: 'color_range' needs low < high")
+    if "fov" in out and not 0.0 < out["fov"] < 180.0:
+        raise AMRError(f"{path}: keyframe {i + 1}: 'fov' is the horizontal field of view in "
+                       f"degrees, between 0 and 180 (both excluded), got {out['fov']:g}")
+    if "up" in out and not any(out["up"]):
+        raise AMRError(f"{path}: keyframe {i + 1}: 'up' must not be the zero vector")
     return out
+
+
+def _whole(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _number(x) -> bool:
+    """A finite number within float32 (what the kernels take), not a boolean."""
+    if isinstance(x, bool) or not isinstance(x, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(x)) and abs(float(x)) <= FLOAT32_MAX
+    except OverflowError:           # an int beyond float64
+        return False
+
+
+def _short(value) -> str:
+    """``repr(value)``, cut to 60 characters (a value may be a 4000-digit number)."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def _monotonic(path, keys) -> list:
@@ -265,25 +317,69 @@ def _toml(keys) -> str:
 # ---------------------------------------------------------------------- planning
 
 def plan(frames: int | None, *, camera: dict, files=None, orbit_degrees=None, isovalues=None,
-         keyframes=None, color_range=None) -> list:
-    """The frames of a movie (see the module docstring). ``frames`` defaults to the number of
-    files, else to the last keyframe + 1, else to 60. With more frames than files each time
-    step is held for several frames."""
+         keyframes=None, color_range=None) -> "Plan":
+    """The frames of a movie (see the module docstring), checked here and computed one by one
+    as they are asked for (:class:`Plan`). ``frames`` defaults to the number of files, else to
+    the last keyframe + 1, else to 60. With more frames than files each time step is held for
+    several frames."""
     files = list(files or [])
     if frames is None:
         frames = len(files) or (keyframes[-1]["frame"] + 1 if keyframes else 60)
-    if frames < 1:
-        raise AMRError(f"--frames must be >= 1, got {frames}")
-    cams = orbit(camera, orbit_degrees, frames) if orbit_degrees else [camera] * frames
-    isos = sweep(isovalues, frames) if isovalues else [None] * frames
-    out = []
-    for i in range(frames):
-        cam, iso, rng = dict(cams[i]), isos[i], color_range
-        if keyframes:
-            cam = {k: keyframe_value(keyframes, k, i, cam[k]) for k in (*VECTORS, "fov")}
-            iso = keyframe_value(keyframes, "isovalue", i, iso)
-            rng = keyframe_value(keyframes, "color_range", i, rng)
-        step = files[min(i * len(files) // frames, len(files) - 1)] if files else None
-        out.append(FrameSpec(index=i, file=step, camera=cam, isovalue=iso,
-                             color_range=None if rng is None else tuple(rng)))
-    return out
+    check_frames(frames)
+    check_orbit(orbit_degrees)
+    if orbit_degrees and not any(camera["up"]):
+        raise AMRError("--orbit: the camera's up vector is zero; give the scene's <lookat> an up")
+    return Plan(frames, camera, files, orbit_degrees,
+                parse_sweep(isovalues) if isovalues else None, keyframes, color_range)
+
+
+def check_frames(frames) -> None:
+    """``--frames``: a whole number from 1 to :data:`MAX_FRAMES`."""
+    if not _whole(frames) or not 1 <= frames <= MAX_FRAMES:
+        raise AMRError(f"--frames must be a whole number from 1 to {MAX_FRAMES} (a frame's "
+                       f"number is its 32-bit seed), got {_short(frames)}")
+
+
+def check_orbit(degrees) -> None:
+    """``--orbit``: None, or a finite number of degrees."""
+    if degrees is None:
+        return
+    if isinstance(degrees, bool) or not isinstance(degrees, (int, float)) or \
+            not math.isfinite(degrees) or abs(degrees) > FLOAT32_MAX:
+        raise AMRError(f"--orbit: the turn in degrees must be a finite number, got "
+                       f"{_short(degrees)}")
+
+
+class Plan(Sequence):
+    """The :class:`FrameSpec`\\ s of :func:`plan`, each made when it is asked for: a movie of
+    10^8 frames starts rendering at once, in constant memory. ``files``: the time series."""
+
+    def __init__(self, count, camera, files, orbit_degrees, sweep_ends, keyframes,
+                 color_range):
+        self.count, self.camera, self.files = count, camera, files
+        self.orbit_degrees, self.sweep_ends = orbit_degrees, sweep_ends
+        self.keyframes, self.color_range = keyframes, color_range
+
+    def __len__(self) -> int:
+        return self.count
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(self.count))]
+        if not -self.count <= i < self.count:
+            raise IndexError(i)
+        return self._spec(i % self.count)
+
+    def _spec(self, i: int) -> FrameSpec:
+        n, files, keys = self.count, self.files, self.keyframes
+        cam = orbit_camera(self.camera, self.orbit_degrees, i, n) if self.orbit_degrees \
+            else dict(self.camera)
+        iso = sweep_value(self.sweep_ends, i, n) if self.sweep_ends else None
+        rng = self.color_range
+        if keys:
+            cam = {k: keyframe_value(keys, k, i, cam[k]) for k in (*VECTORS, "fov")}
+            iso = keyframe_value(keys, "isovalue", i, iso)
+            rng = keyframe_value(keys, "color_range", i, rng)
+        step = files[min(i * len(files) // n, len(files) - 1)] if files else None
+        return FrameSpec(index=i, file=step, camera=cam, isovalue=iso,
+                         color_range=None if rng is None else tuple(rng))

@@ -63,21 +63,53 @@ def scene_text(base_path, state, *, spp: int, resolution) -> str:
         raise AMRError(f"{base_path}: cannot read the scene file ({e})") from None
     root = tree.getroot()
     defaults = {d.get("name"): d.get("value") for d in root.iter("default")}
-    _absolute_filenames(root, base_path.resolve().parent, defaults)
     integrator = next((e for e in root.iter("integrator") if e.get("type") == "amr_iso"), None)
     if integrator is None:
         raise AMRError(f"{base_path}: no amr_iso integrator")
+    linked = _linked_defaults(integrator, defaults)
+    _absolute_filenames(root, base_path.resolve().parent, defaults)
     values = integrator_values(state)
     for name, tag in OWNED:
         _set_child(integrator, tag, name, values[name])
+    # A parameter the file gave as "$name" stays so, its <default> holding the view's value:
+    # -D name=... still applies to the saved scene.
+    for name, default in linked.items():
+        if values[name] is not None:
+            _set_child(integrator, dict(OWNED)[name], name, f"${default}")
+            _set_defaults(root, {default: str(values[name])})
     _set_sensor(root, state.camera)
     if state.light_direction is not None:
         _set_light(root, state.light_direction, state.light_irradiance)
     _set_defaults(root, {"spp": str(int(spp)), "resx": str(int(resolution[0])),
                          "resy": str(int(resolution[1]))})
+    _drop_unused_defaults(root, keep=("spp", "resx", "resy"))
     root.insert(0, ET.Comment(f" Written by 'python -m mi_amr view' from {base_path.resolve()} "))
     ET.indent(tree, space="    ")
     return ET.tostring(root, encoding="unicode") + "\n"
+
+
+def _linked_defaults(integrator, defaults: dict) -> dict:
+    """``{parameter: default name}`` for the owned parameters the file gives as exactly
+    ``"$name"`` of one of its ``<default>``s."""
+    owned = dict(OWNED)
+    linked = {}
+    for child in integrator:
+        m = re.fullmatch(r"\$(\w+)", child.get("value", "").strip())
+        if child.get("name") in owned and m and m.group(1) in defaults:
+            linked[child.get("name")] = m.group(1)
+    return linked
+
+
+def _drop_unused_defaults(root, keep=()) -> None:
+    """Remove the ``<default>``s nothing in the scene refers to any more (the viewer wrote the
+    values in their place): left in, ``-D`` would accept their names and change nothing."""
+    used = set(keep)
+    for e in root.iter():
+        if e.tag != "default":
+            for value in e.attrib.values():
+                used.update(re.findall(r"\$(\w+)", value))
+    for d in [d for d in root.findall("default") if d.get("name") not in used]:
+        root.remove(d)
 
 
 def _absolute_filenames(root, folder: Path, defaults: dict) -> None:
