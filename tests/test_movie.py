@@ -465,7 +465,7 @@ def test15_frames_of_another_size_in_the_folder_are_refused_before_any_work(seri
     forced = render_movie_quiet(series / "scene.xml", out, orbit=90, frames=3,
                                 resolution=(16, 16), mp4=mp4, force=True)
     assert len(forced.rendered) == 3 and mp4.exists()
-    assert {read(p).shape for p in frames_in(out)} == {(16, 16, 3)}
+    assert {read(p).shape for p in frames_in(out)} == {(16, 16, 4)}
     render_movie_quiet(series / "scene.xml", tmp_path / "big", frames=1)
     with pytest.raises(AMRError, match=r"big/frame_00000.png is 32x32, the frames before it "
                                        r"16x16"):
