@@ -3,8 +3,8 @@ first isovalue and colour range), planned from a time series, an orbit, an isova
 keyframe file. NumPy and the standard library only: specs travel to Dask workers as plain dicts.
 
 Keyframe files (TOML or JSON) list keyframes with a ``frame`` number (increasing) and any of
-``origin``, ``target``, ``up`` (3 numbers, scene world space), ``fov`` (degrees), ``isovalue``
-and ``color_range`` (2 numbers)::
+``origin``, ``target``, ``up`` (3 numbers, scene world space), ``fov`` (degrees), ``isovalue``,
+``color_range`` (2 numbers) and ``step`` (the time step: an index into ``--files``, from 0)::
 
     [[keyframe]]
     frame = 0
@@ -16,11 +16,14 @@ and ``color_range`` (2 numbers)::
     frame = 48
     origin = [4.0, -6.0, 2.0]
     isovalue = 0.08
+    step = 3
 
 (JSON: ``{"keyframe": [{...}, ...]}`` or a plain list.) Between keyframes the camera's origin
 and target follow Catmull-Rom curves through the keyframes' values (a smooth path), ``up``,
 ``fov`` and the scalars go linearly; before the first and after the last keyframe values hold.
-A value no keyframe gives is the scene's own.
+A value no keyframe gives is the scene's own. ``step`` goes linearly too, to the nearest step:
+keyframes with steps replay a path through time (and need ``--files``), without them the files
+are spread evenly over the frames.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ import numpy as np
 
 from mi_amr.errors import AMRError
 
-KEYFRAME_KEYS = ("frame", "origin", "target", "up", "fov", "isovalue", "color_range")
+KEYFRAME_KEYS = ("frame", "origin", "target", "up", "fov", "isovalue", "color_range", "step")
 VECTORS = ("origin", "target", "up")
 
 
@@ -186,6 +189,9 @@ def _check_keyframe(path, i, k) -> dict:
         out[name] = [float(x) for x in v] if want > 1 else float(v[0])
     if "color_range" in out and not out["color_range"][0] < out["color_range"][1]:
         raise AMRError(f"{path}: keyframe {i + 1}: 'color_range' needs low < high")
+    if "step" in out and not (out["step"] >= 0 and out["step"] == int(out["step"])):
+        raise AMRError(f"{path}: keyframe {i + 1}: 'step' needs a whole number >= 0 (an index "
+                       f"into --files), got {k['step']!r}")
     return out
 
 
@@ -228,7 +234,7 @@ def keyframe_value(keys, name, t, default):
 
 
 def append_keyframe(path, frame: int, camera: dict | None = None, isovalue=None,
-                    color_range=None) -> dict:
+                    color_range=None, step=None) -> dict:
     """Add a keyframe to the file ``path`` (JSON, or TOML by its suffix; made when missing) and
     write it atomically. The frame number must be above the file's last one."""
     path = Path(path)
@@ -243,6 +249,8 @@ def append_keyframe(path, frame: int, camera: dict | None = None, isovalue=None,
         new["isovalue"] = float(isovalue)
     if color_range is not None:
         new["color_range"] = [float(x) for x in color_range]
+    if step is not None:
+        new["step"] = int(step)
     keys.append(_check_keyframe(path, len(keys), new))
     text = _toml(keys) if path.suffix.lower() == ".toml" else json.dumps({"keyframe": keys},
                                                                          indent=2) + "\n"
@@ -253,11 +261,12 @@ def append_keyframe(path, frame: int, camera: dict | None = None, isovalue=None,
 
 
 def _toml(keys) -> str:
-    def value(v):
-        return "[" + ", ".join(repr(float(x)) for x in v) + "]" if isinstance(v, list) \
-            else str(v) if isinstance(v, int) else repr(float(v))
+    def value(k, v):
+        if isinstance(v, list):
+            return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+        return str(int(v)) if isinstance(v, int) or k == "step" else repr(float(v))
 
-    blocks = ["[[keyframe]]\n" + "".join(f"{k} = {value(v)}\n" for k, v in key.items())
+    blocks = ["[[keyframe]]\n" + "".join(f"{k} = {value(k, v)}\n" for k, v in key.items())
               for key in keys]
     return "\n".join(blocks)
 
@@ -266,12 +275,15 @@ def _toml(keys) -> str:
 
 def plan(frames: int | None, *, camera: dict, files=None, orbit_degrees=None, isovalues=None,
          keyframes=None, color_range=None) -> list:
-    """The frames of a movie (see the module docstring). ``frames`` defaults to the number of
-    files, else to the last keyframe + 1, else to 60. With more frames than files each time
+    """The frames of a movie (see the module docstring). ``frames`` defaults to the last
+    keyframe + 1 when the keyframes give time steps, else to the number of files, else to the
+    last keyframe + 1, else to 60. With more frames than files each time
     step is held for several frames."""
     files = list(files or [])
+    stepped = _check_steps(keyframes, files)
     if frames is None:
-        frames = len(files) or (keyframes[-1]["frame"] + 1 if keyframes else 60)
+        frames = keyframes[-1]["frame"] + 1 if stepped else \
+            len(files) or (keyframes[-1]["frame"] + 1 if keyframes else 60)
     if frames < 1:
         raise AMRError(f"--frames must be >= 1, got {frames}")
     cams = orbit(camera, orbit_degrees, frames) if orbit_degrees else [camera] * frames
@@ -283,7 +295,24 @@ def plan(frames: int | None, *, camera: dict, files=None, orbit_degrees=None, is
             cam = {k: keyframe_value(keyframes, k, i, cam[k]) for k in (*VECTORS, "fov")}
             iso = keyframe_value(keyframes, "isovalue", i, iso)
             rng = keyframe_value(keyframes, "color_range", i, rng)
-        step = files[min(i * len(files) // frames, len(files) - 1)] if files else None
+        if stepped:
+            step = files[int(math.floor(keyframe_value(keyframes, "step", i, 0.0) + 0.5))]
+        else:
+            step = files[min(i * len(files) // frames, len(files) - 1)] if files else None
         out.append(FrameSpec(index=i, file=step, camera=cam, isovalue=iso,
                              color_range=None if rng is None else tuple(rng)))
     return out
+
+
+def _check_steps(keyframes, files) -> bool:
+    """Whether the keyframes give time steps (then each one must name one of ``files``)."""
+    steps = [int(k["step"]) for k in keyframes or () if "step" in k]
+    if not steps:
+        return False
+    if not files:
+        raise AMRError("the keyframes give time steps ('step'): pass the time series with "
+                       "--files (the files the viewer stepped through, in the same order)")
+    if max(steps) >= len(files):
+        raise AMRError(f"a keyframe shows time step {max(steps)}, but --files gives "
+                       f"{len(files)} file(s) (steps 0 to {len(files) - 1})")
+    return True

@@ -18,13 +18,15 @@ from collections import deque
 from pathlib import Path
 
 from mi_amr.errors import AMRError
-from mi_amr.workflows.viewer import controls
+from mi_amr.workflows.viewer import bands, controls
 from mi_amr.workflows.viewer.paths import FileRules
-from mi_amr.workflows.viewer.sceneio import scene_text
+from mi_amr.workflows.viewer.sceneio import MARK, scene_text
+from mi_amr.workflows.viewer.series import step as step_to
 from mi_amr.workflows.viewer.state import Session, structure
 from mi_amr.workflows.viewer.worker import RenderWorker
 
 CHANGES = ("set", "camera", "add_isovalue", "remove_isovalue", "reset_color_range")
+EDITS = {"band": bands.change}      # the transfer-function editor's requests
 COLORMAPS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm",
              "RdBu_r", "Spectral_r", "gray")
 KEYFRAME_STEP = 24
@@ -64,9 +66,12 @@ class Hub:
     """The viewer of ``scene_path``: file rules, the render thread, the shared state."""
 
     def __init__(self, scene_path, *, out_dir="out", files=(), resolution=None, spp: int = 4,
-                 preview_scale: int = 2, idle_s: float = 0.3):
+                 preview_scale: int = 2, idle_s: float = 0.3, series=()):
         self.rules = FileRules(scene_path, files, out_dir)
-        self.worker = RenderWorker(lambda: Session(scene_path, resolution=resolution, spp=spp),
+        self.series = [str(f) for f in series]
+        self.series_spec = ""           # the series as given on the command line (for hints)
+        self.worker = RenderWorker(lambda: Session(scene_path, resolution=resolution, spp=spp,
+                                                   series=self.series),
                                    self.from_worker, preview_scale=preview_scale, idle_s=idle_s)
         self.clients = set()
         self.loop = None
@@ -104,7 +109,9 @@ class Hub:
             "iso_colors": [controls.linear_to_hex(c) for c in s.iso_colors],
             "iso_opacity": s.iso_opacity, "mode": s.mode, "method": s.method,
             "reconstruction": s.reconstruction, "layers": s.layers, "step_scale": s.step_scale,
-            "band_width": s.band_width[0], "shadows": s.shadows, "camera": s.camera.as_dict(),
+            "band_width": s.band_width[0], "bands": {
+                "width": s.band_width, "offsets": s.band_offsets, "peak": s.band_peak},
+            "shadows": s.shadows, "camera": s.camera.as_dict(),
             "light": light, "spp": s.spp, "structure": list(structure(s))}}
 
     def info_message(self) -> dict:
@@ -119,13 +126,15 @@ class Hub:
                 "modes": params.MODES, "colormaps": COLORMAPS, "files": self.rules.listing(),
                 "out_dir": str(self.rules.out_dir), "resolution": i["resolution"],
                 "preview_scale": self.worker.preview_scale,
-                "max_isovalues": params.MAX_ISOVALUES}
+                "max_isovalues": params.MAX_ISOVALUES,
+                "series": [self._shown_path(f) for f in self.series]}
 
     def status(self) -> dict:
         session = self.worker.session
         return {"version": self.version, "compiled": dict(session.compiled),
                 "frames": dict(self.worker.frames), "dropped": self.worker.dropped,
-                "clients": len(self.clients), "resolution": list(session.resolution)}
+                "clients": len(self.clients), "resolution": list(session.resolution),
+                "prepared": session.prefetch.finished()}
 
     def _shown_path(self, path) -> str:
         p = Path(path)
@@ -163,6 +172,8 @@ class Hub:
             op = msg.get("op")
             if op in CHANGES:
                 self._change(controls.change(self.state, msg, self.ctx))
+            elif op in EDITS:
+                self._change(EDITS[op](self.state, msg, self.ctx))
             elif op in ACTIONS:
                 ACTIONS[op](self, client, msg)
             else:
@@ -313,12 +324,34 @@ def add_keyframe(hub: Hub, client: Client, msg: dict) -> None:
         frame = keys[-1]["frame"] + KEYFRAME_STEP if keys else 0
     frame = int(controls.number(frame, "keyframe frame", 0, 10 ** 7))
     s = hub.state
+    scene = keyframe_scene(hub, path)
+    step = hub.series.index(s.data_file) if s.data_file in hub.series else None
     append_keyframe(path, frame, camera=s.camera.as_dict(), isovalue=s.isovalues[0],
-                    color_range=s.color_range)
+                    color_range=s.color_range, step=step)
+    files = f" --files '{hub.series_spec}'" if step is not None and hub.series_spec else ""
     client.post({"type": "saved", "what": "keyframe", "path": str(path),
                  "next_frame": frame + KEYFRAME_STEP,
-                 "message": f"Added keyframe {frame} to {path} (python -m mi_amr movie "
-                            f"--keyframes {path})"})
+                 "message": f"Added keyframe {frame} to {path}; {scene.name} beside it holds "
+                            f"the view's colours and styling (python -m mi_amr movie {scene} "
+                            f"--keyframes {path}{files} -o movie)"})
+
+
+def keyframe_scene(hub: Hub, keyframes: Path) -> Path:
+    """Write the view as a scene beside the keyframe file (``keyframes.toml`` ->
+    ``keyframes.xml``): what the keyframes do not record (colour map, styling, bands, method)
+    is the page's, so ``movie`` on this scene renders the colours the page showed. A file of
+    that name that the viewer did not write is kept (refused)."""
+    from mi_amr.core.atomic import replacing
+
+    path = keyframes.with_suffix(".xml")
+    if path.exists() and MARK not in path.read_text(errors="replace")[:2000]:
+        raise AMRError(f"{path} exists and was not written by the viewer; it is kept. Name "
+                       f"the keyframe file otherwise")
+    text = scene_text(hub.worker.session.base_path, hub.state, spp=hub.state.spp,
+                      resolution=tuple(hub.worker.session.resolution))
+    with replacing(path) as tmp:
+        tmp.write_text(text)
+    return path
 
 
 def open_file(hub: Hub, client: Client, msg: dict) -> None:
@@ -338,4 +371,4 @@ def open_file(hub: Hub, client: Client, msg: dict) -> None:
 
 
 ACTIONS = {"save_scene": save_scene, "save_image": save_image, "add_keyframe": add_keyframe,
-           "open": open_file}
+           "open": open_file, "step": step_to}

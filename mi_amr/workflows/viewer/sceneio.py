@@ -14,6 +14,7 @@ from pathlib import Path
 
 from mi_amr.errors import AMRError
 
+MARK = "Written by 'python -m mi_amr view'"     # the first comment of a scene it writes
 # The integrator's parameters the viewer owns: (name, XML tag).
 OWNED = (("filename", "string"), ("field", "string"), ("isovalue", "string"),
          ("iso_color", "string"), ("iso_opacity", "string"), ("color_field", "string"),
@@ -75,7 +76,7 @@ def scene_text(base_path, state, *, spp: int, resolution) -> str:
         _set_light(root, state.light_direction, state.light_irradiance)
     _set_defaults(root, {"spp": str(int(spp)), "resx": str(int(resolution[0])),
                          "resy": str(int(resolution[1]))})
-    root.insert(0, ET.Comment(f" Written by 'python -m mi_amr view' from {base_path.resolve()} "))
+    root.insert(0, ET.Comment(f" {MARK} from {base_path.resolve()} "))
     ET.indent(tree, space="    ")
     return ET.tostring(root, encoding="unicode") + "\n"
 

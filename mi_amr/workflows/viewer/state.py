@@ -16,7 +16,8 @@ camera                      the sensor's ``to_world`` and ``x_fov``             
 light                       the directional emitter's ``to_world`` and             no
                             ``irradiance.value``
 preview / image size        the film's ``size``                                    once a size
-data file (time step)       ``integrator.load_volume`` (same fields)               no
+data file (time step)       ``integrator.load_volume`` (same fields; the next      no
+                            step prepared meanwhile, :mod:`.series`)
 method, reconstruction,     the scene is loaded again (:func:`structure`)          yes (once)
 layers, mode, field, colour
 field, number of isovalues
@@ -96,18 +97,26 @@ def refine_passes(total: int, least: int = 1) -> list:
 
 class Session:
     """The scene on screen: loaded from ``scene_path``, shown at ``resolution`` (pixels,
-    ``(width, height)``), changed to each new :class:`ViewState` by :meth:`apply`."""
+    ``(width, height)``), changed to each new :class:`ViewState` by :meth:`apply`.
+    ``series``: data files (absolute paths) shown as the time steps of the scene (the first
+    one at start; see :mod:`.series`)."""
 
-    def __init__(self, scene_path, *, resolution=None, spp: int = 4):
+    def __init__(self, scene_path, *, resolution=None, spp: int = 4, series=()):
+        from mi_amr.workflows.viewer.series import Prefetcher
+
         self.workdir = Path(tempfile.mkdtemp(prefix="mi_amr-view-"))
-        self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0}
+        self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
+                         "steps": 0}
         self._reload_count = 0
+        self.series = [str(f) for f in series]
+        self.prefetch = Prefetcher()
         self.open(scene_path, resolution=resolution, spp=spp)
 
     # ------------------------------------------------------------------ loading
     def open(self, scene_path, *, resolution=None, spp: int = 4) -> ViewState:
         """Show the scene file ``scene_path`` as it is written (its own state). On an
         :class:`AMRError` the session keeps showing what it showed."""
+        self.prefetch.wait()
         saved = dict(self.__dict__)
         try:
             return self._open(scene_path, resolution, spp)
@@ -126,9 +135,32 @@ class Session:
             (512, max(1, round(512 * film[1] / film[0])))
         self.home_camera = scene_camera(scene_path, None, scene)
         self.state = self._read_state(scene_path, spp)
+        if self.series:
+            self._first_step()
         self.up = np.asarray(self.home_camera.up, dtype=np.float64)
         self._write_all()
         return self.state
+
+    def _first_step(self) -> None:
+        """With a series: its files are checked against the scene, and its first step is
+        shown (unless the scene shows one of its steps already)."""
+        from mi_amr.workflows.viewer.series import check_series
+
+        opt = self.integrator.opt
+        check_series(self.series, opt.field, opt.color_field)
+        if self.state.data_file not in self.series:
+            self.integrator.load_volume(self.series[0])
+            self.state = self.state.replace(data_file=self.series[0])
+
+    def prefetch_next(self) -> None:
+        """Prepare the step after the one shown in the background (see :mod:`.series`); the
+        render thread calls it once a step's first frame is out, so that the preparation does
+        not slow that frame down."""
+        from mi_amr.workflows.viewer.series import next_step
+
+        following = next_step(self.series, self.state.data_file)
+        if following is not None:
+            self.prefetch.start(self.integrator, following)
 
     def _write_all(self) -> None:
         """Assign every value once, as later changes will: the first update in a process
@@ -198,6 +230,7 @@ class Session:
         if structure(state) != structure(old):
             return "reload", self._reload(state)
         if state.data_file != old.data_file:
+            self.prefetch.wait()
             self.integrator.load_volume(state.data_file)
         try:
             self._write(state, old)
@@ -259,6 +292,7 @@ class Session:
         path = self.workdir / f"reload_{self._reload_count}.xml"
         path.write_text(scene_text(self.base_path, state, spp=state.spp,
                                    resolution=self.resolution))
+        self.prefetch.wait()
         scene = load_scene(path)
         saved = dict(self.__dict__)
         try:
@@ -360,6 +394,7 @@ class Session:
     def close(self) -> None:
         import shutil
 
+        self.prefetch.wait()
         shutil.rmtree(self.workdir, ignore_errors=True)
 
 

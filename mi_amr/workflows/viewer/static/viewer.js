@@ -13,6 +13,9 @@ let info = null;
 let active = 0;                  // the isovalue the slider moves
 let shown = { version: -1, rank: -1 };
 let sliderHeld = false;
+// Functions of the page's other scripts (timeline.js, bands.js) called with each new state,
+// info and shown frame.
+const hooks = { state: [], info: [], frame: [] };
 
 // ---------------------------------------------------------------- connection
 function connect() {
@@ -81,6 +84,8 @@ function onFrame(buf) {
     img.dataset.version = head.version;
     img.dataset.quality = head.quality;
     img.dataset.spp = head.spp;
+    img.dataset.compiled = JSON.stringify(head.compiled);
+    hooks.frame.forEach((f) => f(head));
     if (previous.startsWith("blob:")) URL.revokeObjectURL(previous);
     $("frame-info").textContent =
       `${head.quality} ${head.width}x${head.height}, ${head.spp} spp, ${head.seconds} s; ` +
@@ -128,6 +133,7 @@ function applyInfo(m) {
   $("quality-note").textContent = `While a control moves: 1 spp at 1/${m.preview_scale} of ` +
     `the size; when idle: refined to the samples per pixel above.`;
   drawHistogram();
+  hooks.info.forEach((f) => f(m));
 }
 
 // A number in `digits` significant digits, without trailing zeros ("0.31", "1000", "1e-05").
@@ -172,7 +178,9 @@ function applyState(s) {
   $("shadows").checked = s.shadows;
   setValue("spp", s.spp);
   $("open-path").placeholder = s.data_file;
+  $("data-name").textContent = s.data_file;
   drawHistogram();
+  hooks.state.forEach((f) => f(s));
 }
 
 function buildIsoList(s) {
