@@ -379,3 +379,38 @@ def test08_band_requests_are_checked():
             bands.change(state, dict(msg, op="band"), ctx)
     with pytest.raises(AMRError, match="volume mode"):
         bands.change(state.replace(mode="surface"), {"op": "band", "peak": 1.0}, ctx)
+
+
+# ---------------------------------------------------------------------- the isovalue scale
+
+def test09_the_slider_scale_is_chosen_from_the_histogram():
+    """Values crammed at one end of their range (like Q: -1.4e6 to -1.4, most near 0) get the
+    percentile scale; evenly spread values the linear one."""
+    from mi_amr.workflows.viewer.state import QUANTILES, slider_scale
+
+    rng = np.random.default_rng(0)
+    q_like = np.concatenate([-1.4 * np.exp(rng.exponential(2.0, 10_000)), [-1.4e6]])
+    level = np.linspace(0.0, 1.0, QUANTILES)
+    assert slider_scale(np.quantile(q_like, level)) == "percentile"
+    assert slider_scale(np.quantile(rng.uniform(0, 1, 10_000), level)) == "linear"
+
+
+def test10_the_percentile_slider_moves_through_the_cells(series_page, series):
+    """On the percentile scale the slider's middle is the median leaf value; on symlog, the
+    slider maps back to the isovalue it shows; linear is the scale of evenly spread data."""
+    page, viewer = series_page, series
+    assert page.get_by_test_id("isovalue-scale").input_value() == "linear"
+    page.get_by_test_id("isovalue-scale").select_option("percentile")
+    quantiles = page.evaluate("() => info.quantiles")
+    v = viewer.state()["version"]
+    page.get_by_test_id("isovalue").fill("500")
+    wait_frame(page, v)
+    iso = settled(page, viewer)["state"]["isovalues"][0]
+    assert iso == pytest.approx(quantiles[len(quantiles) // 2], rel=1e-4)
+    page.get_by_test_id("isovalue-scale").select_option("symlog")
+    position = float(page.get_by_test_id("isovalue").input_value())
+    assert page.evaluate("p => toValue(p)", position) == pytest.approx(iso, rel=1e-6)
+    page.get_by_test_id("isovalue-scale").select_option("linear")
+    lo, hi = page.evaluate("() => info.value_range")
+    # (A linear slider snaps to its step, a thousandth of the range.)
+    assert abs(float(page.get_by_test_id("isovalue").input_value()) - iso) <= (hi - lo) / 1e3

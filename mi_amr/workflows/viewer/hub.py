@@ -121,6 +121,7 @@ class Hub:
         return {"type": "info", "scene": self._shown_path(i["scene"]),
                 "value_range": i["value_range"], "color_data_range": i["color_data_range"],
                 "histogram": i["histogram"], "fields": i["fields"],
+                "quantiles": i["quantiles"], "slider_scale": i["slider_scale"],
                 "methods": params.METHODS, "reconstructions": params.RECONSTRUCTIONS,
                 "layer_modes": params.LAYER_MODES,
                 "modes": params.MODES, "colormaps": COLORMAPS, "files": self.rules.listing(),

@@ -48,6 +48,7 @@ from mi_amr.plugin.scene import load_scene
 from mi_amr.workflows.render import least_pass_spp, pass_samples
 
 HISTOGRAM_BINS = 128
+QUANTILES = 201                 # the isovalue slider's percentile scale: every half percent
 
 
 @dataclass(frozen=True)
@@ -345,8 +346,12 @@ class Session:
 
     def describe(self) -> dict:
         """What the page and the checks need to know about the scene on screen."""
+        values = self._leaf_values()
+        quantiles = np.quantile(values, np.linspace(0.0, 1.0, QUANTILES)).tolist() \
+            if values.size else list(np.linspace(*self.value_range(), QUANTILES))
         return {"scene": str(self.base_path), "value_range": self.value_range(),
                 "color_data_range": self.color_data_range(), "histogram": self.histogram(),
+                "quantiles": quantiles, "slider_scale": slider_scale(quantiles),
                 "fields": self.fields(), "home": self.home_camera,
                 "up": tuple(float(x) for x in self.up), "resolution": tuple(self.resolution)}
 
@@ -357,14 +362,18 @@ class Session:
     def histogram(self) -> list:
         """Counts of the field's leaf-cell values (cells no finer grid covers) in
         :data:`HISTOGRAM_BINS` equal bins over :meth:`value_range`."""
-        volume, field = self.integrator.prep.volume, self.integrator.prep.field
-        values = np.concatenate([np.ravel(volume.grids[g].fields[field][volume.leaf_mask(g)])
-                                 for g in range(len(volume.grids))])
-        values = values[np.isfinite(values)]
+        values = self._leaf_values()
         lo, hi = self.value_range()
         counts, _ = np.histogram(values, bins=HISTOGRAM_BINS, range=(lo, hi if hi > lo else
                                                                       lo + 1.0))
         return counts.tolist()
+
+    def _leaf_values(self) -> np.ndarray:
+        """The field's finite values in the leaf cells (cells no finer grid covers)."""
+        volume, field = self.integrator.prep.volume, self.integrator.prep.field
+        values = np.concatenate([np.ravel(volume.grids[g].fields[field][volume.leaf_mask(g)])
+                                 for g in range(len(volume.grids))])
+        return values[np.isfinite(values)]
 
     # ------------------------------------------------------------------ rendering
     def render(self, size, spp: int, seed: int = 0) -> np.ndarray:
@@ -396,6 +405,18 @@ class Session:
 
         self.prefetch.wait()
         shutil.rmtree(self.workdir, ignore_errors=True)
+
+
+def slider_scale(quantiles) -> str:
+    """The isovalue slider's scale for a field with these quantiles (evenly spaced, from the
+    minimum to the maximum): ``"percentile"`` when the middle 90 % of the leaf cells span less
+    than a tenth of the range (Q's useful values sit at the far edge of a linear slider),
+    else ``"linear"``."""
+    q = np.asarray(quantiles, dtype=np.float64)
+    span = q[-1] - q[0]
+    n = len(q) - 1
+    middle = q[int(round(0.95 * n))] - q[int(round(0.05 * n))]
+    return "percentile" if span > 0 and middle < 0.1 * span else "linear"
 
 
 def _bands(widths, offsets, peaks) -> tuple:
