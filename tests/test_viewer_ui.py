@@ -414,3 +414,48 @@ def test10_the_percentile_slider_moves_through_the_cells(series_page, series):
     lo, hi = page.evaluate("() => info.value_range")
     # (A linear slider snaps to its step, a thousandth of the range.)
     assert abs(float(page.get_by_test_id("isovalue").input_value()) - iso) <= (hi - lo) / 1e3
+
+
+def test11_the_2d_transfer_function_editor(volume_page, volume, tmp_path):
+    """"2D transfer function" loads the scene once with a table over the value x |grad f|
+    histogram and a first blob; moving the blob changes the image and compiles nothing, a
+    blob drawn on the histogram is added, and the saved scene (with its table beside it)
+    renders to the page's image."""
+    page, viewer = volume_page, volume
+    v = viewer.state()["version"]
+    page.get_by_test_id("tf2d-toggle").click()
+    wait_message(page, "Loading the scene again")
+    # (The new structure's kernels compile once: a minute or more on a busy machine.)
+    wait_frame(page, v, timeout=10 * WAIT_MS)
+    state = settled(page, viewer)["state"]
+    assert state["tf2d"] is not None and len(state["tf2d"]["blobs"]) == 1
+    assert page.is_visible("[data-testid=tf2d-editor]")
+    assert not page.is_visible("[data-testid=tf-editor]")
+    compiled = viewer.compiled()
+    image = decode_png(page_png(page), tmp_path)
+    drag_on_page(page, page.evaluate("() => blobCentres()[0]"), 20, 12)
+    moved = settled(page, viewer)["state"]["tf2d"]["blobs"]
+    assert moved[0][0] > state["tf2d"]["blobs"][0][0] and moved[0][1] < \
+        state["tf2d"]["blobs"][0][1], moved
+    assert rmse(decode_png(page_png(page), tmp_path), image) > 1e-3
+    box = page.locator("[data-testid=tf2d-editor]").bounding_box()
+    drag_on_page(page, (box["x"] + 0.05 * box["width"], box["y"] + 0.6 * box["height"]),
+                 0.12 * box["width"], 0.2 * box["height"])
+    blobs = settled(page, viewer)["state"]["tf2d"]["blobs"]
+    assert len(blobs) == 2 and blobs[1][0] < blobs[0][0]
+    after = viewer.compiled()
+    assert after["controls"] == compiled["controls"] == 0, (compiled, after)
+    assert after["reloads"] == compiled["reloads"]
+    shown = page_png(page)
+    page.get_by_test_id("scene-file").fill("tf2d.xml")
+    page.get_by_test_id("save-scene").click()
+    wait_message(page, "Saved the scene")
+    saved = viewer.out / "tf2d.xml"
+    assert "transfer2d" in saved.read_text() and (viewer.out / "tf2d.tf2d.npy").is_file()
+    out = tmp_path / "render.png"
+    run = subprocess.run([sys.executable, "-m", "mi_amr", "render", str(saved), "-o", str(out)],
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    page_image, rendered = decode_png(shown, tmp_path), decode_png(out.read_bytes(), tmp_path)
+    assert rmse(page_image, rendered) <= RMSE
+    assert np.max(np.abs(page_image - rendered)) < 0.02

@@ -18,15 +18,16 @@ from collections import deque
 from pathlib import Path
 
 from mi_amr.errors import AMRError
-from mi_amr.workflows.viewer import bands, controls
+from mi_amr.workflows.viewer import bands, controls, tf2d
 from mi_amr.workflows.viewer.paths import FileRules
-from mi_amr.workflows.viewer.sceneio import MARK, scene_text
+from mi_amr.workflows.viewer.sceneio import MARK, scene_text, write_table
 from mi_amr.workflows.viewer.series import step as step_to
 from mi_amr.workflows.viewer.state import Session, structure
 from mi_amr.workflows.viewer.worker import RenderWorker
 
 CHANGES = ("set", "camera", "add_isovalue", "remove_isovalue", "reset_color_range")
-EDITS = {"band": bands.change}      # the transfer-function editor's requests
+# The transfer-function editor's requests (volume mode: bands, the 2D transfer function).
+EDITS = {"band": bands.change, "tf2d": tf2d.change}
 COLORMAPS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm",
              "RdBu_r", "Spectral_r", "gray")
 KEYFRAME_STEP = 24
@@ -93,7 +94,7 @@ class Hub:
         self.ctx = controls.Context(
             value_range=info["value_range"], color_data_range=info["color_data_range"],
             fields=info["fields"], home=info["home"], up=info["up"],
-            resolution=info["resolution"])
+            resolution=info["resolution"], plane=tf2d.plane_of(info))
 
     # ------------------------------------------------------------------ what pages see
     def state_message(self) -> dict:
@@ -112,7 +113,8 @@ class Hub:
             "band_width": s.band_width[0], "bands": {
                 "width": s.band_width, "offsets": s.band_offsets, "peak": s.band_peak},
             "shadows": s.shadows, "camera": s.camera.as_dict(),
-            "light": light, "spp": s.spp, "structure": list(structure(s))}}
+            "light": light, "spp": s.spp, "structure": list(structure(s)),
+            "tf2d": None if s.tf2d is None else s.tf2d.as_dict()}}
 
     def info_message(self) -> dict:
         from mi_amr import params
@@ -122,6 +124,7 @@ class Hub:
                 "value_range": i["value_range"], "color_data_range": i["color_data_range"],
                 "histogram": i["histogram"], "fields": i["fields"],
                 "quantiles": i["quantiles"], "slider_scale": i["slider_scale"],
+                "histogram2d": i["histogram2d"],
                 "methods": params.METHODS, "reconstructions": params.RECONSTRUCTIONS,
                 "layer_modes": params.LAYER_MODES,
                 "modes": params.MODES, "colormaps": COLORMAPS, "files": self.rules.listing(),
@@ -280,7 +283,7 @@ def save_scene(hub: Hub, client: Client, msg: dict) -> None:
         return
     check_output(path, overwrite=True)
     text = scene_text(hub.worker.session.base_path, hub.state, spp=hub.state.spp,
-                      resolution=size)
+                      resolution=size, tf2d_file=write_table(path, hub.state))
     with replacing(path) as tmp:
         tmp.write_text(text)
     client.post({"type": "saved", "what": "scene", "path": str(path),
@@ -349,7 +352,8 @@ def keyframe_scene(hub: Hub, keyframes: Path) -> Path:
         raise AMRError(f"{path} exists and was not written by the viewer; it is kept. Name "
                        f"the keyframe file otherwise")
     text = scene_text(hub.worker.session.base_path, hub.state, spp=hub.state.spp,
-                      resolution=tuple(hub.worker.session.resolution))
+                      resolution=tuple(hub.worker.session.resolution),
+                      tf2d_file=write_table(path, hub.state))
     with replacing(path) as tmp:
         tmp.write_text(text)
     return path

@@ -76,6 +76,7 @@ class ViewState:
     light_direction: Optional[tuple]    # None: the scene has no directional light
     light_irradiance: Optional[tuple]   # (r, g, b)
     spp: int                        # samples per pixel of the refined image
+    tf2d: Optional[object] = None   # volume mode's 2D transfer function (:class:`.tf2d.TF2D`)
 
     def replace(self, **changes) -> "ViewState":
         return dataclasses.replace(self, **changes)
@@ -85,7 +86,7 @@ def structure(state: ViewState) -> tuple:
     """What the kernels' structure depends on: a change of any of these loads the scene
     again (and compiles its kernels once); every other change is an ``mi.traverse`` update."""
     return (state.field, state.color_field, state.colormap is None, state.mode, state.method,
-            state.reconstruction, state.layers, len(state.isovalues))
+            state.reconstruction, state.layers, len(state.isovalues), state.tf2d is None)
 
 
 def refine_passes(total: int, least: int = 1) -> list:
@@ -266,6 +267,9 @@ class Session:
                                                 state.color_range)
             p[k + "colormap_values"], p[k + "colormap_colors"] = mi.Float(edges), mi.Float(colors)
             p[k + "color_range"] = mi.Float(rng)
+        if state.tf2d is not None and changed("tf2d"):
+            p[k + "transfer2d_table"] = mi.Float(np.ravel(state.tf2d.table()))
+            p[k + "transfer2d_range"] = mi.Float(state.tf2d.plane)
         if state.mode == "volume" and changed("band_width", "band_offsets", "band_peak"):
             p[k + "band_width"] = mi.Float(state.band_width)
             p[k + "band_offsets"] = mi.Float(np.ravel(state.band_offsets))
@@ -287,12 +291,13 @@ class Session:
     def _reload(self, state: ViewState) -> ViewState:
         """Load the scene again for a new kernel structure, from the XML that "save scene"
         would write (so the two cannot drift apart)."""
-        from mi_amr.workflows.viewer.sceneio import scene_text
+        from mi_amr.workflows.viewer.sceneio import scene_text, write_table
 
         self._reload_count += 1
         path = self.workdir / f"reload_{self._reload_count}.xml"
         path.write_text(scene_text(self.base_path, state, spp=state.spp,
-                                   resolution=self.resolution))
+                                   resolution=self.resolution,
+                                   tf2d_file=write_table(path, state)))
         self.prefetch.wait()
         scene = load_scene(path)
         saved = dict(self.__dict__)
@@ -352,6 +357,7 @@ class Session:
         return {"scene": str(self.base_path), "value_range": self.value_range(),
                 "color_data_range": self.color_data_range(), "histogram": self.histogram(),
                 "quantiles": quantiles, "slider_scale": slider_scale(quantiles),
+                "histogram2d": self.histogram2d(),
                 "fields": self.fields(), "home": self.home_camera,
                 "up": tuple(float(x) for x in self.up), "resolution": tuple(self.resolution)}
 
@@ -367,6 +373,15 @@ class Session:
         counts, _ = np.histogram(values, bins=HISTOGRAM_BINS, range=(lo, hi if hi > lo else
                                                                       lo + 1.0))
         return counts.tolist()
+
+    def histogram2d(self):
+        """Volume mode: the value x |grad f| histogram (:func:`.tf2d.histogram2d`)."""
+        from mi_amr.workflows.viewer.tf2d import histogram2d
+
+        if self.state.mode != "volume":
+            return None
+        prep = self.integrator.prep
+        return histogram2d(prep.volume, prep.field, self.value_range())
 
     def _leaf_values(self) -> np.ndarray:
         """The field's finite values in the leaf cells (cells no finer grid covers)."""

@@ -44,7 +44,8 @@ function drawBands() {
   const c = tfCanvas();
   const box = $("tf-fieldset");
   box.hidden = !state || !info || state.mode !== "volume";
-  if (box.hidden || !c.getContext) return;
+  c.hidden = !!(state && state.tf2d);
+  if (box.hidden || c.hidden || !c.getContext) return;
   if (!tf.drag) tf.yMax = Math.max(2, 1.25 * Math.max(...state.bands.peak));
   const g = tfGeometry();
   const ctx = c.getContext("2d");
