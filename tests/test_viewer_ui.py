@@ -289,6 +289,7 @@ def volume_page(browser, volume):
 
 
 def drag_on_page(page, start, dx: float, dy: float) -> None:
+    """A mouse drag from ``start`` (viewport pixels: scroll the target into view first)."""
     x, y = start
     page.mouse.move(x, y)
     page.mouse.down()
@@ -311,6 +312,7 @@ def test06_dragging_a_band_changes_the_image_and_compiles_nothing(volume_page, v
             ("center", 12, 0, lambda s: s["isovalues"][0] > before["isovalues"][0]),
             ("side", 8, 0, lambda s: s["bands"]["width"][0] > before["bands"]["width"][0]),
             ("peak", 0, -25, lambda s: s["bands"]["peak"][0] > before["bands"]["peak"][0])]:
+        page.locator("[data-testid=tf-editor]").scroll_into_view_if_needed()
         drag_on_page(page, page.evaluate("() => bandHandles()[0]")[handle], dx, dy)
         state = settled(page, viewer)["state"]
         assert check(state), (handle, before, state)
@@ -433,7 +435,11 @@ def test11_the_2d_transfer_function_editor(volume_page, volume, tmp_path):
     assert not page.is_visible("[data-testid=tf-editor]")
     compiled = viewer.compiled()
     image = decode_png(page_png(page), tmp_path)
+    page.locator("[data-testid=tf2d-editor]").scroll_into_view_if_needed()
     drag_on_page(page, page.evaluate("() => blobCentres()[0]"), 20, 12)
+    # (The page's last request may reach the server after a first look at its state.)
+    page.wait_for_function("v => state.tf2d.blobs[0][0] !== v",
+                           arg=state["tf2d"]["blobs"][0][0])
     moved = settled(page, viewer)["state"]["tf2d"]["blobs"]
     assert moved[0][0] > state["tf2d"]["blobs"][0][0] and moved[0][1] < \
         state["tf2d"]["blobs"][0][1], moved
@@ -441,6 +447,7 @@ def test11_the_2d_transfer_function_editor(volume_page, volume, tmp_path):
     box = page.locator("[data-testid=tf2d-editor]").bounding_box()
     drag_on_page(page, (box["x"] + 0.05 * box["width"], box["y"] + 0.6 * box["height"]),
                  0.12 * box["width"], 0.2 * box["height"])
+    page.wait_for_function("() => state.tf2d.blobs.length === 2")
     blobs = settled(page, viewer)["state"]["tf2d"]["blobs"]
     assert len(blobs) == 2 and blobs[1][0] < blobs[0][0]
     after = viewer.compiled()
