@@ -385,7 +385,9 @@ def _add_view(sub) -> None:
     s.add_argument("--out", default="out",
                    help="folder the page saves images, scenes and keyframes in (default ./out)")
     s.add_argument("--files", nargs="+", default=[], metavar="FILE",
-                   help="more files the page may open, besides the scene's folder")
+                   help="a time series: data files (globs, quoted: 'run/plt*') shown as the "
+                        "scene's time steps, with a time slider; the page may also open "
+                        "these files")
     s.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"),
                    help="size of the view (default: 512 wide, the scene's aspect)")
     s.add_argument("--spp", type=int, default=4,

@@ -103,7 +103,9 @@ TABLE = (
           "volume mode: a 2D transfer function, opacity by value and "
           "|grad f|: a ``.npy`` table (rows = |grad f| ascending, columns = value) or a "
           "``.png``/``.exr`` image (alpha, else first channel; top row = highest |grad f|); "
-          "relative to the scene file; replaces the bands"),
+          "relative to the scene file; replaces the bands; traversable as "
+          "``transfer2d_table`` (the opacities, row-major) and ``transfer2d_range``",
+          traversable=True),
     Param("transfer2d_range", "4 floats", None,
           "with ``transfer2d``: ``\"v0 v1 g0 g1\"``, the values across its columns (field) "
           "and the |grad f| across its rows (field per volume-world unit)"),

@@ -220,9 +220,11 @@ def test04_changes_that_would_break_the_structure_are_refused(variant, files):
 def test05_the_traversable_parameters_are_the_tables():
     """What the integrator puts in ``mi.traverse`` is what the parameter table marks."""
     marked = set(params.TRAVERSABLE)
-    put = set(CHANGES) | {"colormap_values", "colormap_colors"}
+    put = set(CHANGES) | {"colormap_values", "colormap_colors", "transfer2d_table",
+                          "transfer2d_range"}
     renamed = {"colormap": {"colormap_values", "colormap_colors"},
-               "band_support": {"band_offsets"}}
+               "band_support": {"band_offsets"},
+               "transfer2d": {"transfer2d_table", "transfer2d_range"}}
     for name, keys in renamed.items():
         assert name in marked
         marked = (marked - {name}) | keys

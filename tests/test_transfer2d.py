@@ -304,3 +304,46 @@ def test10_plt_eb_3d_wall_with_less_haze(variant, tmp_path, method):
                                                         np.abs(d - radius) < h1)
     assert haze1 > 0.5 and haze2 < 0.02 * haze1, f"haze {haze2:.3g} against {haze1:.3g}"
     assert wall2 > 0.05 and wall2 > 0.3 * wall1, f"wall {wall2:.3g} against {wall1:.3g}"
+
+
+def test10_a_table_set_through_traverse_compiles_nothing(variant, folder):
+    """``integrator.transfer2d_table`` and ``transfer2d_range`` in ``mi.traverse``: a new table
+    and range of the same shape render without compiling, as a scene loaded with that table
+    renders; another shape or an opacity above 1 is refused, naming the parameter."""
+    import drjit as dr
+
+    from mi_amr.plugin.scene import load_scene
+
+    mi = variant
+    rng = np.random.default_rng(2)
+    other = threshold_table() * rng.uniform(0.2, 1.0, (9, 33))
+    np.save(folder / "t_other.npy", other)
+    other_range = f"{ISO - 3 * BW:g} {ISO + 2 * BW:g} 0 {G_MAX / 2:g}"
+    expected = render(mi, scene(folder, table_xml("t_other.npy", other_range)))
+    gc.collect()
+    live = load_scene(scene(folder, table_xml()))
+    first = mi.render(live)
+    dr.eval(first)
+    params = mi.traverse(live)
+    table = next(k for k in params.keys() if k.endswith(".transfer2d_table"))
+    params[table] = mi.Float(other.ravel())
+    params[table.replace("_table", "_range")] = mi.Float([float(x) for x in
+                                                          other_range.split()])
+    params.update()
+
+    def again():
+        img = mi.render(live)
+        dr.eval(img)
+        return np.array(img, dtype=np.float64)[..., 0]
+
+    image, compiled = kernels_compiled(again)
+    assert compiled == 0
+    assert not np.allclose(image, np.array(first, dtype=np.float64)[..., 0])
+    np.testing.assert_allclose(image, expected, atol=1e-5)
+    for value, message in [(np.zeros(10), "must keep 297 value"),
+                           (np.full(297, 1.5), "opacities must lie in")]:
+        params[table] = mi.Float(value)
+        with pytest.raises(AMRError, match=message):
+            params.update()
+        params[table] = mi.Float(other.ravel())
+        params.update()

@@ -510,7 +510,8 @@ def test12_the_newest_request_wins(variant):
 
     class SlowScene:
         resolution = (8, 8)
-        compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0}
+        compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
+                    "steps": 0}
 
         def __init__(self):
             self.state, self.applied = base, []
@@ -526,6 +527,9 @@ def test12_the_newest_request_wins(variant):
 
         def render_refined(self, size, spp, before_pass=None):
             return None if before_pass and before_pass() else self.render(size, spp)
+
+        def prefetch_next(self):            # no time series
+            pass
 
         def close(self):
             pass

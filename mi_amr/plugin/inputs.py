@@ -18,9 +18,13 @@ color_range          2 floats (field units)       with a colour map
 band_width           k floats (field units)       volume mode (one band per isovalue)
 band_offsets         2 k floats: support - iso    volume mode
 band_peak            k floats                     volume mode
+transfer2d_table     rows x cols opacities        with a 2D transfer function (its table,
+                     (row-major, rows = |grad f|)  from a file or rasterized blobs)
+transfer2d_range     4 floats: v0 v1 g0 g1        with a 2D transfer function
 ===================  ===========================  ==========================================
 
-``k`` (the number of isovalues) and the table sizes are part of the scene's structure: a change
+``k`` (the number of isovalues) and the table sizes (the 2D table's shape too) are part of the
+scene's structure: a change
 of size is refused (load the scene again). :func:`colormap_table` makes the two colour-map
 arrays from a map name or pairs, e.g. for a viewer.
 """
@@ -35,6 +39,7 @@ from mi_amr.errors import AMRError
 from mi_amr.kernels.band import band_inputs, band_shape
 from mi_amr.kernels.colormap import ColorMap, check_range
 from mi_amr.kernels.device import opaque_bools, opaque_floats
+from mi_amr.core.transfer2d import Transfer2D
 from mi_amr.kernels.transfer2d import transfer2d_inputs
 
 PHONG = ("ka", "kd", "ks", "shininess", "ambient")
@@ -81,6 +86,12 @@ class FrameInputs:
             self.values.update(band_width=m.Float(opt.band_width),
                                band_offsets=m.Float(np.ravel(offsets)),
                                band_peak=m.Float(opt.band_peak))
+        if transfer2d is not None:
+            self._t2d_shape = transfer2d.shape
+            self.values.update(
+                transfer2d_table=m.Float(transfer2d.table.ravel()),
+                transfer2d_range=m.Float([transfer2d.v0, transfer2d.v1, transfer2d.g0,
+                                          transfer2d.g1]))
         self._sizes = {name: dr.width(v) for name, v in self.values.items()}
         self.refresh()
 
@@ -111,8 +122,12 @@ class FrameInputs:
         self._kernel = {name: opaque_floats(m, v) for name, v in host.items() if name != "shadows"}
         self._kernel["shadows"] = opaque_bools(m, host["shadows"] != 0)
         self.band = None
-        self.transfer2d = None if self.transfer2d_host is None else \
-            transfer2d_inputs(m, self.transfer2d_host, self.min_h)
+        self.transfer2d = None
+        if "transfer2d_table" in host:
+            self.transfer2d_host = Transfer2D(host["transfer2d_table"].reshape(self._t2d_shape),
+                                              *host["transfer2d_range"],
+                                              source="amr_iso: 'transfer2d_table'")
+            self.transfer2d = transfer2d_inputs(m, self.transfer2d_host, self.min_h)
         if "band_width" in host:
             offsets = host["band_offsets"].reshape(-1, 2)
             self.band = band_inputs(m, [band_shape(float(w), tuple(map(float, o)), float(p),

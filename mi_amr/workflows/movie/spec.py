@@ -5,7 +5,8 @@ keyframe file. NumPy and the standard library only: specs travel to Dask workers
 Keyframe files (UTF-8 TOML or JSON) list keyframes with a ``frame`` number (increasing, 0 to
 2^32 - 1: a frame's number is its sampler's 32-bit seed) and any of ``origin``, ``target``,
 ``up`` (3 numbers, scene world space; ``up`` not zero), ``fov`` (degrees, between 0 and 180),
-``isovalue`` and ``color_range`` (2 numbers, low < high), every number finite within float32::
+``isovalue``, ``color_range`` (2 numbers, low < high) and ``step`` (the time step: an index into
+``--files``, from 0), every number finite within float32::
 
     [[keyframe]]
     frame = 0
@@ -17,11 +18,14 @@ Keyframe files (UTF-8 TOML or JSON) list keyframes with a ``frame`` number (incr
     frame = 48
     origin = [4.0, -6.0, 2.0]
     isovalue = 0.08
+    step = 3
 
 (JSON: ``{"keyframe": [{...}, ...]}`` or a plain list.) Between keyframes the camera's origin
 and target follow Catmull-Rom curves through the keyframes' values (a smooth path), ``up``,
 ``fov`` and the scalars go linearly; before the first and after the last keyframe values hold.
-A value no keyframe gives is the scene's own.
+A value no keyframe gives is the scene's own. ``step`` goes linearly too, to the nearest step:
+keyframes with steps replay a path through time (and need ``--files``), without them the files
+are spread evenly over the frames.
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ import numpy as np
 
 from mi_amr.errors import AMRError
 
-KEYFRAME_KEYS = ("frame", "origin", "target", "up", "fov", "isovalue", "color_range")
+KEYFRAME_KEYS = ("frame", "origin", "target", "up", "fov", "isovalue", "color_range", "step")
 VECTORS = ("origin", "target", "up")
 # A frame's number is its sampler's seed, a 32-bit unsigned integer: frames 0 .. 2^32 - 1.
 MAX_FRAMES = 2 ** 32
@@ -218,6 +222,9 @@ def _check_keyframe(path, i, k) -> dict:
                        f"degrees, between 0 and 180 (both excluded), got {out['fov']:g}")
     if "up" in out and not any(out["up"]):
         raise AMRError(f"{path}: keyframe {i + 1}: 'up' must not be the zero vector")
+    if "step" in out and not (out["step"] >= 0 and out["step"] == int(out["step"])):
+        raise AMRError(f"{path}: keyframe {i + 1}: 'step' needs a whole number >= 0 (an index "
+                       f"into --files), got {k['step']!r}")
     return out
 
 
@@ -280,7 +287,7 @@ def keyframe_value(keys, name, t, default):
 
 
 def append_keyframe(path, frame: int, camera: dict | None = None, isovalue=None,
-                    color_range=None) -> dict:
+                    color_range=None, step=None) -> dict:
     """Add a keyframe to the file ``path`` (JSON, or TOML by its suffix; made when missing) and
     write it atomically. The frame number must be above the file's last one."""
     path = Path(path)
@@ -295,6 +302,8 @@ def append_keyframe(path, frame: int, camera: dict | None = None, isovalue=None,
         new["isovalue"] = float(isovalue)
     if color_range is not None:
         new["color_range"] = [float(x) for x in color_range]
+    if step is not None:
+        new["step"] = int(step)
     keys.append(_check_keyframe(path, len(keys), new))
     text = _toml(keys) if path.suffix.lower() == ".toml" else json.dumps({"keyframe": keys},
                                                                          indent=2) + "\n"
@@ -305,11 +314,12 @@ def append_keyframe(path, frame: int, camera: dict | None = None, isovalue=None,
 
 
 def _toml(keys) -> str:
-    def value(v):
-        return "[" + ", ".join(repr(float(x)) for x in v) + "]" if isinstance(v, list) \
-            else str(v) if isinstance(v, int) else repr(float(v))
+    def value(k, v):
+        if isinstance(v, list):
+            return "[" + ", ".join(repr(float(x)) for x in v) + "]"
+        return str(int(v)) if isinstance(v, int) or k == "step" else repr(float(v))
 
-    blocks = ["[[keyframe]]\n" + "".join(f"{k} = {value(v)}\n" for k, v in key.items())
+    blocks = ["[[keyframe]]\n" + "".join(f"{k} = {value(k, v)}\n" for k, v in key.items())
               for key in keys]
     return "\n".join(blocks)
 
@@ -319,18 +329,20 @@ def _toml(keys) -> str:
 def plan(frames: int | None, *, camera: dict, files=None, orbit_degrees=None, isovalues=None,
          keyframes=None, color_range=None) -> "Plan":
     """The frames of a movie (see the module docstring), checked here and computed one by one
-    as they are asked for (:class:`Plan`). ``frames`` defaults to the number of files, else to
-    the last keyframe + 1, else to 60. With more frames than files each time step is held for
-    several frames."""
+    as they are asked for (:class:`Plan`). ``frames`` defaults to the last keyframe + 1 when the
+    keyframes give time steps, else to the number of files, else to the last keyframe + 1, else
+    to 60. With more frames than files each time step is held for several frames."""
     files = list(files or [])
+    stepped = _check_steps(keyframes, files)
     if frames is None:
-        frames = len(files) or (keyframes[-1]["frame"] + 1 if keyframes else 60)
+        frames = keyframes[-1]["frame"] + 1 if stepped else \
+            len(files) or (keyframes[-1]["frame"] + 1 if keyframes else 60)
     check_frames(frames)
     check_orbit(orbit_degrees)
     if orbit_degrees and not any(camera["up"]):
         raise AMRError("--orbit: the camera's up vector is zero; give the scene's <lookat> an up")
     return Plan(frames, camera, files, orbit_degrees,
-                parse_sweep(isovalues) if isovalues else None, keyframes, color_range)
+                parse_sweep(isovalues) if isovalues else None, keyframes, color_range, stepped)
 
 
 def check_frames(frames) -> None:
@@ -355,10 +367,11 @@ class Plan(Sequence):
     10^8 frames starts rendering at once, in constant memory. ``files``: the time series."""
 
     def __init__(self, count, camera, files, orbit_degrees, sweep_ends, keyframes,
-                 color_range):
+                 color_range, stepped=False):
         self.count, self.camera, self.files = count, camera, files
         self.orbit_degrees, self.sweep_ends = orbit_degrees, sweep_ends
         self.keyframes, self.color_range = keyframes, color_range
+        self.stepped = stepped      # the keyframes give the time step of each frame
 
     def __len__(self) -> int:
         return self.count
@@ -380,6 +393,23 @@ class Plan(Sequence):
             cam = {k: keyframe_value(keys, k, i, cam[k]) for k in (*VECTORS, "fov")}
             iso = keyframe_value(keys, "isovalue", i, iso)
             rng = keyframe_value(keys, "color_range", i, rng)
-        step = files[min(i * len(files) // n, len(files) - 1)] if files else None
+        if self.stepped:
+            step = files[int(math.floor(keyframe_value(keys, "step", i, 0.0) + 0.5))]
+        else:
+            step = files[min(i * len(files) // n, len(files) - 1)] if files else None
         return FrameSpec(index=i, file=step, camera=cam, isovalue=iso,
                          color_range=None if rng is None else tuple(rng))
+
+
+def _check_steps(keyframes, files) -> bool:
+    """Whether the keyframes give time steps (then each one must name one of ``files``)."""
+    steps = [int(k["step"]) for k in keyframes or () if "step" in k]
+    if not steps:
+        return False
+    if not files:
+        raise AMRError("the keyframes give time steps ('step'): pass the time series with "
+                       "--files (the files the viewer stepped through, in the same order)")
+    if max(steps) >= len(files):
+        raise AMRError(f"a keyframe shows time step {max(steps)}, but --files gives "
+                       f"{len(files)} file(s) (steps 0 to {len(files) - 1})")
+    return True

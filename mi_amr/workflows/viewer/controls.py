@@ -35,6 +35,7 @@ class Context:
     home: Camera                # the scene file's camera ("reset")
     up: tuple                   # the scene's up (the light's elevation is measured from it)
     resolution: tuple           # the view's (width, height)
+    plane: tuple = (0.0, 1.0, 0.0, 1.0)     # a new 2D transfer function's (v0, v1, g0, g1)
 
 
 # ---------------------------------------------------------------------- values

@@ -18,13 +18,16 @@ from collections import deque
 from pathlib import Path
 
 from mi_amr.errors import AMRError
-from mi_amr.workflows.viewer import controls
+from mi_amr.workflows.viewer import bands, controls, tf2d
 from mi_amr.workflows.viewer.paths import FileRules
-from mi_amr.workflows.viewer.sceneio import scene_text
+from mi_amr.workflows.viewer.sceneio import MARK, scene_text, write_table
+from mi_amr.workflows.viewer.series import step as step_to
 from mi_amr.workflows.viewer.state import Session, structure
 from mi_amr.workflows.viewer.worker import RenderWorker
 
 CHANGES = ("set", "camera", "add_isovalue", "remove_isovalue", "reset_color_range")
+# The transfer-function editor's requests (volume mode: bands, the 2D transfer function).
+EDITS = {"band": bands.change, "tf2d": tf2d.change}
 COLORMAPS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm",
              "RdBu_r", "Spectral_r", "gray")
 KEYFRAME_STEP = 24
@@ -64,9 +67,12 @@ class Hub:
     """The viewer of ``scene_path``: file rules, the render thread, the shared state."""
 
     def __init__(self, scene_path, *, out_dir="out", files=(), resolution=None, spp: int = 4,
-                 preview_scale: int = 2, idle_s: float = 0.3):
+                 preview_scale: int = 2, idle_s: float = 0.3, series=()):
         self.rules = FileRules(scene_path, files, out_dir)
-        self.worker = RenderWorker(lambda: Session(scene_path, resolution=resolution, spp=spp),
+        self.series = [str(f) for f in series]
+        self.series_spec = ""           # the series as given on the command line (for hints)
+        self.worker = RenderWorker(lambda: Session(scene_path, resolution=resolution, spp=spp,
+                                                   series=self.series),
                                    self.from_worker, preview_scale=preview_scale, idle_s=idle_s)
         self.clients = set()
         self.loop = None
@@ -88,7 +94,7 @@ class Hub:
         self.ctx = controls.Context(
             value_range=info["value_range"], color_data_range=info["color_data_range"],
             fields=info["fields"], home=info["home"], up=info["up"],
-            resolution=info["resolution"])
+            resolution=info["resolution"], plane=tf2d.plane_of(info))
 
     # ------------------------------------------------------------------ what pages see
     def state_message(self) -> dict:
@@ -104,8 +110,11 @@ class Hub:
             "iso_colors": [controls.linear_to_hex(c) for c in s.iso_colors],
             "iso_opacity": s.iso_opacity, "mode": s.mode, "method": s.method,
             "reconstruction": s.reconstruction, "layers": s.layers, "step_scale": s.step_scale,
-            "band_width": s.band_width[0], "shadows": s.shadows, "camera": s.camera.as_dict(),
-            "light": light, "spp": s.spp, "structure": list(structure(s))}}
+            "band_width": s.band_width[0], "bands": {
+                "width": s.band_width, "offsets": s.band_offsets, "peak": s.band_peak},
+            "shadows": s.shadows, "camera": s.camera.as_dict(),
+            "light": light, "spp": s.spp, "structure": list(structure(s)),
+            "tf2d": None if s.tf2d is None else s.tf2d.as_dict()}}
 
     def info_message(self) -> dict:
         from mi_amr import params
@@ -114,18 +123,22 @@ class Hub:
         return {"type": "info", "scene": self._shown_path(i["scene"]),
                 "value_range": i["value_range"], "color_data_range": i["color_data_range"],
                 "histogram": i["histogram"], "fields": i["fields"],
+                "quantiles": i["quantiles"], "slider_scale": i["slider_scale"],
+                "histogram2d": i["histogram2d"],
                 "methods": params.METHODS, "reconstructions": params.RECONSTRUCTIONS,
                 "layer_modes": params.LAYER_MODES,
                 "modes": params.MODES, "colormaps": COLORMAPS, "files": self.rules.listing(),
                 "out_dir": str(self.rules.out_dir), "resolution": i["resolution"],
                 "preview_scale": self.worker.preview_scale,
-                "max_isovalues": params.MAX_ISOVALUES}
+                "max_isovalues": params.MAX_ISOVALUES,
+                "series": [self._shown_path(f) for f in self.series]}
 
     def status(self) -> dict:
         session = self.worker.session
         return {"version": self.version, "compiled": dict(session.compiled),
                 "frames": dict(self.worker.frames), "dropped": self.worker.dropped,
-                "clients": len(self.clients), "resolution": list(session.resolution)}
+                "clients": len(self.clients), "resolution": list(session.resolution),
+                "prepared": session.prefetch.finished()}
 
     def _shown_path(self, path) -> str:
         p = Path(path)
@@ -163,6 +176,8 @@ class Hub:
             op = msg.get("op")
             if op in CHANGES:
                 self._change(controls.change(self.state, msg, self.ctx))
+            elif op in EDITS:
+                self._change(EDITS[op](self.state, msg, self.ctx))
             elif op in ACTIONS:
                 ACTIONS[op](self, client, msg)
             else:
@@ -268,7 +283,7 @@ def save_scene(hub: Hub, client: Client, msg: dict) -> None:
         return
     check_output(path, overwrite=True)
     text = scene_text(hub.worker.session.base_path, hub.state, spp=hub.state.spp,
-                      resolution=size)
+                      resolution=size, tf2d_file=write_table(path, hub.state))
     with replacing(path) as tmp:
         tmp.write_text(text)
     client.post({"type": "saved", "what": "scene", "path": str(path),
@@ -313,12 +328,35 @@ def add_keyframe(hub: Hub, client: Client, msg: dict) -> None:
         frame = keys[-1]["frame"] + KEYFRAME_STEP if keys else 0
     frame = int(controls.number(frame, "keyframe frame", 0, 10 ** 7))
     s = hub.state
+    scene = keyframe_scene(hub, path)
+    step = hub.series.index(s.data_file) if s.data_file in hub.series else None
     append_keyframe(path, frame, camera=s.camera.as_dict(), isovalue=s.isovalues[0],
-                    color_range=s.color_range)
+                    color_range=s.color_range, step=step)
+    files = f" --files '{hub.series_spec}'" if step is not None and hub.series_spec else ""
     client.post({"type": "saved", "what": "keyframe", "path": str(path),
                  "next_frame": frame + KEYFRAME_STEP,
-                 "message": f"Added keyframe {frame} to {path} (python -m mi_amr movie "
-                            f"--keyframes {path})"})
+                 "message": f"Added keyframe {frame} to {path}; {scene.name} beside it holds "
+                            f"the view's colours and styling (python -m mi_amr movie {scene} "
+                            f"--keyframes {path}{files} -o movie)"})
+
+
+def keyframe_scene(hub: Hub, keyframes: Path) -> Path:
+    """Write the view as a scene beside the keyframe file (``keyframes.toml`` ->
+    ``keyframes.xml``): what the keyframes do not record (colour map, styling, bands, method)
+    is the page's, so ``movie`` on this scene renders the colours the page showed. A file of
+    that name that the viewer did not write is kept (refused)."""
+    from mi_amr.core.atomic import replacing
+
+    path = keyframes.with_suffix(".xml")
+    if path.exists() and MARK not in path.read_text(errors="replace")[:2000]:
+        raise AMRError(f"{path} exists and was not written by the viewer; it is kept. Name "
+                       f"the keyframe file otherwise")
+    text = scene_text(hub.worker.session.base_path, hub.state, spp=hub.state.spp,
+                      resolution=tuple(hub.worker.session.resolution),
+                      tf2d_file=write_table(path, hub.state))
+    with replacing(path) as tmp:
+        tmp.write_text(text)
+    return path
 
 
 def open_file(hub: Hub, client: Client, msg: dict) -> None:
@@ -338,4 +376,4 @@ def open_file(hub: Hub, client: Client, msg: dict) -> None:
 
 
 ACTIONS = {"save_scene": save_scene, "save_image": save_image, "add_keyframe": add_keyframe,
-           "open": open_file}
+           "open": open_file, "step": step_to}

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from mi_amr.errors import AMRError
 
+MARK = "Written by 'python -m mi_amr view'"     # the first comment of a scene it writes
 # The integrator's parameters the viewer owns: (name, XML tag).
 OWNED = (("filename", "string"), ("field", "string"), ("isovalue", "string"),
          ("iso_color", "string"), ("iso_opacity", "string"), ("color_field", "string"),
@@ -30,7 +31,8 @@ def num(x) -> str:
 
 def integrator_values(state) -> dict:
     """The owned parameters' values as scene text (None: leave the parameter out)."""
-    volume = state.mode == "volume"
+    # (a 2D transfer function replaces the bands: the integrator refuses band parameters)
+    volume = state.mode == "volume" and state.tf2d is None
     support = "; ".join(f"{num(iso + lo)} {num(iso + hi)}"
                         for iso, (lo, hi) in zip(state.isovalues, state.band_offsets))
     return {
@@ -51,10 +53,11 @@ def integrator_values(state) -> dict:
     }
 
 
-def scene_text(base_path, state, *, spp: int, resolution) -> str:
+def scene_text(base_path, state, *, spp: int, resolution, tf2d_file=None) -> str:
     """The scene file ``base_path`` showing ``state`` at ``resolution`` ``(width, height)``
     pixels and ``spp`` samples per pixel (as the ``spp``, ``resx`` and ``resy`` defaults, so
-    ``render --spp/--resolution`` still apply)."""
+    ``render --spp/--resolution`` still apply). With a 2D transfer function, ``tf2d_file`` is
+    its table (written by :func:`write_table`)."""
     base_path = Path(base_path)
     try:
         tree = ET.parse(str(base_path), parser=ET.XMLParser(
@@ -77,13 +80,20 @@ def scene_text(base_path, state, *, spp: int, resolution) -> str:
         if values[name] is not None:
             _set_child(integrator, dict(OWNED)[name], name, f"${default}")
             _set_defaults(root, {default: str(values[name])})
+    if state.tf2d is not None:
+        if tf2d_file is None:
+            raise AMRError("the view's 2D transfer function needs its table file")
+        _set_child(integrator, "string", "transfer2d_blobs", None)
+        _set_child(integrator, "string", "transfer2d", str(Path(tf2d_file).resolve()))
+        _set_child(integrator, "string", "transfer2d_range",
+                   " ".join(num(x) for x in state.tf2d.plane))
     _set_sensor(root, state.camera)
     if state.light_direction is not None:
         _set_light(root, state.light_direction, state.light_irradiance)
     _set_defaults(root, {"spp": str(int(spp)), "resx": str(int(resolution[0])),
                          "resy": str(int(resolution[1]))})
     _drop_unused_defaults(root, keep=("spp", "resx", "resy"))
-    root.insert(0, ET.Comment(f" Written by 'python -m mi_amr view' from {base_path.resolve()} "))
+    root.insert(0, ET.Comment(f" {MARK} from {base_path.resolve()} "))
     ET.indent(tree, space="    ")
     return ET.tostring(root, encoding="unicode") + "\n"
 
@@ -110,6 +120,22 @@ def _drop_unused_defaults(root, keep=()) -> None:
                 used.update(re.findall(r"\$(\w+)", value))
     for d in [d for d in root.findall("default") if d.get("name") not in used]:
         root.remove(d)
+
+
+def write_table(scene_path, state):
+    """The 2D transfer function's table of ``state`` written beside the scene file
+    ``scene_path`` (``NAME.tf2d.npy``, atomically); None without one."""
+    import numpy as np
+
+    from mi_amr.core.atomic import replacing
+
+    if state.tf2d is None:
+        return None
+    path = Path(scene_path).with_suffix(".tf2d.npy")
+    with replacing(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.save(f, state.tf2d.table(), allow_pickle=False)
+    return path
 
 
 def _absolute_filenames(root, folder: Path, defaults: dict) -> None:

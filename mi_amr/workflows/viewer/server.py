@@ -134,12 +134,16 @@ def bind(host: str, port: int) -> socket.socket:
 def serve(scene, *, host: str = "127.0.0.1", port: int = 8080, open_browser: bool = True,
           out_dir="out", files=(), resolution=None, spp: int = 4, preview_scale: int = 2,
           variant: str = "llvm_ad_rgb") -> None:
-    """``python -m mi_amr view``: load ``scene``, serve the page until interrupted."""
+    """``python -m mi_amr view``: load ``scene``, serve the page until interrupted. ``files``:
+    globs or paths (:func:`~mi_amr.workflows.movie.spec.expand_files`) the page may open; their
+    data files are the time steps of the scene (:mod:`.series`)."""
     import mitsuba as mi
     import uvicorn
 
     from mi_amr.plugin.integrator import register
+    from mi_amr.workflows.movie.spec import expand_files
     from mi_amr.workflows.viewer.hub import Hub
+    from mi_amr.workflows.viewer.series import expand_series
 
     if variant not in mi.variants():
         raise AMRError(f"variant '{variant}' is not available; choose from {mi.variants()}")
@@ -149,9 +153,11 @@ def serve(scene, *, host: str = "127.0.0.1", port: int = 8080, open_browser: boo
     warning = host_warning(host)
     if warning:
         print(warning, file=sys.stderr, flush=True)
+    listed = expand_files(list(files)) if files else []
     sock = bind(host, port)
-    hub = Hub(scene, out_dir=out_dir, files=files, resolution=resolution, spp=spp,
-              preview_scale=preview_scale)
+    hub = Hub(scene, out_dir=out_dir, files=listed, resolution=resolution, spp=spp,
+              preview_scale=preview_scale, series=expand_series(listed))
+    hub.series_spec = ",".join(str(f) for f in files)
     print(f"loading {scene} ...", flush=True)
     hub.start()
     shown = f"[{host}]" if ":" in host else host

@@ -16,7 +16,8 @@ camera                      the sensor's ``to_world`` and ``x_fov``             
 light                       the directional emitter's ``to_world`` and             no
                             ``irradiance.value``
 preview / image size        the film's ``size``                                    once a size
-data file (time step)       ``integrator.load_volume`` (same fields)               no
+data file (time step)       ``integrator.load_volume`` (same fields; the next      no
+                            step prepared meanwhile, :mod:`.series`)
 method, reconstruction,     the scene is loaded again (:func:`structure`)          yes (once)
 layers, mode, field, colour
 field, number of isovalues
@@ -47,6 +48,7 @@ from mi_amr.plugin.scene import load_scene
 from mi_amr.workflows.render import least_pass_spp, pass_samples
 
 HISTOGRAM_BINS = 128
+QUANTILES = 201                 # the isovalue slider's percentile scale: every half percent
 
 
 @dataclass(frozen=True)
@@ -74,6 +76,7 @@ class ViewState:
     light_direction: Optional[tuple]    # None: the scene has no directional light
     light_irradiance: Optional[tuple]   # (r, g, b)
     spp: int                        # samples per pixel of the refined image
+    tf2d: Optional[object] = None   # volume mode's 2D transfer function (:class:`.tf2d.TF2D`)
 
     def replace(self, **changes) -> "ViewState":
         return dataclasses.replace(self, **changes)
@@ -83,7 +86,7 @@ def structure(state: ViewState) -> tuple:
     """What the kernels' structure depends on: a change of any of these loads the scene
     again (and compiles its kernels once); every other change is an ``mi.traverse`` update."""
     return (state.field, state.color_field, state.colormap is None, state.mode, state.method,
-            state.reconstruction, state.layers, len(state.isovalues))
+            state.reconstruction, state.layers, len(state.isovalues), state.tf2d is None)
 
 
 def refine_passes(total: int, least: int = 1) -> list:
@@ -96,18 +99,26 @@ def refine_passes(total: int, least: int = 1) -> list:
 
 class Session:
     """The scene on screen: loaded from ``scene_path``, shown at ``resolution`` (pixels,
-    ``(width, height)``), changed to each new :class:`ViewState` by :meth:`apply`."""
+    ``(width, height)``), changed to each new :class:`ViewState` by :meth:`apply`.
+    ``series``: data files (absolute paths) shown as the time steps of the scene (the first
+    one at start; see :mod:`.series`)."""
 
-    def __init__(self, scene_path, *, resolution=None, spp: int = 4):
+    def __init__(self, scene_path, *, resolution=None, spp: int = 4, series=()):
+        from mi_amr.workflows.viewer.series import Prefetcher
+
         self.workdir = Path(tempfile.mkdtemp(prefix="mi_amr-view-"))
-        self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0}
+        self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
+                         "steps": 0}
         self._reload_count = 0
+        self.series = [str(f) for f in series]
+        self.prefetch = Prefetcher()
         self.open(scene_path, resolution=resolution, spp=spp)
 
     # ------------------------------------------------------------------ loading
     def open(self, scene_path, *, resolution=None, spp: int = 4) -> ViewState:
         """Show the scene file ``scene_path`` as it is written (its own state). On an
         :class:`AMRError` the session keeps showing what it showed."""
+        self.prefetch.wait()
         saved = dict(self.__dict__)
         try:
             return self._open(scene_path, resolution, spp)
@@ -126,9 +137,32 @@ class Session:
             (512, max(1, round(512 * film[1] / film[0])))
         self.home_camera = scene_camera(scene_path, None, scene)
         self.state = self._read_state(scene_path, spp)
+        if self.series:
+            self._first_step()
         self.up = np.asarray(self.home_camera.up, dtype=np.float64)
         self._write_all()
         return self.state
+
+    def _first_step(self) -> None:
+        """With a series: its files are checked against the scene, and its first step is
+        shown (unless the scene shows one of its steps already)."""
+        from mi_amr.workflows.viewer.series import check_series
+
+        opt = self.integrator.opt
+        check_series(self.series, opt.field, opt.color_field)
+        if self.state.data_file not in self.series:
+            self.integrator.load_volume(self.series[0])
+            self.state = self.state.replace(data_file=self.series[0])
+
+    def prefetch_next(self) -> None:
+        """Prepare the step after the one shown in the background (see :mod:`.series`); the
+        render thread calls it once a step's first frame is out, so that the preparation does
+        not slow that frame down."""
+        from mi_amr.workflows.viewer.series import next_step
+
+        following = next_step(self.series, self.state.data_file)
+        if following is not None:
+            self.prefetch.start(self.integrator, following)
 
     def _write_all(self) -> None:
         """Assign every value once, as later changes will: the first update in a process
@@ -198,6 +232,7 @@ class Session:
         if structure(state) != structure(old):
             return "reload", self._reload(state)
         if state.data_file != old.data_file:
+            self.prefetch.wait()
             self.integrator.load_volume(state.data_file)
         try:
             self._write(state, old)
@@ -232,6 +267,9 @@ class Session:
                                                 state.color_range)
             p[k + "colormap_values"], p[k + "colormap_colors"] = mi.Float(edges), mi.Float(colors)
             p[k + "color_range"] = mi.Float(rng)
+        if state.tf2d is not None and changed("tf2d"):
+            p[k + "transfer2d_table"] = mi.Float(np.ravel(state.tf2d.table()))
+            p[k + "transfer2d_range"] = mi.Float(state.tf2d.plane)
         if state.mode == "volume" and changed("band_width", "band_offsets", "band_peak"):
             p[k + "band_width"] = mi.Float(state.band_width)
             p[k + "band_offsets"] = mi.Float(np.ravel(state.band_offsets))
@@ -253,12 +291,14 @@ class Session:
     def _reload(self, state: ViewState) -> ViewState:
         """Load the scene again for a new kernel structure, from the XML that "save scene"
         would write (so the two cannot drift apart)."""
-        from mi_amr.workflows.viewer.sceneio import scene_text
+        from mi_amr.workflows.viewer.sceneio import scene_text, write_table
 
         self._reload_count += 1
         path = self.workdir / f"reload_{self._reload_count}.xml"
         path.write_text(scene_text(self.base_path, state, spp=state.spp,
-                                   resolution=self.resolution))
+                                   resolution=self.resolution,
+                                   tf2d_file=write_table(path, state)))
+        self.prefetch.wait()
         scene = load_scene(path, pixel_format="rgba")
         saved = dict(self.__dict__)
         try:
@@ -311,8 +351,13 @@ class Session:
 
     def describe(self) -> dict:
         """What the page and the checks need to know about the scene on screen."""
+        values = self._leaf_values()
+        quantiles = np.quantile(values, np.linspace(0.0, 1.0, QUANTILES)).tolist() \
+            if values.size else list(np.linspace(*self.value_range(), QUANTILES))
         return {"scene": str(self.base_path), "value_range": self.value_range(),
                 "color_data_range": self.color_data_range(), "histogram": self.histogram(),
+                "quantiles": quantiles, "slider_scale": slider_scale(quantiles),
+                "histogram2d": self.histogram2d(),
                 "fields": self.fields(), "home": self.home_camera,
                 "up": tuple(float(x) for x in self.up), "resolution": tuple(self.resolution)}
 
@@ -323,14 +368,27 @@ class Session:
     def histogram(self) -> list:
         """Counts of the field's leaf-cell values (cells no finer grid covers) in
         :data:`HISTOGRAM_BINS` equal bins over :meth:`value_range`."""
-        volume, field = self.integrator.prep.volume, self.integrator.prep.field
-        values = np.concatenate([np.ravel(volume.grids[g].fields[field][volume.leaf_mask(g)])
-                                 for g in range(len(volume.grids))])
-        values = values[np.isfinite(values)]
+        values = self._leaf_values()
         lo, hi = self.value_range()
         counts, _ = np.histogram(values, bins=HISTOGRAM_BINS, range=(lo, hi if hi > lo else
                                                                       lo + 1.0))
         return counts.tolist()
+
+    def histogram2d(self):
+        """Volume mode: the value x |grad f| histogram (:func:`.tf2d.histogram2d`)."""
+        from mi_amr.workflows.viewer.tf2d import histogram2d
+
+        if self.state.mode != "volume":
+            return None
+        prep = self.integrator.prep
+        return histogram2d(prep.volume, prep.field, self.value_range())
+
+    def _leaf_values(self) -> np.ndarray:
+        """The field's finite values in the leaf cells (cells no finer grid covers)."""
+        volume, field = self.integrator.prep.volume, self.integrator.prep.field
+        values = np.concatenate([np.ravel(volume.grids[g].fields[field][volume.leaf_mask(g)])
+                                 for g in range(len(volume.grids))])
+        return values[np.isfinite(values)]
 
     # ------------------------------------------------------------------ rendering
     def render(self, size, spp: int, seed: int = 0) -> np.ndarray:
@@ -360,7 +418,20 @@ class Session:
     def close(self) -> None:
         import shutil
 
+        self.prefetch.wait()
         shutil.rmtree(self.workdir, ignore_errors=True)
+
+
+def slider_scale(quantiles) -> str:
+    """The isovalue slider's scale for a field with these quantiles (evenly spaced, from the
+    minimum to the maximum): ``"percentile"`` when the middle 90 % of the leaf cells span less
+    than a tenth of the range (Q's useful values sit at the far edge of a linear slider),
+    else ``"linear"``."""
+    q = np.asarray(quantiles, dtype=np.float64)
+    span = q[-1] - q[0]
+    n = len(q) - 1
+    middle = q[int(round(0.95 * n))] - q[int(round(0.05 * n))]
+    return "percentile" if span > 0 and middle < 0.1 * span else "linear"
 
 
 def _bands(widths, offsets, peaks) -> tuple:

@@ -1,4 +1,5 @@
-"""The render thread: the only thread that touches Mitsuba and Dr.Jit.
+"""The render thread: the only thread that renders and changes the scene (the next step of a
+time series is prepared meanwhile in a thread of its own, :mod:`.series`).
 
 It shows the newest state only. A request that arrives while a frame renders replaces any
 request still waiting (stale requests are dropped, never queued); the refinement of an image
@@ -8,7 +9,9 @@ for ``idle_s`` seconds after the preview went out, refined to the state's ``spp`
 size in the passes ``python -m mi_amr render`` uses (so a saved scene renders the same pixels).
 
 Compiled kernels are counted per cause (``Session.compiled``): ``warmup`` (the first preview
-and refined frames), ``reloads`` (a new structure or data file, up to its first refined frame),
+and refined frames), ``reloads`` (a new structure, up to its first refined frame),
+``steps`` (a time step: another data file of the same fields, up to its first refined frame;
+it stays 0),
 ``quality`` (a new refined sample count: Mitsuba's render loop specialises on it), ``saves``
 (an image saved at another size) and ``controls`` (everything else: it stays 0).
 """
@@ -182,19 +185,25 @@ class RenderWorker:
     def _show(self, state, version) -> None:
         s = self.session
         t0 = time.perf_counter()
-        heavy = structure(state) != structure(s.state) or state.data_file != s.state.data_file
-        if heavy:
+        reload = structure(state) != structure(s.state)
+        step = state.data_file != s.state.data_file
+        if reload:
             self.fresh("reloads")
+        elif step:
+            # A time step: the same kernels on another volume (counted apart, to show it
+            # compiles nothing).
+            self.fresh(self._fresh or "steps")
         elif state.spp != s.state.spp:
             self.fresh(self._fresh or "quality")
         how, shown = self.counted(self._bucket(), lambda: s.apply(state))
         if shown != state:
             self.publish("corrected", {"state": shown, "version": version}, None)
-        if heavy:
-            self.publish("info", {"how": how, "info": s.describe()}, None)
         size = self.preview_size()
         image = self.counted(self._bucket(), lambda: s.render(size, 1))
         self._send(image, version, "preview", 1, time.perf_counter() - t0)
+        if reload or step:              # after the frame: a step's image comes first
+            self.publish("info", {"how": how, "info": s.describe()}, None)
+        s.prefetch_next()
         self._refine = (shown, version)
         self._preview_sent = time.perf_counter()
 

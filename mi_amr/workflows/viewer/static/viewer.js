@@ -13,6 +13,9 @@ let info = null;
 let active = 0;                  // the isovalue the slider moves
 let shown = { version: -1, rank: -1 };
 let sliderHeld = false;
+// Functions of the page's other scripts (timeline.js, bands.js) called with each new state,
+// info and shown frame.
+const hooks = { state: [], info: [], frame: [] };
 
 // ---------------------------------------------------------------- connection
 function connect() {
@@ -81,6 +84,8 @@ function onFrame(buf) {
     img.dataset.version = head.version;
     img.dataset.quality = head.quality;
     img.dataset.spp = head.spp;
+    img.dataset.compiled = JSON.stringify(head.compiled);
+    hooks.frame.forEach((f) => f(head));
     if (previous.startsWith("blob:")) URL.revokeObjectURL(previous);
     $("frame-info").textContent =
       `${head.quality} ${head.width}x${head.height}, ${head.spp} spp, ${head.seconds} s; ` +
@@ -118,16 +123,17 @@ function applyInfo(m) {
   img.style.width = `${w}px`;
   img.style.height = `${h}px`;
   if (!$("image-width").value) { $("image-width").value = w; $("image-height").value = h; }
-  const slider = $("isovalue");
   const [lo, hi] = m.value_range;
-  slider.min = lo;
-  slider.max = hi;
-  slider.step = (hi - lo) / 1000 || "any";
+  const scale = $("isovalue-scale");
+  if (!scale.dataset.chosen) scale.value = m.slider_scale;
+  configureSlider();
+  if (state && !sliderHeld) $("isovalue").value = toSlider(state.isovalues[active]);
   $("range-lo").textContent = fmt(lo, 4);
   $("range-hi").textContent = fmt(hi, 4);
   $("quality-note").textContent = `While a control moves: 1 spp at 1/${m.preview_scale} of ` +
     `the size; when idle: refined to the samples per pixel above.`;
   drawHistogram();
+  hooks.info.forEach((f) => f(m));
 }
 
 // A number in `digits` significant digits, without trailing zeros ("0.31", "1000", "1e-05").
@@ -146,7 +152,7 @@ function setValue(id, value) {
 function applyState(s) {
   state = s;
   active = Math.min(active, s.isovalues.length - 1);
-  if (!sliderHeld) $("isovalue").value = s.isovalues[active];
+  if (!sliderHeld && info) $("isovalue").value = toSlider(s.isovalues[active]);
   setValue("isovalue-text", fmt(s.isovalues[active]));
   buildIsoList(s);
   for (const [id, v] of [["method", s.method], ["reconstruction", s.reconstruction],
@@ -172,7 +178,9 @@ function applyState(s) {
   $("shadows").checked = s.shadows;
   setValue("spp", s.spp);
   $("open-path").placeholder = s.data_file;
+  $("data-name").textContent = s.data_file;
   drawHistogram();
+  hooks.state.forEach((f) => f(s));
 }
 
 function buildIsoList(s) {
@@ -217,17 +225,19 @@ function drawHistogram() {
   const top = Math.log1p(Math.max(1, ...counts));
   ctx.clearRect(0, 0, canvas.width, canvas.height);
   ctx.fillStyle = "#4a5a70";
-  const w = canvas.width / counts.length;
   const base = canvas.height - 14;      // the slider's track sits below the bars
+  const [lo, hi] = info.value_range;
+  // Each bin where the slider's scale puts its edges.
+  const edge = (i) => sliderFraction(lo + (hi - lo) * i / counts.length) * canvas.width;
   counts.forEach((c, i) => {
     const h = base * Math.log1p(c) / top;
-    ctx.fillRect(i * w, base - h, Math.max(1, w - 0.5), h);
+    const x0 = edge(i);
+    ctx.fillRect(x0, base - h, Math.max(1, edge(i + 1) - x0 - 0.5), h);
   });
   if (!state) return;
-  const [lo, hi] = info.value_range;
   ctx.fillStyle = "#ffd866";
   for (const v of state.isovalues) {
-    ctx.fillRect((v - lo) / (hi - lo || 1) * canvas.width - 0.5, 0, 1.5, base);
+    ctx.fillRect(sliderFraction(v) * canvas.width - 0.5, 0, 1.5, base);
   }
 }
 
@@ -246,8 +256,15 @@ function wireControls() {
   slider.addEventListener("pointerdown", () => { sliderHeld = true; });
   window.addEventListener("pointerup", () => { sliderHeld = false; });
   slider.addEventListener("input", () => {
-    $("isovalue-text").value = fmt(slider.value);
-    set("isovalue", Number(slider.value), { index: active });
+    const v = toValue(slider.value);
+    $("isovalue-text").value = fmt(v);
+    set("isovalue", v, { index: active });
+  });
+  $("isovalue-scale").addEventListener("change", () => {
+    $("isovalue-scale").dataset.chosen = "1";
+    configureSlider();
+    if (state) slider.value = toSlider(state.isovalues[active]);
+    drawHistogram();
   });
   onEnter("isovalue-text", (v) => set("isovalue", v, { index: active }));
   $("add-isovalue").addEventListener("click", () => send({ op: "add_isovalue" }));
