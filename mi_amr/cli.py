@@ -343,6 +343,11 @@ def _add_view(sub) -> None:
     s.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: a free one)")
     s.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only)")
+    s.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                   help="also answer requests that name this host (a DNS name or address "
+                        "other machines use to reach this one; repeatable). The loopback "
+                        "names and the --host address are always allowed; with --host "
+                        "0.0.0.0 so are this machine's own names and addresses")
     s.add_argument("--no-browser", action="store_true", help="do not open a browser")
     s.add_argument("--out", default="out",
                    help="folder the page saves images, scenes and keyframes in (default ./out)")
@@ -365,4 +370,4 @@ def _view(args) -> None:
         raise AMRError("view: --spp, --preview-scale and --resolution must be positive")
     serve(args.scene, host=args.host, port=args.port, open_browser=not args.no_browser,
           out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,
-          preview_scale=args.preview_scale, variant=args.variant)
+          preview_scale=args.preview_scale, variant=args.variant, allow_hosts=args.allow_host)
