@@ -124,6 +124,9 @@ def _add_bench(sub) -> None:
     s.add_argument("--movie", action="store_true",
                    help="only the movie frame rates (1 and 2 workers) and one time step's "
                         "cost, writes movie.md")
+    s.add_argument("--soak", action="store_true",
+                   help="only the soak runs (not in make test): 2,000 random viewer changes "
+                        "(memory growth, kernels compiled, files left behind), writes soak.md")
     s.add_argument("--out", default="out/bench", help="folder for the results")
     s.set_defaults(run=_bench)
 
@@ -276,6 +279,10 @@ def _bench(args) -> None:
         from mi_amr.evaluation.movie_bench import run_movie_bench
 
         run_movie_bench(args.out)
+    elif args.soak:
+        from mi_amr.evaluation.soak import run_soak
+
+        run_soak(args.out)
     elif args.viewer:
         from mi_amr.evaluation.bench import run_viewer
 
