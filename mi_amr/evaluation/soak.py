@@ -74,10 +74,6 @@ def random_change(rng: random.Random, info: dict, state: dict) -> dict:
     return {"op": "set", "name": kind, "value": rng.uniform(10.0, 80.0)}
 
 
-def _view_folders() -> set:
-    return set(Path(tempfile.gettempdir()).glob("mi_amr-view-*"))
-
-
 def viewer_soak(work: Path, progress: bool = True, changes: int = VIEWER_CHANGES) -> dict:
     """The ``viewer`` part (see the module docstring)."""
     from mi_amr.evaluation.viewer_bench import ViewerProcess
@@ -85,10 +81,12 @@ def viewer_soak(work: Path, progress: bool = True, changes: int = VIEWER_CHANGES
     from mi_amr.workflows import project
 
     project.ensure_scene_data(verbose=False)
-    out = work / "viewer-out"
-    folders = _view_folders()
+    out, tmp = work / "viewer-out", work / "viewer-tmp"
+    tmp.mkdir()
+    # Its own temporary folder: what the viewer leaves there is its own.
     viewer = ViewerProcess(project.scenes_dir() / "analytic_sphere.xml", out, "--resolution",
-                           *map(str, VIEWER_RESOLUTION), "--spp", "2")
+                           *map(str, VIEWER_RESOLUTION), "--spp", "2",
+                           env=dict(main_env(), TMPDIR=str(tmp), PYTHONFAULTHANDLER="1"))
     saved, errors = set(), []
     try:
         client = ViewerClient(viewer.url)
@@ -98,21 +96,20 @@ def viewer_soak(work: Path, progress: bool = True, changes: int = VIEWER_CHANGES
         t0, rss = time.perf_counter(), {"start": rss_bytes(viewer.proc.pid)}
         for i in range(1, changes + 1):
             state = _one_change(client, _request(rng, i, info, state, saved), state, errors)
-            if i % SETTLE_EVERY == 0:
+            if i % SETTLE_EVERY == 0 or i == changes:
                 _settle(client, state["version"])
             if i == VIEWER_WARMUP:
                 rss["baseline"], compiled_warm = rss_bytes(viewer.proc.pid), viewer.status()
             if progress and i % 100 == 0:
                 print(f"  viewer: {i}/{changes} changes, {rss_bytes(viewer.proc.pid) / 1e6:.0f} "
                       f"MB, {time.perf_counter() - t0:.0f} s", flush=True)
-        _settle(client, state["version"])
         client.until(lambda m: False, 2.0)      # the last saves' replies
         rss["end"], status = rss_bytes(viewer.proc.pid), viewer.status()
         client.close()
     finally:
         viewer.stop()
     left = [str(p) for p in out.iterdir() if p.name not in saved]
-    left += [str(p) for p in _view_folders() - folders]
+    left += [str(p) for p in tmp.iterdir()]
     return {"changes": changes, "memory_start_mb": rss["start"] / 1e6,
             "memory_baseline_mb": rss["baseline"] / 1e6, "memory_end_mb": rss["end"] / 1e6,
             "memory_growth_mb": (rss["end"] - rss["baseline"]) / 1e6,
@@ -124,14 +121,15 @@ def viewer_soak(work: Path, progress: bool = True, changes: int = VIEWER_CHANGES
 
 
 def _request(rng, i, info, state, saved) -> dict:
-    if i % SAVE_EVERY == 0:
+    # The warm-up visits the other method and saves once: what compiles, compiles in it.
+    if i in (VIEWER_WARMUP // 2, 3 * VIEWER_WARMUP // 4) or i % STRUCTURE_EVERY == 0:
+        return {"op": "set", "name": "method",
+                "value": "adaptive" if state["state"]["method"] == "exact" else "exact"}
+    if i % SAVE_EVERY == 0 or i == VIEWER_WARMUP - 10:
         name = f"soak_{i}.png"
         saved.add(name)
         return {"op": "save_image", "name": name, "width": rng.randint(16, 300),
                 "height": rng.randint(16, 300)}
-    if i % STRUCTURE_EVERY == 0:
-        return {"op": "set", "name": "method",
-                "value": "adaptive" if state["state"]["method"] == "exact" else "exact"}
     return random_change(rng, info, state["state"])
 
 
@@ -152,7 +150,7 @@ def _one_change(client, request, state, errors) -> dict:
     if reply["type"] == "state":
         client.until(lambda m: m["type"] == "error" and "soak-probe" in m["message"], WAIT_S)
         return reply
-    if "soak-probe" not in reply["message"]:
+    if reply["type"] == "error" and "soak-probe" not in reply["message"]:
         errors.append(reply["message"])
         if request["op"] != "save_image":
             client.until(lambda m: m["type"] == "error" and "soak-probe" in m["message"],
@@ -161,17 +159,150 @@ def _one_change(client, request, state, errors) -> dict:
 
 
 def _settle(client, version: int) -> None:
-    client.until(lambda m: m["type"] == "frame" and m["version"] >= version and
-                 m["quality"] == "refined", WAIT_S)
+    """Wait for the refined frame of ``version`` or newer (it may have come already, while
+    waiting for another answer)."""
+    def refined(m):
+        return m["type"] == "frame" and m["version"] >= version and m["quality"] == "refined"
+
+    if not any(refined(f) for f in client.frames):
+        client.until(refined, WAIT_S)
+    client.frames.clear()
+    client.texts.clear()
 
 
 def _compiled_since(before: dict, after: dict) -> dict:
     return {k: after[k] - before.get(k, 0) for k in after}
 
 
+# ---------------------------------------------------------------------- the movie
+
+MOVIE_FRAMES = 200
+MOVIE_KILL_EVERY = 20           # frames between killed worker processes
+MOVIE_WORKERS = 2
+
+
+def movie_soak(work: Path, progress: bool = True, frames: int = MOVIE_FRAMES) -> dict:
+    """The ``movie`` part: ``python -m mi_amr movie`` of an orbit on 2 Dask workers, a worker
+    process killed (SIGKILL) each time 20 more frames are written."""
+    import threading
+
+    from mi_amr.workflows import project
+
+    project.ensure_scene_data(verbose=False)
+    out = work / "movie-out"
+    cmd = [sys.executable, "-m", "mi_amr", "movie", str(project.scenes_dir() /
+                                                          "analytic_sphere.xml"),
+           "-o", str(out), "--frames", str(frames), "--orbit", "360", "--workers",
+           str(MOVIE_WORKERS), "--resolution", "32", "32", "--spp", "1"]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env=main_env())
+    killed = []
+    watcher = threading.Thread(target=_kill_workers, args=(proc, out, frames, killed),
+                               daemon=True)
+    watcher.start()
+    log = proc.communicate(timeout=3600)[0]
+    watcher.join(timeout=5)
+    names = {f"frame_{i:05d}.png" for i in range(frames)}
+    present = {p.name for p in out.iterdir()} if out.is_dir() else set()
+    result = {"frames": frames, "workers_killed": len(killed), "exit_status": proc.returncode,
+              "frames_lost": len(names - present),
+              "files_left_behind": sorted(present - names), "seconds": round(
+                  time.perf_counter() - t0, 1)}
+    if proc.returncode != 0 and progress:
+        print(log[-2000:])
+    return result
+
+
+def _kill_workers(proc, out: Path, frames: int, killed: list) -> None:
+    """Kill one of ``proc``'s Dask worker processes (SIGKILL) each time
+    :data:`MOVIE_KILL_EVERY` more frames are in ``out``, until the movie ends."""
+    import signal
+
+    while proc.poll() is None:
+        done = len(list(out.glob("frame_*.png"))) if out.is_dir() else 0
+        if done >= (len(killed) + 1) * MOVIE_KILL_EVERY and done < frames:
+            victims = _worker_processes(proc.pid)
+            if victims:
+                try:
+                    os.kill(victims[len(killed) % len(victims)], signal.SIGKILL)
+                    killed.append(done)
+                except ProcessLookupError:
+                    pass
+        time.sleep(0.05)
+
+
+def _worker_processes(root: int) -> list:
+    """Process ids below ``root`` that have no children of their own and are not
+    multiprocessing's resource tracker: the Dask workers (their nannies have children)."""
+    children = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            cmdline = (stat.parent / "cmdline").read_bytes()
+        except (OSError, IndexError):
+            continue
+        if b"resource_tracker" not in cmdline:
+            children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    below, todo = [], list(children.get(root, []))
+    while todo:
+        pid = todo.pop()
+        below.append(pid)
+        todo += children.get(pid, [])
+    return sorted(p for p in below if p not in children)
+
+
+# ---------------------------------------------------------------------- the cache
+
+CACHE_LOADS = 50
+CACHE_FILES = 25
+CACHE_GB = 0.2
+
+
+def cache_soak(work: Path, progress: bool = True, loads: int = CACHE_LOADS) -> dict:
+    """The ``cache`` part: ``python -m mi_amr render`` of 25 data files, each twice, with
+    ``MI_AMR_CACHE`` a folder that also holds a folder of the user's and ``MI_AMR_CACHE_GB``
+    0.2; the cache's size (its entries, without the user's folder) after every load."""
+    from mi_amr.synthetic import datasets
+    from mi_amr.workflows import project
+
+    project.ensure_scene_data(verbose=False)
+    cache, data = work / "cache", work / "cache-data"
+    user = cache / "sim"
+    user.mkdir(parents=True)
+    (user / "checkpoint.bin").write_bytes(b"the user's" * 1000)
+    data.mkdir()
+    env = dict(main_env(), MI_AMR_CACHE=str(cache), MI_AMR_CACHE_GB=str(CACHE_GB))
+    sizes, failed, t0 = [], [], time.perf_counter()
+    for i in range(loads):
+        path = data / f"volume_{i % CACHE_FILES:02d}.npz"
+        if not path.exists():
+            datasets.sphere(40 + 4 * (i % CACHE_FILES)).save(path)
+        run = subprocess.run([sys.executable, "-m", "mi_amr", "render",
+                              str(project.scenes_dir() / "analytic_sphere.xml"), "-o",
+                              str(work / "cache-frame.png"), "--force", "-D",
+                              f"filename={path}", "--resolution", "16", "16"],
+                             capture_output=True, text=True, env=env)
+        if run.returncode != 0:
+            failed.append(run.stderr.strip()[-300:])
+        sizes.append(_folder_bytes(cache) - _folder_bytes(user))
+        if progress and (i + 1) % 10 == 0:
+            print(f"  cache: {i + 1}/{loads} loads, {sizes[-1] / 1e9:.3f} GB", flush=True)
+    return {"loads": loads, "limit_gb": CACHE_GB, "largest_gb": round(max(sizes) / 1e9, 3),
+            "over_limit_loads": sum(1 for n in sizes if n > CACHE_GB * 1e9),
+            "failed_loads": len(failed), "failures": failed[:3],
+            "user_folder_kept": (user / "checkpoint.bin").is_file(),
+            "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def _folder_bytes(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file() and
+               not p.is_symlink()) if folder.is_dir() else 0
+
+
 # ---------------------------------------------------------------------- the report
 
-PARTS = {"viewer": viewer_soak}
+PARTS = {"viewer": viewer_soak, "movie": movie_soak, "cache": cache_soak}
 
 
 def run_soak(out_dir, parts=None, progress: bool = True) -> dict:
@@ -224,6 +355,3 @@ def main_env() -> dict:
     root = str(Path(__file__).resolve().parents[2])
     return dict(os.environ, PYTHONPATH=root + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
-
-if __name__ == "__main__":
-    run_soak(sys.argv[1] if len(sys.argv) > 1 else "out/bench")

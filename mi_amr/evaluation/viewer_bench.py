@@ -55,11 +55,11 @@ MOVE_JS = """async (value) => {
 class ViewerProcess:
     """``python -m mi_amr view SCENE --no-browser --port 0 ...`` with its URL."""
 
-    def __init__(self, scene, out_dir, *extra):
+    def __init__(self, scene, out_dir, *extra, env=None):
         cmd = [sys.executable, "-u", "-m", "mi_amr", "view", str(scene), "--no-browser",
                "--port", "0", "--out", str(out_dir), *extra]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True)
+                                     text=True, env=env)
         self.output, self.url = [], None
         for line in self.proc.stdout:
             self.output.append(line)
