@@ -37,6 +37,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -340,13 +341,20 @@ def protocol_case(client, viewer, request) -> str:
     """Send ``request``; then a probe the viewer must answer at once ("unknown request"):
     ``ok``, ``exception`` (a traceback or "internal error" in the viewer's log or a reply),
     ``hang`` (no answer to the probe) or ``crash`` (the viewer exited)."""
+    from websockets.exceptions import ConnectionClosed
+
     seen = len(viewer.output)
-    client.send(request)
-    client.send({"op": "fuzz-probe"})
+    try:
+        client.send(request)
+        client.send({"op": "fuzz-probe"})
+    except ConnectionClosed:
+        pass                        # told apart below: the socket is closed
     probe = client.until(lambda m: m["type"] == "error" and "fuzz-probe" in m["message"],
                          PROTOCOL_TIMEOUT)
     if viewer.proc.poll() is not None:
         return "crash"
+    if client.ws.close_code is not None or client.ws.state.name == "CLOSED":
+        return "exception"          # the viewer dropped the socket
     if probe is None:
         return "hang"
     bad = [ln for ln in viewer.output[seen:] if "Traceback" in ln or "internal error" in ln]
@@ -371,6 +379,7 @@ def slow_reader_case(viewer, requests: int = 300) -> tuple:
         if not silent.send(change if i % 3 == 0 else big):
             break
         sent += 1
+    time.sleep(1.0)                 # what the viewer took in, it has handled
     grown = rss_bytes(viewer.proc.pid) - rss0
     other = ViewerClient(viewer.url)
     served = other.until(lambda m: m["type"] == "state", PROTOCOL_TIMEOUT) is not None
@@ -408,6 +417,9 @@ def fuzz_protocol(cases: int, seeds, *, keep: Path | None = None) -> dict:
                 tally.add(Outcome("protocol", name, status, str(request)[:200]))
                 if status == "crash":
                     break
+                if status == "exception":       # the socket may be gone: a new one
+                    client.close()
+                    client = ViewerClient(viewer.url)
             client.close()
             status, detail = slow_reader_case(viewer)
             tally.add(Outcome("protocol", "slow reader", status, detail))
