@@ -215,7 +215,7 @@ def test07_only_named_hosts_and_their_own_origin_may_open_the_socket(tmp_path, v
     import urllib.error
     import urllib.request
 
-    from mi_amr.evaluation.viewer_bench import ViewerProcess
+    from mi_amr.evaluation.viewer_client import ViewerProcess
 
     v = ViewerProcess(write_scene(tmp_path / "scene"), tmp_path / "out", "--host", "0.0.0.0",
                       "--allow-host", "viewer.test", "--resolution", "16", "16")

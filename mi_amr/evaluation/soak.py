@@ -76,7 +76,7 @@ def random_change(rng: random.Random, info: dict, state: dict) -> dict:
 
 def viewer_soak(work: Path, progress: bool = True, changes: int = VIEWER_CHANGES) -> dict:
     """The ``viewer`` part (see the module docstring)."""
-    from mi_amr.evaluation.viewer_bench import ViewerProcess
+    from mi_amr.evaluation.viewer_client import ViewerProcess
     from mi_amr.evaluation.viewer_client import ViewerClient, rss_bytes
     from mi_amr.workflows import project
 

@@ -1,7 +1,8 @@
-"""A client of the viewer's WebSocket without a browser, for the soak run, the protocol fuzz
-cases and the tests: requests as text (well formed or not), replies read until one is wanted,
-raw handshakes with any ``Host`` and ``Origin``, a client that sends and never reads, and the
-viewer process's memory.
+"""The viewer started as a user starts it (:class:`ViewerProcess`), and clients of its
+WebSocket without a browser, for the benchmarks, the soak run, the protocol fuzz cases and the
+tests: requests as text (well formed or not), replies read until one is wanted, raw handshakes
+with any ``Host`` and ``Origin``, a client that sends and never reads, and the viewer
+process's memory.
 """
 
 from __future__ import annotations
@@ -9,9 +10,47 @@ from __future__ import annotations
 import base64
 import json
 import os
+import re
 import socket
+import subprocess
+import sys
+import threading
 import time
+import urllib.request
 from urllib.parse import urlsplit
+
+from mi_amr.errors import AMRError
+
+
+class ViewerProcess:
+    """``python -m mi_amr view SCENE --no-browser --port 0 ...`` with its URL."""
+
+    def __init__(self, scene, out_dir, *extra, env=None):
+        cmd = [sys.executable, "-u", "-m", "mi_amr", "view", str(scene), "--no-browser",
+               "--port", "0", "--out", str(out_dir), *extra]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                     text=True, env=env)
+        self.output, self.url = [], None
+        for line in self.proc.stdout:
+            self.output.append(line)
+            m = re.search(r"serving (http://\S+/)", line)
+            if m:
+                self.url = m.group(1)
+                break
+        if self.url is None:
+            raise AMRError("the viewer did not start:\n" + "".join(self.output))
+        threading.Thread(target=lambda: self.output.extend(self.proc.stdout), daemon=True).start()
+
+    def status(self) -> dict:
+        with urllib.request.urlopen(self.url + "api/status", timeout=30) as r:
+            return json.loads(r.read().decode())
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
 
 
 class ViewerClient:
