@@ -261,6 +261,9 @@ def serve(scene, *, host: str = "127.0.0.1", port: int = 8080, open_browser: boo
     warning = host_warning(host)
     if warning:
         print(warning, file=sys.stderr, flush=True)
+        names = ", ".join(sorted(allowed_hosts(host, allow_hosts)))
+        print(f"answering requests that name: {names} (more with --allow-host NAME)",
+              file=sys.stderr, flush=True)
     sock = bind(host, port)
     hub = Hub(scene, out_dir=out_dir, files=files, resolution=resolution, spp=spp,
               preview_scale=preview_scale)

@@ -15,7 +15,9 @@ camera                      the sensor's ``to_world`` and ``x_fov``             
                             (:func:`~mi_amr.plugin.camera.set_camera`)
 light                       the directional emitter's ``to_world`` and             no
                             ``irradiance.value``
-preview / image size        the film's ``size``                                    once a size
+preview size                the film's ``size``                                    once a size
+saved image, any size       tiles of the view's film size (:mod:`.tiles`): the     no
+                            ``x_fov`` and ``principal_point_offset_x/y``
 data file (time step)       ``integrator.load_volume`` (same fields)               no
 method, reconstruction,     the scene is loaded again (:func:`structure`)          yes (once)
 layers, mode, field, colour

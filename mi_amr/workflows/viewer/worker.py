@@ -10,7 +10,8 @@ size in the passes ``python -m mi_amr render`` uses (so a saved scene renders th
 Compiled kernels are counted per cause (``Session.compiled``): ``warmup`` (the first preview
 and refined frames), ``reloads`` (a new structure or data file, up to its first refined frame),
 ``quality`` (a new refined sample count: Mitsuba's render loop specialises on it), ``saves``
-(an image saved at another size) and ``controls`` (everything else: it stays 0).
+(images saved: it stays 0, they are rendered in tiles of the view's film size) and
+``controls`` (everything else: it stays 0).
 """
 
 from __future__ import annotations
