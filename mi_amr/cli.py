@@ -133,6 +133,9 @@ def _add_bench(sub) -> None:
     s.add_argument("--movie", action="store_true",
                    help="only the movie frame rates (1 and 2 workers) and one time step's "
                         "cost, writes movie.md")
+    s.add_argument("--soak", action="store_true",
+                   help="only the soak runs (not in make test): 2,000 random viewer changes "
+                        "(memory growth, kernels compiled, files left behind), writes soak.md")
     s.add_argument("--out", default="out/bench", help="folder for the results")
     s.set_defaults(run=_bench)
 
@@ -314,6 +317,10 @@ def _bench(args) -> None:
         from mi_amr.evaluation.movie_bench import run_movie_bench
 
         run_movie_bench(args.out)
+    elif args.soak:
+        from mi_amr.evaluation.soak import run_soak
+
+        run_soak(args.out)
     elif args.viewer:
         from mi_amr.evaluation.bench import run_viewer
 
@@ -381,6 +388,11 @@ def _add_view(sub) -> None:
     s.add_argument("--port", type=int, default=8080, help="port (default 8080; 0: a free one)")
     s.add_argument("--host", default="127.0.0.1",
                    help="address to listen on (default 127.0.0.1: this machine only)")
+    s.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                   help="also answer requests that name this host (a DNS name or address "
+                        "other machines use to reach this one; repeatable). The loopback "
+                        "names and the --host address are always allowed; with --host "
+                        "0.0.0.0 so are this machine's own names and addresses")
     s.add_argument("--no-browser", action="store_true", help="do not open a browser")
     s.add_argument("--out", default="out",
                    help="folder the page saves images, scenes and keyframes in (default ./out)")
@@ -407,4 +419,5 @@ def _view(args) -> None:
     with _data_scene(args, args.scene) as scene:
         serve(scene, host=args.host, port=args.port, open_browser=not args.no_browser,
               out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,
-              preview_scale=args.preview_scale, variant=args.variant)
+              preview_scale=args.preview_scale, variant=args.variant,
+              allow_hosts=args.allow_host)

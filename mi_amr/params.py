@@ -142,6 +142,16 @@ def default(name: str):
     return BY_NAME[name].default
 
 
+def float32_bounds(name: str) -> tuple:
+    """``(lo, hi)`` of parameter ``name`` rounded to float32, the type the kernels hold every
+    traversable number in: a value is checked after the same rounding as its bounds, so the
+    table's own limits are accepted (``float32(1e-4)`` is just below ``1e-4``)."""
+    import numpy as np
+
+    p = BY_NAME[name]
+    return float(np.float32(p.lo)), float(np.float32(p.hi))
+
+
 def _shown(p: Param) -> str:
     if p.required:
         return "(required)"

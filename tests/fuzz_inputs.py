@@ -12,15 +12,24 @@ Two kinds of cases, each read in its own process (``mi_amr.load`` then ``summary
   numbers replaced by boundary values (0, -1, 2^31, 1e26, a 27-digit integer, nan, inf, ...),
   lines deleted, duplicated, swapped or replaced by junk, characters changed, the text cut.
 
+A third kind, ``protocol``, runs against a viewer (``python -m mi_amr view``, its own process)
+instead: fixed malformed messages (JSON nested 100k deep, 4000-digit integers, names as lists,
+NUL in paths, megabyte values, parsing quirks), random requests with boundary values, each
+followed by a probe the viewer must answer at once, and a client that floods and never reads
+(the viewer must grow less than 50 MB and keep serving). A traceback or "internal error" in its
+log or replies, an unanswered probe, or a file written outside its output folder fails a case.
+
 Usage: ``python tests/fuzz_inputs.py --cases N --seed S`` (N of each kind unless
 ``--header-cases`` says otherwise). Prints the cases run and the number of non-AMRError
 exceptions, hangs and crashes; exits 1 when any of those is not zero. ``--keep DIR`` keeps the
-failing inputs. ``tests/test_fuzz.py`` runs a small fixed set of seeds.
+failing inputs; ``--protocol-cases N`` adds the protocol kind. ``tests/test_fuzz.py`` runs a
+small fixed set of seeds.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import random
 import re
@@ -28,6 +37,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -265,6 +275,165 @@ def fuzz(npz: int, header: int, seeds, *, jobs: int = 2, timeout: float = TIMEOU
     return tallies
 
 
+# ---------------------------------------------------------------------- the viewer's protocol
+# (A section of its own: requests sent to a running viewer, not files read by a new process.)
+
+PROTOCOL_TIMEOUT = 30.0         # seconds the viewer may take to answer a request
+SLOW_READER_GROWTH = 50e6       # bytes the viewer may grow while a client floods, never reading
+VIEWER_OPS = ("set", "camera", "add_isovalue", "remove_isovalue", "reset_color_range",
+              "save_image", "save_scene", "add_keyframe", "open")
+CONTROL_NAMES = ("isovalue", "iso_color", "iso_opacity", "step_scale", "shadows", "method",
+                 "reconstruction", "layers", "mode", "band_width", "field", "color_field",
+                 "colormap", "color_range", "light_azimuth", "light_elevation",
+                 "light_strength", "spp")
+BOUNDARY_VALUES = (None, True, 0, -1, 1, 0.5, 1e-4, 9.9999e-5, 1e-50, 1e39, 1e308, -1e308,
+                   "", " ", "abc", "1_000", "0x10", "nan", "inf", "-0", "1e999", "#-1-1-1",
+                   "#ffffff", "#zzzzzz", "0: -1 0 0, 1: 1 1 1", "0: 1e39 0 0, 1: 1 1 1",
+                   "viridis", "surface", "volume", "exact", "a\x00b", "../../etc/passwd",
+                   "/etc/passwd", "x" * 5000, "\u202e\ud7ff", [], [1], [1, 2], [1, 2, 3],
+                   ["a", "b", "c"], [[1]], {}, {"a": 1}, 10 ** 30)
+FIXED_MESSAGES = (
+    "[" * 100_000 + "]" * 100_000,
+    '{"a":' * 50_000 + "1" + "}" * 50_000,
+    '{"op": "set", "name": "isovalue", "value": ' + "7" * 4000 + "}",
+    '{"op": "set", "name": "isovalue", "value": 0.3, "index": ' + "1" * 4000 + "}",
+    '{"op": "set", "name": ["isovalue"], "value": 0.3}',
+    '{"op": ["set"]}',
+    '{"op": "open", "path": "data/sphere.npz\\u0000.png"}',
+    '{"op": "save_image", "name": "a\\u0000.png"}',
+    '{"op": "set", "name": "isovalue", "value": "' + "9" * 1_000_000 + '"}',
+    '{"op": "set", "name": "isovalue", "value": NaN}',
+    "{op: set", "[1, 2, 3]", "", "null", '"text"', "1e999",
+    '{"op": "set", "name": "iso_color", "value": "#-1-1-1"}',
+    '{"op": "set", "name": "colormap", "value": "0.1: -1 0 0, 0.5: 1 1 1"}',
+    '{"op": "set", "name": "spp", "value": "1_000"}',
+    '{"op": "set", "name": "step_scale", "value": 1e-4}',
+    '{"op": "save_image", "name": "big.png", "width": 1e300, "height": 1}',
+    '{"op": "add_keyframe", "name": "k.toml", "frame": 1e30}',
+)
+
+
+def random_request(rng: random.Random):
+    """One request: a random op and control name with boundary values in its fields, now and
+    then cut, with characters changed, or sent as bytes."""
+    msg = {"op": rng.choice(VIEWER_OPS + ("x", ""))}
+    for key in rng.sample(("name", "value", "index", "action", "dx", "dy", "amount", "path",
+                           "width", "height", "frame", "overwrite"), rng.randint(0, 4)):
+        msg[key] = rng.choice(BOUNDARY_VALUES)
+    if msg["op"] == "set" and rng.random() < 0.8:
+        msg["name"] = rng.choice(CONTROL_NAMES)
+    if msg["op"] in ("save_image", "save_scene", "add_keyframe") and rng.random() < 0.5:
+        msg["name"] = rng.choice(("fuzz.png", "fuzz.exr", "fuzz.xml", "fuzz.toml", "../up.png",
+                                  "a/b.png", ".png"))
+    text = json.dumps(msg)
+    r = rng.random()
+    if r < 0.1:
+        return text[:rng.randrange(len(text) + 1)]
+    if r < 0.2:
+        k = rng.randrange(len(text))
+        return text[:k] + chr(rng.randrange(0, 0x3000)) + text[k + 1:]
+    if r < 0.25:
+        return text.encode()
+    return text
+
+
+def protocol_case(client, viewer, request) -> str:
+    """Send ``request``; then a probe the viewer must answer at once ("unknown request"):
+    ``ok``, ``exception`` (a traceback or "internal error" in the viewer's log or a reply),
+    ``hang`` (no answer to the probe) or ``crash`` (the viewer exited)."""
+    from websockets.exceptions import ConnectionClosed
+
+    seen = len(viewer.output)
+    try:
+        client.send(request)
+        client.send({"op": "fuzz-probe"})
+    except ConnectionClosed:
+        pass                        # told apart below: the socket is closed
+    probe = client.until(lambda m: m["type"] == "error" and "fuzz-probe" in m["message"],
+                         PROTOCOL_TIMEOUT)
+    if viewer.proc.poll() is not None:
+        return "crash"
+    if client.ws.close_code is not None or client.ws.state.name == "CLOSED":
+        return "exception"          # the viewer dropped the socket
+    if probe is None:
+        return "hang"
+    bad = [ln for ln in viewer.output[seen:] if "Traceback" in ln or "internal error" in ln]
+    bad += [m["message"] for m in client.texts if m["type"] == "error" and
+            ("internal error" in m["message"] or len(m["message"]) > 300)]
+    client.texts.clear()
+    return "exception" if bad else "ok"
+
+
+def slow_reader_case(viewer, requests: int = 300) -> tuple:
+    """A client that floods refused megabyte requests and valid changes and never reads:
+    ``(status, detail)``, ``ok`` when the viewer grew less than :data:`SLOW_READER_GROWTH` and
+    still serves a new page."""
+    from mi_amr.evaluation.viewer_client import SilentClient, ViewerClient, rss_bytes
+
+    rss0 = rss_bytes(viewer.proc.pid)
+    silent = SilentClient(viewer.url)
+    big = json.dumps({"op": "set", "name": "isovalue", "value": "9" * 1_000_000})
+    sent = 0
+    for i in range(requests):
+        change = json.dumps({"op": "set", "name": "isovalue", "value": 0.25 + 1e-4 * i})
+        if not silent.send(change if i % 3 == 0 else big):
+            break
+        sent += 1
+    time.sleep(1.0)                 # what the viewer took in, it has handled
+    grown = rss_bytes(viewer.proc.pid) - rss0
+    other = ViewerClient(viewer.url)
+    served = other.until(lambda m: m["type"] == "state", PROTOCOL_TIMEOUT) is not None
+    other.close()
+    silent.close()
+    detail = f"{sent} requests taken, grew {grown / 1e6:.1f} MB, a new page served: {served}"
+    if viewer.proc.poll() is not None:
+        return "crash", detail
+    return ("ok" if served and grown < SLOW_READER_GROWTH else "hang"), detail
+
+
+def fuzz_protocol(cases: int, seeds, *, keep: Path | None = None) -> dict:
+    """The fixed malformed messages, ``cases`` random requests per seed and a slow reader,
+    against one viewer of a small scene; returns ``{"protocol": Tally}``. Files the requests
+    save must stay in the viewer's output folder: anything new elsewhere in the work folder
+    counts as an exception."""
+    from test_viewer import Viewer, write_scene
+
+    from mi_amr.evaluation.viewer_client import ViewerClient
+
+    tally = Tally()
+    with tempfile.TemporaryDirectory(prefix="mi_amr_fuzz_view_") as folder:
+        work = Path(folder)
+        viewer = Viewer(write_scene(work / "scene"), work / "out")
+        before = {p for p in work.rglob("*") if "out" not in p.relative_to(work).parts}
+        try:
+            client = ViewerClient(viewer.url)
+            todo = [(f"fixed {i}", m) for i, m in enumerate(FIXED_MESSAGES)]
+            for seed in seeds:
+                rng = random.Random(f"protocol:{seed}")
+                todo += [(f"protocol seed {seed} case {i}", random_request(rng))
+                         for i in range(cases)]
+            for name, request in todo:
+                status = protocol_case(client, viewer, request)
+                tally.add(Outcome("protocol", name, status, str(request)[:200]))
+                if status == "crash":
+                    break
+                if status == "exception":       # the socket may be gone: a new one
+                    client.close()
+                    client = ViewerClient(viewer.url)
+            client.close()
+            status, detail = slow_reader_case(viewer)
+            tally.add(Outcome("protocol", "slow reader", status, detail))
+        finally:
+            viewer.stop()
+        after = {p for p in work.rglob("*") if "out" not in p.relative_to(work).parts}
+        for p in sorted(after - before):
+            tally.add(Outcome("protocol", "files", "exception", f"written outside out/: {p}"))
+        if keep is not None and tally.failures:
+            keep.mkdir(parents=True, exist_ok=True)
+            (keep / "viewer.log").write_text("".join(viewer.output))
+    return {"protocol": tally}
+
+
 def report(tallies: dict) -> str:
     lines = []
     for kind, t in tallies.items():
@@ -288,10 +457,15 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=2, help="cases run at once (default 2)")
     p.add_argument("--timeout", type=float, default=TIMEOUT, help="seconds per case")
     p.add_argument("--keep", type=Path, help="copy failing inputs into this folder")
+    p.add_argument("--protocol-cases", type=int, default=0,
+                   help="also this many random viewer requests (with the fixed malformed "
+                        "ones and a slow reader) against a running viewer (default 0: none)")
     args = p.parse_args(argv)
     header = args.cases if args.header_cases is None else args.header_cases
     tallies = fuzz(args.cases, header, [args.seed], jobs=args.jobs, timeout=args.timeout,
                    keep=args.keep)
+    if args.protocol_cases:
+        tallies.update(fuzz_protocol(args.protocol_cases, [args.seed], keep=args.keep))
     print(report(tallies))
     bad = sum(t.exceptions + t.hangs + t.crashes for t in tallies.values())
     return 1 if bad else 0

@@ -20,14 +20,12 @@ import os
 import re
 import statistics
 import subprocess
-import sys
 import tempfile
-import threading
 import time
-import urllib.request
 from pathlib import Path
 
 from mi_amr.errors import AMRError
+from mi_amr.evaluation.viewer_client import ViewerProcess  # noqa: F401 (its launcher)
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
@@ -50,37 +48,6 @@ MOVE_JS = """async (value) => {
     slider.dispatchEvent(new Event('input', {bubbles: true}));
     await shown;
     return performance.now() - t0; }"""
-
-
-class ViewerProcess:
-    """``python -m mi_amr view SCENE --no-browser --port 0 ...`` with its URL."""
-
-    def __init__(self, scene, out_dir, *extra):
-        cmd = [sys.executable, "-u", "-m", "mi_amr", "view", str(scene), "--no-browser",
-               "--port", "0", "--out", str(out_dir), *extra]
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True)
-        self.output, self.url = [], None
-        for line in self.proc.stdout:
-            self.output.append(line)
-            m = re.search(r"serving (http://\S+/)", line)
-            if m:
-                self.url = m.group(1)
-                break
-        if self.url is None:
-            raise AMRError("the viewer did not start:\n" + "".join(self.output))
-        threading.Thread(target=lambda: self.output.extend(self.proc.stdout), daemon=True).start()
-
-    def status(self) -> dict:
-        with urllib.request.urlopen(self.url + "api/status", timeout=30) as r:
-            return json.loads(r.read().decode())
-
-    def stop(self) -> None:
-        self.proc.terminate()
-        try:
-            self.proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
 
 
 def chromium(playwright, profile):

@@ -36,6 +36,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_amr.errors import AMRError
+from mi_amr.params import BY_NAME, float32_bounds
 from mi_amr.kernels.band import band_inputs, band_shape
 from mi_amr.kernels.colormap import ColorMap, check_range
 from mi_amr.kernels.device import opaque_bools, opaque_floats
@@ -146,8 +147,10 @@ def _check(host: dict) -> None:
             bad(name, "must hold finite numbers")
     if not np.all((host["iso_opacity"] > 0) & (host["iso_opacity"] <= 1)):
         bad("iso_opacity", "must lie in (0, 1]")
-    if not 1e-4 <= host["step_scale"][0] <= 64:
-        bad("step_scale", "must lie in [0.0001, 64]")
+    lo, hi = float32_bounds("step_scale")
+    if not lo <= host["step_scale"][0] <= hi:
+        bad("step_scale", f"must lie in [{BY_NAME['step_scale'].lo:g}, "
+                          f"{BY_NAME['step_scale'].hi:g}]")
     for name in PHONG:
         if host[name][0] < 0:
             bad(name, "must be >= 0")

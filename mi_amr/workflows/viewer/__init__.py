@@ -10,6 +10,7 @@ structure is an ``mi.traverse`` update in the same process, compiling nothing.
 * :mod:`.controls` -- the page's requests checked and turned into states
 * :mod:`.sceneio` -- the state written as a Mitsuba scene file
 * :mod:`.paths` -- which files the page may open and where it may write
+* :mod:`.tiles` -- saved images of any size rendered in tiles of one film size
 * :mod:`.worker` -- the render thread (newest request wins, progressive refinement)
 * :mod:`.hub` -- the shared state, the connected pages and the file actions
 * :mod:`.server` -- the FastAPI app and ``serve()``

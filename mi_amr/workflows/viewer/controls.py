@@ -12,6 +12,7 @@ Camera moves are in scene world space; ``dx``, ``dy`` are drags in image widths.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,39 +41,97 @@ class Context:
 
 # ---------------------------------------------------------------------- values
 
+NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d{1,4})?")
+HEX_COLOR = re.compile(r"#[0-9a-fA-F]{6}")
+MAX_COLOR = 1e3                 # a linear colour component at most (an emitted glow, not HDR)
+SHOWN_CHARS = 40                # of a refused value, in its message
+
+
+def shown(value) -> str:
+    """``value`` for a message: its ``repr``, cut to :data:`SHOWN_CHARS` characters (a refused
+    request is never echoed whole: a client could make every reply a megabyte)."""
+    if isinstance(value, (str, bytes)) and len(value) > SHOWN_CHARS:
+        return repr(value[:SHOWN_CHARS]) + f"... ({len(value)} characters)"
+    if isinstance(value, (list, tuple, dict)) and len(value) > 8:
+        return f"a {type(value).__name__} of {len(value)} items"
+    text = repr(value)
+    return text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "..."
+
+
 def number(value, name: str, lo: float = -math.inf, hi: float = math.inf) -> float:
-    """``value`` (a number, or text typed on the page) as a finite float in ``[lo, hi]``."""
-    if isinstance(value, bool):
-        raise AMRError(f"{name}: expected a number, got {value!r}")
+    """``value`` (a JSON number, or decimal text typed on the page: digits, a point, an
+    exponent; no ``_``, ``nan`` or ``inf``) as a finite float in ``[lo, hi]``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+        raise AMRError(f"{name}: expected a number, got {shown(value)}")
+    if isinstance(value, str):
+        text = value.strip()
+        if len(text) > SHOWN_CHARS or not NUMBER.fullmatch(text):
+            raise AMRError(f"{name}: {shown(value)} is not a number")
+        value = text
     try:
-        x = float(str(value).strip()) if isinstance(value, str) else float(value)
-    except (TypeError, ValueError):
-        raise AMRError(f"{name}: '{value}' is not a number") from None
+        x = float(value)
+    except (OverflowError, ValueError):
+        raise AMRError(f"{name}: {shown(value)} is not a number") from None
     if not math.isfinite(x):
-        raise AMRError(f"{name}: '{value}' is not a finite number")
+        raise AMRError(f"{name}: {shown(value)} is not a finite number")
     if not lo <= x <= hi:
         raise AMRError(f"{name}: {x:g} is outside [{lo:g}, {hi:g}]")
     return x
 
 
+def integer(value, name: str, lo: int, hi: int) -> int:
+    """``value`` as a whole number in ``[lo, hi]`` (``"4"``, ``4`` or ``4.0``; not ``4.5``)."""
+    x = number(value, name, lo, hi)
+    if x != int(x):
+        raise AMRError(f"{name}: expected a whole number, got {x:g}")
+    return int(x)
+
+
+def single(value, name: str, lo: float = -math.inf, hi: float = math.inf, *,
+           above: bool = False) -> float:
+    """``number(value, ...)`` as the kernels will hold it, rounded to float32 and checked
+    after the rounding (``above``: strictly above ``lo``): what passes here, the integrator
+    accepts."""
+    x = number(value, name)
+    with np.errstate(over="ignore"):
+        x32 = float(np.float32(x))
+    if not math.isfinite(x32) or not lo <= x32 <= hi or (above and x32 <= lo):
+        rounded = f" as a 32-bit float ({x32:.9g})" if x32 != x else ""
+        raise AMRError(f"{name}: {x:g} is outside {'(' if above else '['}{lo:g}, {hi:g}]"
+                       f"{rounded}")
+    return x32
+
+
+def table_number(value, name: str, param: str) -> float:
+    """``value`` checked against the integrator's parameter table (:mod:`mi_amr.params`)
+    after rounding to float32, as the integrator checks it."""
+    lo, hi = params.float32_bounds(param)
+    return single(value, name, lo, hi)
+
+
 def choice(value, name: str, choices) -> str:
-    if value not in choices:
-        raise AMRError(f"{name}: '{value}' is not one of {', '.join(choices)}")
+    if not isinstance(value, str) or value not in choices:
+        raise AMRError(f"{name}: {shown(value)} is not one of {', '.join(choices)}")
     return value
 
 
+def text(value, name: str, limit: int = 4096) -> str:
+    """``value`` as one line of text (a name, a colour map), stripped."""
+    if not isinstance(value, str):
+        raise AMRError(f"{name}: expected text, got {shown(value)}")
+    if len(value) > limit or any(ord(c) < 32 for c in value):
+        raise AMRError(f"{name}: {shown(value)} is not one line of at most {limit} characters")
+    return value.strip()
+
+
 def color(value, name: str) -> tuple:
-    """``"#rrggbb"`` (sRGB, as a colour picker gives it) or three linear numbers, as linear
-    RGB."""
-    if isinstance(value, str) and len(value) == 7 and value.startswith("#"):
-        try:
-            srgb = [int(value[i:i + 2], 16) / 255.0 for i in (1, 3, 5)]
-        except ValueError:
-            raise AMRError(f"{name}: '{value}' is not a colour #rrggbb") from None
-        return tuple(srgb_to_linear(c) for c in srgb)
+    """``"#rrggbb"`` (sRGB, as a colour picker gives it) or three linear numbers in
+    ``[0, MAX_COLOR]``, as linear RGB."""
+    if isinstance(value, str) and HEX_COLOR.fullmatch(value):
+        return tuple(srgb_to_linear(int(value[i:i + 2], 16) / 255.0) for i in (1, 3, 5))
     if isinstance(value, (list, tuple)) and len(value) == 3:
-        return tuple(number(c, name, 0.0, 1e3) for c in value)
-    raise AMRError(f"{name}: '{value}' is not a colour (#rrggbb or three numbers)")
+        return tuple(single(c, name, 0.0, MAX_COLOR) for c in value)
+    raise AMRError(f"{name}: {shown(value)} is not a colour (#rrggbb or three numbers)")
 
 
 def srgb_to_linear(c: float) -> float:
@@ -91,7 +150,7 @@ def linear_to_hex(rgb) -> str:
 def _index(state, msg) -> int:
     i = msg.get("index", 0)
     if not isinstance(i, int) or isinstance(i, bool) or not 0 <= i < len(state.isovalues):
-        raise AMRError(f"isovalue number {i!r} does not exist (there are "
+        raise AMRError(f"isovalue number {shown(i)} does not exist (there are "
                        f"{len(state.isovalues)})")
     return i
 
@@ -115,6 +174,7 @@ def _set_iso_opacity(state, msg, ctx):
     a = number(msg.get("value"), "opacity", 0.0, 1.0)
     if a <= 0:
         raise AMRError("opacity: must be above 0 (remove the isovalue to hide it)")
+    a = single(a, "opacity", 0.0, 1.0, above=True)
     return state.replace(iso_opacity=_put(state.iso_opacity, _index(state, msg), a))
 
 
@@ -123,6 +183,7 @@ def _set_band_width(state, msg, ctx):
     w = number(msg.get("value"), "band width", 0.0, max(hi - lo, 1e-30))
     if w <= 0:
         raise AMRError("band width: must be above 0")
+    w = single(w, "band width", 0.0, max(hi - lo, 1e-30), above=True)
     k = len(state.isovalues)
     return state.replace(band_width=(w,) * k, band_offsets=((-2.0 * w, 2.0 * w),) * k)
 
@@ -132,9 +193,9 @@ def _set_mode(state, msg, ctx):
 
 
 def _set_field(state, msg, ctx):
-    name = str(msg.get("value", "")).strip()
+    name = text(msg.get("value", ""), "field", 256)
     if name not in ctx.fields:
-        raise AMRError(f"field: '{name}' does not exist; this data has "
+        raise AMRError(f"field: {shown(name)} does not exist; this data has "
                        f"{', '.join(ctx.fields)}")
     return state.replace(field=name)
 
@@ -143,9 +204,9 @@ def _set_color_field(state, msg, ctx):
     name = msg.get("value")
     if name in (None, "", "none"):
         return state.replace(color_field=None, colormap=None, color_range=None)
-    name = str(name).strip()
+    name = text(name, "colour field", 256)
     if name not in ctx.fields:
-        raise AMRError(f"colour field: '{name}' does not exist; this data has "
+        raise AMRError(f"colour field: {shown(name)} does not exist; this data has "
                        f"{', '.join(ctx.fields)}")
     return state.replace(color_field=name, colormap=state.colormap or "viridis",
                          color_range=state.color_range or tuple(ctx.color_data_range))
@@ -156,10 +217,15 @@ def _set_colormap(state, msg, ctx):
 
     if state.colormap is None:
         raise AMRError("colour map: choose a colour field first")
-    spec = str(msg.get("value", "")).strip()
+    spec = text(msg.get("value", ""), "colour map", 16384)
     if not spec:
         raise AMRError("colour map: give a matplotlib name (viridis) or 'value: r g b' pairs")
-    ColorMap.parse(spec, ctx.color_data_range)       # raises AMRError with the reason
+    cmap = ColorMap.parse(spec, ctx.color_data_range)       # raises AMRError with the reason
+    if not np.all((cmap.colors >= 0) & (cmap.colors <= MAX_COLOR)):
+        raise AMRError(f"colour map: colours must lie in [0, {MAX_COLOR:g}] (linear RGB)")
+    lo, hi = (float(v) for v in np.float32(cmap.value_range))
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise AMRError("colour map: the pairs' values must be distinct 32-bit floats")
     return state.replace(colormap=spec)
 
 
@@ -169,7 +235,7 @@ def _set_color_range(state, msg, ctx):
     value = msg.get("value")
     if not isinstance(value, (list, tuple)) or len(value) != 2:
         raise AMRError("colour range: expected two numbers, low and high")
-    lo, hi = (number(v, "colour range") for v in value)
+    lo, hi = (single(v, "colour range") for v in value)
     if not lo < hi:
         raise AMRError(f"colour range: low ({lo:g}) must be below high ({hi:g})")
     return state.replace(color_range=(lo, hi))
@@ -197,13 +263,13 @@ def _simple(field, parse):
 
 def _flag(value) -> bool:
     if not isinstance(value, bool):
-        raise AMRError(f"expected true or false, got {value!r}")
+        raise AMRError(f"expected true or false, got {shown(value)}")
     return value
 
 
 SETTERS = {
     "isovalue": _set_isovalue, "iso_color": _set_iso_color, "iso_opacity": _set_iso_opacity,
-    "step_scale": _simple("step_scale", lambda v: number(v, "step scale", 1e-4, 64.0)),
+    "step_scale": _simple("step_scale", lambda v: table_number(v, "step scale", "step_scale")),
     "shadows": _simple("shadows", _flag),
     "method": _simple("method", lambda v: choice(v, "method", params.METHODS)),
     "reconstruction": _simple("reconstruction",
@@ -214,7 +280,7 @@ SETTERS = {
     "light_azimuth": lambda s, m, c: _set_light(s, m, c, "azimuth"),
     "light_elevation": lambda s, m, c: _set_light(s, m, c, "elevation"),
     "light_strength": lambda s, m, c: _set_light(s, m, c, "strength"),
-    "spp": _simple("spp", lambda v: int(number(v, "samples per pixel", 1, MAX_SPP))),
+    "spp": _simple("spp", lambda v: integer(v, "samples per pixel", 1, MAX_SPP)),
 }
 
 
@@ -225,8 +291,8 @@ def change(state, msg: dict, ctx: Context):
     op = msg.get("op")
     if op == "set":
         name = msg.get("name")
-        if name not in SETTERS:
-            raise AMRError(f"there is no control '{name}'")
+        if not isinstance(name, str) or name not in SETTERS:
+            raise AMRError(f"there is no control {shown(name)}")
         return SETTERS[name](state, msg, ctx)
     if op == "camera":
         return state.replace(camera=move_camera(state.camera, msg, ctx))
@@ -244,7 +310,7 @@ def change(state, msg: dict, ctx: Context):
         if state.colormap is None:
             raise AMRError("colour range: choose a colour field first")
         return state.replace(color_range=tuple(ctx.color_data_range))
-    raise AMRError(f"unknown request '{op}'")
+    raise AMRError(f"unknown request {shown(op)}")
 
 
 def _add_isovalue(state, ctx):
@@ -284,7 +350,7 @@ def move_camera(cam: Camera, msg: dict, ctx: Context) -> Camera:
         shift = (-dx * right + dy * screen_up) * 2.0 * dist * math.tan(math.radians(cam.fov) / 2)
         return _camera(origin + shift, target + shift, cam)
     if action != "orbit":
-        raise AMRError(f"camera: unknown action '{action}'")
+        raise AMRError(f"camera: unknown action {shown(action)}")
     offset = _rotate(offset, up, -dx * math.pi)
     # Tilt about the right axis, stopping short of the poles so "up" stays meaningful.
     polar = math.acos(np.clip(np.dot(offset / dist, up), -1.0, 1.0))

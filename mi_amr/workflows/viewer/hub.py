@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import re
 import struct
 import threading
 import traceback
@@ -31,36 +32,71 @@ EDITS = {"band": bands.change, "tf2d": tf2d.change}
 COLORMAPS = ("viridis", "magma", "inferno", "plasma", "cividis", "turbo", "coolwarm",
              "RdBu_r", "Spectral_r", "gray")
 KEYFRAME_STEP = 24
+COALESCED = ("state", "info")   # only the newest of these is worth sending
+MAX_WAITING = 64                # messages waiting for a page before it is disconnected
+SEND_TIMEOUT_S = 20.0           # a page that takes no message for this long is disconnected
+MAX_REQUEST = 1 << 16           # characters of one request
+MAX_NESTING = 8                 # lists and objects inside one another in a request
+MAX_DIGITS = 24                 # of an integer in a request
+MAX_REPLY = 300                 # characters of an error message sent back
+_BRACKETS = re.compile(r"[\[\]{}]")
 MAX_SIDE = 4096                 # a saved image's side: one render pass must fit in memory
 
 
 class Client:
-    """One connected page: text messages in order, and at most one frame waiting (a newer
-    frame replaces one not sent yet)."""
+    """One connected page and what waits to be sent to it, bounded: the newest state and info
+    replace any not sent yet (newest state wins), at most one frame waits (a newer frame
+    replaces it), and at most :data:`MAX_WAITING` other messages. A page that lets more pile
+    up, or does not take a message within :data:`SEND_TIMEOUT_S`, is not reading: it is
+    disconnected (:meth:`pump` returns)."""
 
     def __init__(self, ws):
         self.ws = ws
         self.messages = deque()
         self.frame = None
         self.wake = asyncio.Event()
+        self.dropped = None         # why the page was disconnected (None: it was not)
 
     def post(self, message: dict) -> None:
+        if self.dropped is not None:
+            return
+        if message.get("type") in COALESCED:
+            kind = message["type"]
+            self.messages = deque(m for m in self.messages if m.get("type") != kind)
         self.messages.append(message)
+        if len(self.messages) > MAX_WAITING:
+            self.drop(f"more than {MAX_WAITING} messages waiting")
         self.wake.set()
 
     def post_frame(self, data: bytes) -> None:
-        self.frame = data
+        if self.dropped is None:
+            self.frame = data
+            self.wake.set()
+
+    def drop(self, why: str) -> None:
+        """Stop sending to this page (:meth:`pump` returns; the server closes it)."""
+        self.dropped = why
+        self.messages.clear()
+        self.frame = None
         self.wake.set()
 
     async def pump(self) -> None:
-        while True:
+        """Send what waits, in order, until the page is dropped; each send must finish
+        within :data:`SEND_TIMEOUT_S` (a page that does not read stops the sends: the socket's
+        buffer fills)."""
+        while self.dropped is None:
             await self.wake.wait()
             self.wake.clear()
-            while self.messages:
-                await self.ws.send_text(json.dumps(self.messages.popleft()))
-            if self.frame is not None:
-                data, self.frame = self.frame, None
-                await self.ws.send_bytes(data)
+            while self.dropped is None and (self.messages or self.frame is not None):
+                if self.messages:
+                    send = self.ws.send_text(json.dumps(self.messages.popleft()))
+                else:
+                    data, self.frame = self.frame, None
+                    send = self.ws.send_bytes(data)
+                try:
+                    await asyncio.wait_for(send, SEND_TIMEOUT_S)
+                except asyncio.TimeoutError:
+                    self.drop(f"a message not taken within {SEND_TIMEOUT_S:g} s")
 
 
 class Hub:
@@ -165,15 +201,14 @@ class Hub:
         self.clients.discard(client)
 
     async def handle(self, client: Client, text) -> None:
-        """One request from a page; a mistake is answered with a message, never a crash."""
+        """One request from a page; a mistake is answered with a one-line message that does
+        not repeat the request, never a crash."""
+        msg = {}
         try:
-            msg = json.loads(text) if isinstance(text, str) else None
-        except ValueError:
-            msg = None
-        try:
-            if not isinstance(msg, dict):
-                raise AMRError("a request must be a JSON object (text)")
+            msg = parse_request(text)
             op = msg.get("op")
+            if not isinstance(op, str):
+                raise AMRError(f"a request needs an 'op' (text), got {controls.shown(op)}")
             if op in CHANGES:
                 self._change(controls.change(self.state, msg, self.ctx))
             elif op in EDITS:
@@ -181,12 +216,14 @@ class Hub:
             elif op in ACTIONS:
                 ACTIONS[op](self, client, msg)
             else:
-                raise AMRError(f"unknown request '{op}'")
+                raise AMRError(f"unknown request {controls.shown(op)}")
         except AMRError as e:
-            client.post({"type": "error", "message": str(e)})
+            client.post(error_message(e))
+        except (OSError, UnicodeError) as e:     # the disk, or a file that is not text
+            client.post(error_message(f"{msg.get('op')}: {type(e).__name__}: {e}"))
         except Exception as e:           # a bug: report it and keep serving
             traceback.print_exc()
-            client.post({"type": "error", "message": f"internal error: {e!r}"})
+            client.post(error_message(f"internal error: {type(e).__name__}"))
 
     def _change(self, new) -> None:
         if new == self.state:
@@ -246,7 +283,7 @@ class Hub:
             # The newest change failed: the pages go back to what the scene shows.
             if payload["version"] == self.version:
                 self._adopt(payload["state"])
-            self.broadcast({"type": "error", "message": payload["message"]})
+            self.broadcast(error_message(payload["message"]))
         elif kind == "info":
             self._set_info(payload["info"])
             self.broadcast(self.info_message())
@@ -255,12 +292,72 @@ class Hub:
                                 "frames compile the kernels of the new structure."})
 
 
+# ---------------------------------------------------------------------- requests
+
+class _Refused(ValueError):
+    """A request refused while it is parsed (the reason is the message)."""
+
+
+def _integer(text: str) -> int:
+    if len(text.lstrip("-")) > MAX_DIGITS:
+        raise _Refused(f"a number has {len(text)} digits (at most {MAX_DIGITS})")
+    return int(text)
+
+
+def _constant(name: str):
+    raise _Refused(f"{name} is not a JSON number")
+
+
+def parse_request(text) -> dict:
+    """A page's request: a JSON object of at most :data:`MAX_REQUEST` characters, lists and
+    objects at most :data:`MAX_NESTING` deep, integers of at most :data:`MAX_DIGITS` digits
+    (checked before or while parsing, so no request costs more than its size). An
+    :class:`AMRError` says why a request is refused."""
+    if not isinstance(text, str):
+        raise AMRError("a request must be a JSON object sent as text")
+    if len(text) > MAX_REQUEST:
+        raise AMRError(f"a request has {len(text)} characters (at most {MAX_REQUEST})")
+    # Brackets bound the nesting before the parser (which recurses) sees it.
+    if text.count("[") + text.count("{") > MAX_REQUEST // 64:
+        raise AMRError(f"a request holds more than {MAX_REQUEST // 64} lists and objects")
+    if _depth(text) > MAX_NESTING:
+        raise AMRError(f"a request may nest lists and objects {MAX_NESTING} deep at most")
+    try:
+        msg = json.loads(text, parse_int=_integer, parse_constant=_constant)
+    except _Refused as e:
+        raise AMRError(f"a request was refused: {e}") from None
+    except (ValueError, RecursionError):
+        raise AMRError("a request must be a JSON object (text)") from None
+    if not isinstance(msg, dict):
+        raise AMRError("a request must be a JSON object (text)")
+    return msg
+
+
+def _depth(text: str) -> int:
+    """How deep brackets nest in ``text`` (brackets inside JSON strings count too: a bound,
+    not a parse)."""
+    depth = deepest = 0
+    for m in _BRACKETS.finditer(text):
+        depth += 1 if m.group() in "[{" else -1
+        deepest = max(deepest, depth)
+    return deepest
+
+
+def error_message(error) -> dict:
+    """The ``error`` message for a page: one line of at most :data:`MAX_REPLY` characters."""
+    text = " ".join(str(error).split())
+    if len(text) > MAX_REPLY:
+        text = text[:MAX_REPLY - 3] + "..."
+    return {"type": "error", "message": text}
+
+
 # ---------------------------------------------------------------------- files
 
 def _confirm(client, msg, path) -> bool:
     """True when ``path`` may be written: it does not exist, or the page confirmed."""
     if path.exists() and msg.get("overwrite") is not True:
-        client.post({"type": "confirm", "request": dict(msg, overwrite=True),
+        request = {k: msg[k] for k in ("op", "name", "width", "height") if k in msg}
+        client.post({"type": "confirm", "request": dict(request, overwrite=True),
                      "message": f"{path.name} exists in {path.parent}. Replace it?"})
         return False
     return True
@@ -270,8 +367,8 @@ def _size(msg, hub) -> tuple:
     w, h = msg.get("width"), msg.get("height")
     if w in (None, "") and h in (None, ""):
         return tuple(hub.worker.session.resolution)
-    return (int(controls.number(w, "width", 1, MAX_SIDE)),
-            int(controls.number(h, "height", 1, MAX_SIDE)))
+    return (controls.integer(w, "width", 1, MAX_SIDE),
+            controls.integer(h, "height", 1, MAX_SIDE))
 
 
 def save_scene(hub: Hub, client: Client, msg: dict) -> None:
@@ -284,8 +381,12 @@ def save_scene(hub: Hub, client: Client, msg: dict) -> None:
     check_output(path, overwrite=True)
     text = scene_text(hub.worker.session.base_path, hub.state, spp=hub.state.spp,
                       resolution=size, tf2d_file=write_table(path, hub.state))
-    with replacing(path) as tmp:
-        tmp.write_text(text)
+    try:
+        with replacing(path) as tmp:
+            tmp.write_text(text)
+    except OSError as e:
+        raise AMRError(f"save: cannot write {path} ({e.strerror or e}); any existing file is "
+                       f"unchanged") from None
     client.post({"type": "saved", "what": "scene", "path": str(path),
                  "message": f"Saved the scene to {path}; render it with: python -m mi_amr "
                             f"render {path} -o image.png"})
@@ -308,8 +409,14 @@ def save_image(hub: Hub, client: Client, msg: dict) -> None:
         if last is not None and last[0] == version and size == tuple(session.resolution):
             image = last[1]
         else:
-            image = worker.counted("saves", lambda: session.render_refined(size, state.spp))
-        write_image_atomic(path, image)
+            image = worker.counted("saves", lambda: session.render_tiled(size, state.spp))
+        try:
+            write_image_atomic(path, image)
+        except (OSError, RuntimeError) as e:    # Mitsuba's writer raises RuntimeError
+            worker.publish("reply", {"client": client, "message": error_message(
+                f"save: cannot write {path} ({str(e).strip() or type(e).__name__}); any "
+                f"existing file is unchanged")}, None)
+            return
         worker.publish("reply", {"client": client, "message": {
             "type": "saved", "what": "image", "path": str(path),
             "message": f"Saved {size[0]}x{size[1]} at {state.spp} spp to {path}"}}, None)
@@ -326,12 +433,15 @@ def add_keyframe(hub: Hub, client: Client, msg: dict) -> None:
     if frame in (None, ""):
         keys = read_keyframes(path) if path.exists() else []
         frame = keys[-1]["frame"] + KEYFRAME_STEP if keys else 0
-    frame = int(controls.number(frame, "keyframe frame", 0, 10 ** 7))
+    frame = controls.integer(frame, "keyframe frame", 0, 10 ** 7)
     s = hub.state
     scene = keyframe_scene(hub, path)
     step = hub.series.index(s.data_file) if s.data_file in hub.series else None
-    append_keyframe(path, frame, camera=s.camera.as_dict(), isovalue=s.isovalues[0],
-                    color_range=s.color_range, step=step)
+    try:
+        append_keyframe(path, frame, camera=s.camera.as_dict(), isovalue=s.isovalues[0],
+                        color_range=s.color_range, step=step)
+    except OSError as e:
+        raise AMRError(f"keyframe: cannot write {path} ({e.strerror or e})") from None
     files = f" --files '{hub.series_spec}'" if step is not None and hub.series_spec else ""
     client.post({"type": "saved", "what": "keyframe", "path": str(path),
                  "next_frame": frame + KEYFRAME_STEP,

@@ -18,6 +18,7 @@ from mi_amr.errors import AMRError
 
 OPENABLE = (".xml", ".npz", ".vdb", ".h5", ".hdf5")
 MAX_LISTED = 200
+MAX_PATH = 4096                 # characters of a path the page sends
 NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]{0,127}")
 
 
@@ -40,13 +41,19 @@ class FileRules:
         """The file the page asks for, when the rules allow it (else an :class:`AMRError`)."""
         if not isinstance(text, str) or not text.strip():
             raise AMRError("open: give a file name")
+        if len(text) > MAX_PATH or any(ord(c) < 32 for c in text):
+            raise AMRError(f"open: {_shown(text)} is not a path (at most {MAX_PATH} "
+                           f"characters, no control characters)")
         given = Path(text.strip())
-        path = (given if given.is_absolute() else self.root / given).resolve()
+        try:
+            path = (given if given.is_absolute() else self.root / given).resolve()
+        except (OSError, RuntimeError) as e:        # a link loop, say
+            raise AMRError(f"open: {_shown(text)} cannot be resolved ({e})") from None
         if path not in self.extra and not _inside(path, self.root):
-            raise AMRError(f"open: '{text}' is outside the scene's folder {self.root} and not "
-                           f"one of the files given on the command line; refused")
+            raise AMRError(f"open: {_shown(text)} is outside the scene's folder {self.root} "
+                           f"and not one of the files given on the command line; refused")
         if not path.exists():
-            raise AMRError(f"open: '{text}' does not exist")
+            raise AMRError(f"open: {_shown(text)} does not exist")
         return path
 
     def listing(self) -> list:
@@ -62,11 +69,17 @@ class FileRules:
     def output(self, name, suffixes) -> Path:
         """The output path for the file name the page sends."""
         if not isinstance(name, str) or not NAME.fullmatch(name) or ".." in name:
-            raise AMRError(f"save: '{name}' is not a plain file name (letters, digits and "
+            raise AMRError(f"save: {_shown(name)} is not a plain file name (letters, digits and "
                            f"'._-', no folders); files are written to {self.out_dir}")
         if Path(name).suffix.lower() not in suffixes:
-            raise AMRError(f"save: '{name}' must end in {' or '.join(suffixes)}")
+            raise AMRError(f"save: {_shown(name)} must end in {' or '.join(suffixes)}")
         return self.out_dir / name
+
+
+def _shown(value) -> str:
+    """``value`` quoted for a message, cut short (a refused request is never echoed whole)."""
+    text = repr(value)
+    return text if len(text) <= 80 else text[:80] + f"... ({len(text)} characters)"
 
 
 def _inside(path: Path, folder: Path) -> bool:

@@ -15,7 +15,9 @@ camera                      the sensor's ``to_world`` and ``x_fov``             
                             (:func:`~mi_amr.plugin.camera.set_camera`)
 light                       the directional emitter's ``to_world`` and             no
                             ``irradiance.value``
-preview / image size        the film's ``size``                                    once a size
+preview size                the film's ``size``                                    once a size
+saved image, any size       tiles of the view's film size (:mod:`.tiles`): the     no
+                            ``x_fov`` and ``principal_point_offset_x/y``
 data file (time step)       ``integrator.load_volume`` (same fields; the next      no
                             step prepared meanwhile, :mod:`.series`)
 method, reconstruction,     the scene is loaded again (:func:`structure`)          yes (once)
@@ -46,9 +48,11 @@ from mi_amr.plugin.camera import Camera, scene_camera, sensor_key, set_camera
 from mi_amr.plugin.inputs import colormap_table
 from mi_amr.plugin.scene import load_scene
 from mi_amr.workflows.render import least_pass_spp, pass_samples
+from mi_amr.workflows.viewer import tiles
 
 HISTOGRAM_BINS = 128
 QUANTILES = 201                 # the isovalue slider's percentile scale: every half percent
+MIN_TILE_KEPT = 32              # pixels a tile keeps per side at least, inside its margins
 
 
 @dataclass(frozen=True)
@@ -184,6 +188,7 @@ class Session:
                           in params)
         self._film_key = f"{sensor_key(params)}.film.size"
         self._film = None
+        self._tiling = _tiling(scene, params, sensor_key(params))
         # A directional light has an irradiance; others (point, area) are not steered.
         lights = [k[: -len(".irradiance.value")] for k in params.keys()
                   if k.endswith(".irradiance.value") and
@@ -415,6 +420,57 @@ class Session:
             accum = part if accum is None else accum + part
         return (accum / spp).astype(np.float32)
 
+    def tile_size(self) -> tuple:
+        """The film size saved images are rendered in (:meth:`render_tiled`): the view's own,
+        whose kernels the refined frames compiled, or, for a view too small to keep anything
+        inside the filter's margin, a larger one (compiled once)."""
+        edge = tiles.margin(self._tiling["radius"])
+        return tuple(max(n, 2 * edge + MIN_TILE_KEPT) for n in self.resolution)
+
+    def render_tiled(self, size, spp: int) -> np.ndarray:
+        """The ``spp``-sample image at ``size`` pixels ``(width, height)``, linear RGB
+        ``(height, width, 3)``, rendered in tiles of :meth:`tile_size` (:mod:`.tiles`): an
+        image of any size compiles no kernel of its own. At the tile size itself, the image
+        of :meth:`render_refined` (the pixels ``python -m mi_amr render`` gives). Each tile
+        has seeds of its own, so the tiles' noise does not repeat."""
+        size, tile = (int(size[0]), int(size[1])), self.tile_size()
+        if size == tile or self._tiling["principal"] is None:
+            return self.render_refined(size, spp)
+        edge = tiles.margin(self._tiling["radius"])
+        passes = refine_passes(spp, least_pass_spp(self.scene.integrator()))
+        image = np.zeros((size[1], size[0], 3), dtype=np.float32)
+        try:
+            for k, t in enumerate(tiles.layout(size, tile, edge)):
+                self._aim_tile(size, tile, (t.x0, t.y0))
+                accum = sum(self._pass(tile, n, seed + k * len(passes)) * n
+                            for seed, n in passes)
+                rows, cols = t.taken()
+                image[t.y_lo:t.y_hi, t.x_lo:t.x_hi] = (accum / spp)[rows, cols]
+        finally:
+            self._aim_tile(None, tile, None)
+        return image
+
+    def _aim_tile(self, size, tile, corner) -> None:
+        """Film ``tile``, and the camera of the tile at ``corner`` of a ``size`` image
+        (:func:`.tiles.tile_camera`); ``size`` None: the view's own camera again."""
+        p, key, principal = self.params, self._tiling["sensor"], self._tiling["principal"]
+        camera = self.state.camera
+        if size is not None:
+            fov, principal = tiles.tile_camera(camera.fov, principal, size, tile, corner)
+            camera = dataclasses.replace(camera, fov=fov)
+        self._write_sensor(camera, tile)
+        p[f"{key}.principal_point_offset_x"] = float(principal[0])
+        p[f"{key}.principal_point_offset_y"] = float(principal[1])
+        self.params.update()
+        self._film = tile
+
+    def _pass(self, size, spp: int, seed: int) -> np.ndarray:
+        """One ``mi.render`` at the film size already written (a tile's camera kept)."""
+        image = mi.render(self.scene, spp=spp, seed=seed)
+        dr.eval(image)
+        dr.sync_thread()
+        return np.array(image, dtype=np.float32)[..., :3]
+
     def close(self) -> None:
         import shutil
 
@@ -432,6 +488,17 @@ def slider_scale(quantiles) -> str:
     n = len(q) - 1
     middle = q[int(round(0.95 * n))] - q[int(round(0.05 * n))]
     return "percentile" if span > 0 and middle < 0.1 * span else "linear"
+
+
+def _tiling(scene, params, sensor: str) -> dict:
+    """What :meth:`Session.render_tiled` needs of the scene's camera: its key in ``params``,
+    its principal point offset (None: a camera without one, which is not tiled) and its
+    film's reconstruction filter radius (pixels)."""
+    keys = [f"{sensor}.principal_point_offset_{a}" for a in "xy"]
+    principal = tuple(float(np.ravel(params[k])[0]) for k in keys) \
+        if all(k in params for k in keys) else None
+    return {"sensor": sensor, "principal": principal,
+            "radius": float(scene.sensors()[0].film().rfilter().radius())}
 
 
 def _bands(widths, offsets, peaks) -> tuple:

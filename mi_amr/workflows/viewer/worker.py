@@ -13,7 +13,8 @@ and refined frames), ``reloads`` (a new structure, up to its first refined frame
 ``steps`` (a time step: another data file of the same fields, up to its first refined frame;
 it stays 0),
 ``quality`` (a new refined sample count: Mitsuba's render loop specialises on it), ``saves``
-(an image saved at another size) and ``controls`` (everything else: it stays 0).
+(images saved: it stays 0, they are rendered in tiles of the view's film size) and
+``controls`` (everything else: it stays 0).
 """
 
 from __future__ import annotations
