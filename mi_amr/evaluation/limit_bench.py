@@ -36,9 +36,10 @@ FRAMES = 5
 RAW_READS = 3       # the raw read is the best of these (the file then in the page cache)
 
 
-def _frame(mi, dr, scene, seed) -> float:
+def _frame(mi, dr, scene, seed, integrator=None) -> float:
+    """Seconds of one frame of ``scene`` (by ``integrator``, else the scene's own)."""
     t0 = time.perf_counter()
-    img = mi.render(scene, seed=seed)
+    img = mi.render(scene, seed=seed, integrator=integrator)
     dr.eval(img)
     dr.sync_thread()
     return time.perf_counter() - t0
@@ -103,6 +104,7 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
     import mitsuba as mi
 
     from mi_amr.plugin.scene import load_scene
+    from mi_amr.plugin.twins import Twins, with_twins
 
     def scene(spp=spp, **integrator):
         return load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size,
@@ -115,18 +117,17 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
     unshadowed = {key: scene(shadows="false", **kw) for key, kw in (
         ("opaque_unshadowed_s", {"isovalue": "0.05"}), ("translucent_unshadowed_s", TRANSLUCENT),
         ("stochastic_unshadowed_s", dict(TRANSLUCENT, layers="stochastic")))}
-    runs = [("opaque_s", opaque, True), ("translucent_s", layered, True),
-            ("one_shadow_s", one_shadow, True), ("stochastic_s", picked, True),
-            ("translucent_slow_s", layered, False)]
-    runs += [(key, sc, True) for key, sc in unshadowed.items()]
+    slow = with_twins(layered.integrator(), Twins(layer_fast_paths=False))
+    runs = [("opaque_s", opaque, None), ("translucent_s", layered, None),
+            ("one_shadow_s", one_shadow, None), ("stochastic_s", picked, None),
+            ("translucent_slow_s", layered, slow)]
+    runs += [(key, sc, None) for key, sc in unshadowed.items()]
     times = {key: [] for key, _, _ in runs}
     for i in range(frames + 1):
-        for key, sc, fast in runs:
-            sc.integrator().layer_fast_paths = fast
-            t = _frame(mi, dr, sc, i)
+        for key, sc, integ in runs:
+            t = _frame(mi, dr, sc, i, integ)
             if i:                                    # the first round compiles
                 times[key].append(t)
-    layered.integrator().layer_fast_paths = True
     row = {k: statistics.median(v) for k, v in times.items()}
     for ratio, key, base in (("ratio", "translucent_s", "opaque_s"),
                              ("ratio_slow", "translucent_slow_s", "opaque_s"),
