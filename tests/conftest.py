@@ -16,6 +16,9 @@ os.environ["MI_AMR_CACHE"] = "off"
 
 from mi_amr import AMRVolume  # noqa: E402
 
+# tests/mutants/replay.py runs test files against mutated copies; it is no test itself.
+collect_ignore = ["mutants"]
+
 
 def grid(level, lo, hi, h, fn=None, names=("f",)):
     """A grid record covering the world box ``[lo, hi]`` with cells of size ``h`` (a float);

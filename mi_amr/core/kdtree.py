@@ -49,11 +49,30 @@ class KDTree:
     All positions are world space.
     """
 
+    # What a built tree holds besides its volume: :meth:`arrays` gives them, and
+    # :meth:`from_arrays` makes the tree from them again without building it.
+    STATE = ("_ghi", "_glo", "_leaf_hi_f", "_leaf_lo_f", "_level_h", "_listed_windows",
+             "_node_hi", "_node_lo", "_node_split", "_root", "_shi", "_slo", "_step_f", "depth",
+             "grid_hi", "grid_lo", "h_fine", "hi", "leaf_cells", "leaf_grids", "leaf_hi",
+             "leaf_levels", "leaf_lo", "leaf_min_h", "leaf_nactive", "leaf_node",
+             "leaf_nsupport", "leaf_owner", "leaf_start", "level", "lo", "node_code",
+             "node_depth", "node_hi", "node_lo", "node_ropes", "node_split", "shape", "spacing",
+             "support_hi", "support_lo")
+
     def __init__(self, volume, *, leaf_cells: int = params.default("leaf_cells"),
-                 max_depth: int = 80):
+                 max_depth: int = 80, arrays: dict | None = None):
+        """Build the tree of ``volume``; or, given ``arrays`` (:meth:`arrays` of a tree of this
+        volume), take them as they are (:meth:`from_arrays`)."""
+        self.volume = volume
+        if arrays is not None:
+            missing = sorted(set(self.STATE) - set(arrays))
+            if missing:
+                raise AMRError(f"KDTree: saved tree state lacks {missing}")
+            for name in self.STATE:
+                setattr(self, name, arrays[name])
+            return
         if leaf_cells < 2:
             raise AMRError(f"KDTree: leaf_cells must be >= 2, got {leaf_cells}")
-        self.volume = volume
         self.leaf_cells = int(leaf_cells)
         self.grid_lo, self.grid_hi = volume.grid_boxes()
         self.spacing = volume.spacings()
@@ -83,6 +102,16 @@ class KDTree:
         self._build(max_depth)
         self._order_active()
         self._ropes()
+
+    @classmethod
+    def from_arrays(cls, volume, arrays: dict) -> "KDTree":
+        """The tree of ``volume`` whose state is ``arrays`` (what :meth:`arrays` gave, e.g.
+        read back from a snapshot), not built again."""
+        return cls(volume, arrays=arrays)
+
+    def arrays(self) -> dict:
+        """The tree's state (:data:`STATE`: NumPy arrays, tuples and numbers; not the volume)."""
+        return {name: getattr(self, name) for name in self.STATE}
 
     def _world(self, u, axis=None):
         """World coordinates of lattice coordinates ``u`` (all axes, or one ``axis``)."""

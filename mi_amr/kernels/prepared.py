@@ -60,9 +60,7 @@ class PreparedVolume:
         volume, tree_state, bricks, ranges, meta = snap
         self = cls.__new__(cls)
         self.volume, self.field, self.color_field = volume, meta["field"], meta["color_field"]
-        self.tree = KDTree.__new__(KDTree)
-        self.tree.__dict__.update(tree_state)
-        self.tree.volume = volume
+        self.tree = KDTree.from_arrays(volume, tree_state)
         self.device = DeviceVolume(volume, self.tree, self.field, self.color_field,
                                    m=m or dr.llvm.ad, bricks=bricks)
         self.device.host_ranges.update(ranges)
