@@ -27,7 +27,7 @@ from mi_amr import params
 from mi_amr.core import parallel
 from mi_amr.core.buffers import joined
 from mi_amr.core.boxes import contains_points
-from mi_amr.core.points import (_as_points, _finest_of,  # noqa: F401  (twins: tests)
+from mi_amr.core.points import (as_points, finest_of,  # noqa: F401  (twins: tests)
                                 finest_grid_bruteforce, support_grids_bruteforce)
 from mi_amr.errors import AMRError
 
@@ -309,7 +309,7 @@ class KDTree:
         nodes = np.arange(self.num_nodes)
         return self._descend_faces(nodes, np.zeros(6 * len(nodes), dtype=np.int64)).reshape(-1, 6)
 
-    def _face_boxes(self, nodes):
+    def face_boxes(self, nodes):
         """Closed lattice boxes half a finest cell beyond each face of ``nodes`` (6 rows per
         node, face ``2 * axis + side``), and whether each lies outside the tree's box."""
         lo = np.repeat(self._node_lo[nodes], 6, axis=0)
@@ -326,7 +326,7 @@ class KDTree:
     def _descend_faces(self, nodes, start) -> np.ndarray:
         """For each face of ``nodes`` (6 per node), the deepest node holding its face box,
         descending from ``start`` (a node holding it); the root for faces outside the tree."""
-        lo, hi, outside = self._face_boxes(nodes)
+        lo, hi, outside = self.face_boxes(nodes)
         inside = ~outside
         node = np.zeros(len(lo), dtype=np.int64)
         node[inside] = self.descend_boxes(lo[inside], hi[inside],
@@ -522,14 +522,14 @@ class KDTree:
         """Index of the finest grid whose closed box contains each point (``-1``: none).
 
         Among grids of the same level that share a face, the lowest index wins."""
-        points = _as_points(points)
+        points = as_points(points)
         pi, gi = self._candidates(points)
         inside = contains_points(self.grid_lo[gi], self.grid_hi[gi], points[pi])
-        return _finest_of(points, pi[inside], gi[inside], self.level)
+        return finest_of(points, pi[inside], gi[inside], self.level)
 
     def support_grids(self, points) -> list:
         """For each point, the sorted indices of the grids whose (open) support contains it."""
-        points = _as_points(points)
+        points = as_points(points)
         pi, gi = self._candidates(points)
         inside = np.all((points[pi] > self.support_lo[gi]) & (points[pi] < self.support_hi[gi]),
                         axis=1)
@@ -686,8 +686,8 @@ def _leaf_count_tables(volume, grids):
     returns the tables and the offset of each grid's table (indexed by grid, -1 if absent).
     Grids of one shape are stacked and summed together; :func:`_leaf_count_tables_reference`
     is the slow twin (one grid at a time, tables in the order of ``grids``)."""
-    shapes = volume._grid_columns()["shape"]
-    cell_start = volume._grid_columns()["offset"]
+    shapes = volume.grid_columns()["shape"]
+    cell_start = volume.grid_columns()["offset"]
     flat = volume.leaf_mask_flat()
     offsets = np.full(len(volume.grids), -1, dtype=np.int64)
     grids = np.asarray(grids, dtype=np.int64)
@@ -761,8 +761,8 @@ def _window_min_max(volume, values, grid, lo, hi):
     Grids of one shape are stacked into one array; per block size a sparse table holds, per
     cell, the extremum over the block starting there, built by halving along each axis. The
     boxes are looked up :data:`CHUNK` at a time."""
-    shapes = volume._grid_columns()["shape"]
-    offsets = volume._grid_columns()["offset"]
+    shapes = volume.grid_columns()["shape"]
+    offsets = volume.grid_columns()["offset"]
     finite = np.isfinite(values)
     # In the values' own precision: their min and max are the same numbers in float64, and
     # float32 tables halve the memory the lookups stream through.

@@ -54,14 +54,14 @@ def frame_against_mesh(sizes=SIZES, frames=FRAMES) -> list:
     from mi_amr.evaluation import peers
     from mi_amr.plugin.scene import load_scene
 
-    rs = peers._route_scene("sphere_wake")
+    rs = peers.route_scene("sphere_wake")
     arrays = [np.asarray(g.fields[rs.field]) for g in rs.vol.grids]
-    pieces = peers._grid_pieces(marching_cubes, rs.vol, arrays, rs.iso, False)
+    pieces = peers.grid_pieces(marching_cubes, rs.vol, arrays, rs.iso, False)
     rows = []
     for size in sizes:
         ours = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size, spp=1,
                           method="exact", reconstruction="basis")
-        _, mesh_scene, triangles = peers._mesh_scene(mi, dataclasses.replace(rs, scene=ours),
+        _, mesh_scene, triangles = peers.build_mesh_scene(mi, dataclasses.replace(rs, scene=ours),
                                                      pieces)
         # Where mi_amr's frame goes: the same scene without shadow rays.
         unlit = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size,

@@ -107,7 +107,7 @@ def needed_fields(volume, field: str, color_field: str | None, m=None):
     derivable = [f for f in missing if f in DERIVED_FIELDS]
     unknown = [f for f in missing if f not in DERIVED_FIELDS]
     if unknown:
-        raise AMRError(f"{volume._label()}unknown field(s) {unknown}: the volume holds "
+        raise AMRError(f"{volume.source_prefix()}unknown field(s) {unknown}: the volume holds "
                        f"{list(volume.field_names)}; derived fields are "
                        f"{list(DERIVED_FIELDS)}")
     if derivable and m is not None:
