@@ -120,6 +120,11 @@ class AMRVolume:
         self._partly = None
         self._columns = None     # per-grid arrays (grid_columns), built once
         self._ranges = {}
+        # Work derived from this volume that is kept with it: the level tables and flat level
+        # values (mi_amr.core.levels), and mi_amr.trace's preparations of it by field, leaf
+        # size and backend (mi_amr.kernels.trace).
+        self.level_caches = levels.LevelCaches()
+        self.trace_preparations = {}
 
     # ------------------------------------------------------------------ construction
     @classmethod
