@@ -196,12 +196,13 @@ def mi_amr_route(scene_name: str) -> dict:
     arrays) plus the first frame is the time to image; the warm frame is reported beside it."""
     import mitsuba as mi
 
-    from mi_amr.kernels import prepared, snapshot
+    from mi_amr.kernels import snapshot
+    from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import load_scene
 
     w, h = ref.RESOLUTION
     # A fresh load: forget volumes an earlier scene in this process has prepared.
-    prepared._CACHE.clear()
+    register().clear()
     snapshot.ENABLED = False        # and none read back from a snapshot
     t0 = time.perf_counter()
     scene = load_scene(ref.scene_path(scene_name), resx=w, resy=h, spp=1, method="exact",

@@ -36,7 +36,7 @@ from mi_amr.kernels.composite import composite
 from mi_amr.kernels.config import MarchConfig, clips
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
-from mi_amr.kernels.prepared import prepare_file
+from mi_amr.kernels.prepared import Preparations
 from mi_amr.plugin import bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.aovs import NAMES as AOV_NAMES
 from mi_amr.plugin.aovs import iso_aovs
@@ -51,8 +51,9 @@ __doc__ = __doc__.replace("{table}", params.docstring_table())
 _CLASSES = {}
 
 
-def register() -> None:
-    """Register ``amr_iso`` with Mitsuba for the active variant."""
+def register() -> Preparations:
+    """Register ``amr_iso`` for the active variant. Returns the volumes its integrators
+    prepared and reuse (``clear()`` it for a first load; its ``report`` hears each step)."""
     variant = mi.variant()
     if variant is None:
         raise AMRError("mi_amr.register(): set a Mitsuba variant first (mi.set_variant(...))")
@@ -60,9 +61,10 @@ def register() -> None:
         # (nanobind classes take one base: the methods are copied in rather than mixed in.)
         methods = {k: v for k, v in vars(_AMRIso).items() if k not in ("__dict__", "__weakref__")}
         _CLASSES[variant] = type("AMRIsoIntegrator", (mi.SamplingIntegrator,),
-                                 dict(methods, __doc__=__doc__))
+                                 dict(methods, __doc__=__doc__, preparations=Preparations()))
     cls = _CLASSES[variant]
     mi.register_integrator("amr_iso", lambda props: cls(props))
+    return cls.preparations
 
 
 def _warn_outside(prep, isovalues) -> None:
@@ -105,8 +107,8 @@ class _AMRIso:
         _warn_outside(self.prep, opt.isovalues)
 
     def _prepare(self, path):
-        self.prep = prepare_file(path, self.opt.field, self.opt.color_field,
-                                 leaf_cells=self.opt.leaf_cells, m=self.m)
+        self.prep = self.preparations.prepare(path, self.opt.field, self.opt.color_field,
+                                              leaf_cells=self.opt.leaf_cells, m=self.m)
         self.dev = self.prep.device
         self.prep.search_ready(self.opt.reconstruction == "basis")
 

@@ -34,19 +34,18 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
         raise AMRError(f"variant '{variant}' is not available; choose from {mi.variants()}")
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
     mi.set_variant(variant)
-    from mi_amr.kernels import prepared
     from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import load_scene
 
-    register()
+    preparations = register()
     t0 = time.perf_counter()
     say(f"loading {scene_path} ({variant})")
-    prepared.REPORT = None if quiet else say
+    preparations.report = None if quiet else say
     try:
         scene = load_scene(scene_path, integrator={"aovs": True} if aovs else None,
                            pixel_format="rgba", **params)
     finally:
-        prepared.REPORT = None
+        preparations.report = None
     t1 = time.perf_counter()
     sensor = scene.sensors()[0]
     size = sensor.film().size()
