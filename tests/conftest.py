@@ -16,6 +16,9 @@ os.environ["MI_AMR_CACHE"] = "off"
 
 from mi_amr import AMRVolume  # noqa: E402
 
+# tests/mutants/replay.py runs test files against mutated copies; it is no test itself.
+collect_ignore = ["mutants"]
+
 
 def grid(level, lo, hi, h, fn=None, names=("f",)):
     """A grid record covering the world box ``[lo, hi]`` with cells of size ``h`` (a float);
@@ -98,6 +101,57 @@ def use_variant():
 
     mi_amr.register()
     return mi
+
+
+# The vectorised variants a test that takes ``each_variant`` or ``backend`` runs over, where
+# this machine has them (Mitsuba's practice: variant fixtures filtered by what is installed).
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+
+def present_variants() -> list:
+    """The :data:`VARIANTS` built into Mitsuba whose Dr.Jit backend this machine runs (CUDA
+    only with a GPU); none without Mitsuba."""
+    try:
+        import drjit as dr
+        import mitsuba as mi
+    except ImportError:
+        return []
+    backends = {"llvm": dr.JitBackend.LLVM, "cuda": dr.JitBackend.CUDA}
+    return [v for v in VARIANTS
+            if v in mi.variants() and dr.has_backend(backends[v.split("_")[0]])]
+
+
+def pytest_generate_tests(metafunc):
+    """One run of a test per present variant where it takes ``each_variant`` or ``backend``."""
+    for name in ("each_variant", "backend"):
+        if name in metafunc.fixturenames:
+            metafunc.parametrize(name, present_variants() or [None], indirect=True)
+
+
+@pytest.fixture
+def each_variant(request):
+    """Mitsuba with this run's variant set (and ``amr_iso`` registered for it); the tests'
+    :data:`VARIANT` set again afterwards."""
+    if request.param is None:
+        pytest.skip("no vectorised Mitsuba variant on this machine")
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant(request.param)
+    import mi_amr
+
+    mi_amr.register()
+    yield mi
+    mi.set_variant(VARIANT)
+
+
+@pytest.fixture
+def backend(request):
+    """The Dr.Jit backend module (``drjit.llvm.ad``, ``drjit.cuda.ad``) of this run's variant:
+    kernel tests that need no Mitsuba object take it as their ``m``."""
+    if request.param is None:
+        pytest.skip("no vectorised Mitsuba variant on this machine")
+    import drjit as dr
+
+    return getattr(dr, request.param.split("_")[0]).ad
 
 
 @pytest.fixture(scope="module")

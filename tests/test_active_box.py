@@ -18,6 +18,7 @@ dr = pytest.importorskip("drjit")
 
 from mi_amr.kernels.config import clip_box, clips  # noqa: E402
 from mi_amr.kernels.device import active_box_host  # noqa: E402
+from mi_amr.plugin.twins import Twins, with_twins  # noqa: E402
 from mi_amr.plugin.scene import load_scene  # noqa: E402
 from mi_amr.workflows import project  # noqa: E402
 
@@ -123,11 +124,7 @@ def test03_clipped_layers_are_the_walk_through_the_whole_volume(translucent):
     integ = translucent.integrator()
     o, d = sample_rays(integ, n=6000)
     fast = layers(integ, o, d, resume=True)
-    integ.clip_to_active = False
-    try:
-        slow = layers(integ, o, d, resume=True)
-    finally:
-        integ.clip_to_active = True
+    slow = layers(with_twins(integ, Twins(clip_to_active=False)), o, d, resume=True)
     assert (fast[1] >= 0).sum() > 2000
     np.testing.assert_array_equal(fast[1], slow[1])
     np.testing.assert_array_equal(fast[0], slow[0])
@@ -139,17 +136,15 @@ def transmittances(integ, o, d):
     return np.array(integ.iso_transmittance(ray, False, mi.Bool(True)))
 
 
-def assert_shadow_rays_and_images_agree(sc, twin_flag):
-    """Shadow-ray transmittances bit for bit and images of scene ``sc`` with the integrator's
-    attribute ``twin_flag`` True and False (its slow twin)."""
+def assert_shadow_rays_and_images_agree(sc, twins):
+    """Shadow-ray transmittances bit for bit and images of scene ``sc`` by its integrator and
+    by the integrator taking the slow twins ``twins``."""
     integ = sc.integrator()
+    slow_integ = with_twins(integ, twins)
     o, d = sample_rays(integ, n=3000)
     fast_T, fast_img = transmittances(integ, o, d), np.array(mi.render(sc, seed=0))
-    setattr(integ, twin_flag, False)
-    try:
-        slow_T, slow_img = transmittances(integ, o, d), np.array(mi.render(sc, seed=0))
-    finally:
-        setattr(integ, twin_flag, True)
+    slow_T = transmittances(slow_integ, o, d)
+    slow_img = np.array(mi.render(sc, seed=0, integrator=slow_integ))
     assert np.mean(slow_T < 0.99) > 0.1
     np.testing.assert_array_equal(fast_T, slow_T)
     assert fast_img.mean() > 0.05
@@ -161,7 +156,8 @@ def assert_shadow_rays_and_images_agree(sc, twin_flag):
 
 @pytest.mark.parametrize("which", ["opaque", "translucent"])
 def test04_clipped_shadow_rays_and_images_are_the_twins(request, which):
-    assert_shadow_rays_and_images_agree(request.getfixturevalue(which), "clip_to_active")
+    assert_shadow_rays_and_images_agree(request.getfixturevalue(which),
+                                        Twins(clip_to_active=False))
 
 
 @contextlib.contextmanager

@@ -78,7 +78,7 @@ def test05_the_velocity_is_freed_once_the_caller_drops_its_volume():
     gc.collect()
     assert all(w() is None for w in watched)
     assert set(out.field_names) == {"q_criterion", "speed"}
-    assert not any(k[1] in ("vx", "vy", "vz") for k in out.__dict__.get("_level_values", {}))
+    assert not any(k[1] in ("vx", "vy", "vz") for k in out.level_caches.values)
 
 
 def test06_level_values_of_a_file_read_whole_are_views_of_what_was_read(tmp_path):

@@ -129,3 +129,28 @@ def test06b_a_launch_of_one_pair_compiles_no_kernel(monkeypatch):
     got, compiled = kernels_compiled(lambda: PreparedVolume(vol, "f", m=m).device.node_ranges(True))
     assert compiled == 0
     np.testing.assert_array_equal(got, want)
+
+
+def test07_a_session_gives_back_what_it_prepared_until_cleared(tmp_path):
+    """:class:`~mi_amr.kernels.prepared.Preparations` keeps what it prepared (the same
+    object for the same file, fields and backend; another for other fields), tells its
+    ``report`` each step of a load, forgets all on ``clear``; another session, or
+    ``prepare_file`` alone, prepares afresh."""
+    from mi_amr.kernels.prepared import Preparations, prepare_file
+    from mi_amr.synthetic import datasets
+
+    path = tmp_path / "wake.npz"
+    datasets.sphere_wake("small", progress=False).select_fields(["vx", "vy", "vz"]).save(path)
+    heard = []
+    session = Preparations(report=heard.append)
+    first = session.prepare(path, "q_criterion", "speed", m=dr.llvm.ad)
+    assert any("read wake.npz" in line for line in heard) and \
+        any("kd-tree" in line for line in heard)
+    heard.clear()
+    assert session.prepare(path, "q_criterion", "speed", m=dr.llvm.ad) is first
+    assert not heard                                     # nothing loaded again
+    assert session.prepare(path, "speed", m=dr.llvm.ad) is not first
+    assert Preparations().prepare(path, "q_criterion", "speed", m=dr.llvm.ad) is not first
+    assert prepare_file(path, "q_criterion", "speed", m=dr.llvm.ad) is not first
+    session.clear()
+    assert session.prepare(path, "q_criterion", "speed", m=dr.llvm.ad) is not first

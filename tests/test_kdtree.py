@@ -499,3 +499,22 @@ def test31_check_finds_a_broken_tree():
         breaker(t)
         with pytest.raises(AssertionError, match=what if what != "tiling" else "child"):
             t.check("f", sample=4096)
+
+
+def test32_a_tree_made_from_its_arrays_is_the_tree(reference_volume):
+    """:meth:`KDTree.from_arrays` of :meth:`KDTree.arrays` (what a snapshot keeps) is the
+    built tree: every attribute a build sets is in ``KDTree.STATE`` (a new one missing there
+    would be lost by a snapshot), equal, and the tree passes its check."""
+    built = KDTree(reference_volume, leaf_cells=4)
+    assert set(vars(built)) == set(KDTree.STATE) | {"volume"}
+    again = KDTree.from_arrays(reference_volume, built.arrays())
+    assert again.volume is reference_volume
+    for name in KDTree.STATE:
+        a, b = getattr(built, name), getattr(again, name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        else:
+            assert a == b or a is b, name
+    again.check()
+    with pytest.raises(AMRError, match="lacks"):
+        KDTree.from_arrays(reference_volume, {"depth": 3})

@@ -1,4 +1,4 @@
-"""Stochastic layers with numbers shared by a SIMD packet (``integrator.packet_picks``).
+"""Stochastic layers with numbers shared by a SIMD packet (``Twins.packet_picks``).
 
 * The wavefront by sample (:func:`mi_amr.plugin.wavefront.tiled_lanes`): every pixel's every
   sample once, a packet of 16 lanes holding one sample index of 16 pixels of the tile order.
@@ -7,7 +7,7 @@
 * The shadow rays' Russian roulette (:func:`mi_amr.kernels.transmit.transmittance_exact` with
   ``u``): averaged over evenly spread ``u`` it is the exact transmittance, to the spread's
   step; where that is at least :data:`~mi_amr.tolerances.ROULETTE_T`, every ``u`` gives it.
-* The per-lane twin (``packet_picks = False``) renders what it rendered before; both converge
+* The per-lane twin (``Twins(packet_picks=False)``) renders what it rendered before; both converge
   to the composited image (``tests/test_stochastic_layers.py`` test02 checks the default).
 
 The scene is sphere_wake.xml with three isovalues of opacity 0.4, 0.5 and 0.6.
@@ -21,6 +21,7 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
+from mi_amr.plugin.twins import Twins, with_twins  # noqa: E402
 from mi_amr.plugin.scene import load_scene  # noqa: E402
 from mi_amr.workflows import project  # noqa: E402
 
@@ -57,36 +58,35 @@ def test01_a_wavefront_by_sample_takes_each_sample_once_a_packet_one_sample(vari
             np.testing.assert_array_equal(pixel[span], g_pixels)
 
 
-def fake_integrator(width, height, spp, seed):
-    """What :func:`~mi_amr.plugin.wavefront.packet_u` reads of an integrator while
-    :func:`~mi_amr.plugin.wavefront.render` traces a wavefront by sample."""
-    from mi_amr.kernels.device import backend_of
+def by_sample_lanes(width, height, spp, seed):
+    """The :class:`~mi_amr.plugin.wavefront.Lanes` that
+    :func:`~mi_amr.plugin.wavefront.render` hands the samples of a wavefront by sample."""
     from mi_amr.plugin import wavefront
 
     order = mi.UInt32(wavefront.pixel_order(width, height))
     lane = wavefront.tiled_lanes(order, width * height * spp, spp, True)
-    return SimpleNamespace(m=backend_of(mi.Float), _wavefront_lane=lane,
-                           _wavefront_picks=(mi.UInt32(spp), mi.UInt32(seed)))
+    return wavefront.Lanes(lane, (mi.UInt32(spp), mi.UInt32(seed)))
 
 
-def packet_numbers(integ, salt):
+def packet_numbers(lanes, salt):
+    from mi_amr.kernels.device import backend_of
     from mi_amr.plugin import wavefront
 
-    ray = SimpleNamespace(o=mi.Point3f(dr.zeros(mi.Float, dr.width(integ._wavefront_lane))))
-    return np.array(wavefront.packet_u(integ, ray, salt))
+    ray = SimpleNamespace(o=mi.Point3f(dr.zeros(mi.Float, dr.width(lanes.lane))))
+    return np.array(wavefront.packet_u(backend_of(mi.Float), lanes, ray, salt))
 
 
 def test02_a_packet_shares_its_number_stratified_over_a_pixels_samples(variant):
     from mi_amr.plugin import wavefront
 
     width, height, spp = 64, 64, 4
-    integ = fake_integrator(width, height, spp, seed=5)
-    u = packet_numbers(integ, salt=0)
+    lanes = by_sample_lanes(width, height, spp, seed=5)
+    u = packet_numbers(lanes, salt=0)
     assert u.min() >= 0.0 and u.max() < 1.0
     packets = u.reshape(-1, wavefront.PACKET)          # 64^2 pixels: full groups only
     assert (packets == packets[:, :1]).all()
     # Per pixel one sample in each stratum [s / spp, (s + 1) / spp).
-    lane = np.array(integ._wavefront_lane)
+    lane = np.array(lanes.lane)
     strata = np.empty((width * height, spp), dtype=np.int64)
     strata[lane // spp, lane % spp] = np.floor(u * spp)
     np.testing.assert_array_equal(np.sort(strata, axis=1), np.tile(np.arange(spp), (4096, 1)))
@@ -97,22 +97,25 @@ def test02_a_packet_shares_its_number_stratified_over_a_pixels_samples(variant):
     counts = np.histogram(packets[:, 0], bins=10, range=(0, 1))[0]
     assert np.abs(counts - 102.4).max() < 5 * np.sqrt(102.4)
     # Other streams and seeds: other numbers.
-    other_salt = packet_numbers(integ, salt=1)
-    other_seed = packet_numbers(fake_integrator(width, height, spp, seed=6), salt=0)
+    other_salt = packet_numbers(lanes, salt=1)
+    other_seed = packet_numbers(by_sample_lanes(width, height, spp, seed=6), salt=0)
     for v in (other_salt, other_seed):
         assert np.mean(np.abs(v - u) > 1e-3) > 0.9
         assert abs(np.corrcoef(v, u)[0, 1]) < 0.1
 
 
 def test03_no_shared_numbers_outside_a_wavefront_by_sample(variant):
+    from mi_amr.kernels.device import backend_of
     from mi_amr.plugin import wavefront
 
-    integ = fake_integrator(8, 8, 2, seed=0)
+    m = backend_of(mi.Float)
+    lanes = by_sample_lanes(8, 8, 2, seed=0)
     narrow = SimpleNamespace(o=mi.Point3f(dr.zeros(mi.Float, 10)))
-    assert wavefront.packet_u(integ, narrow, 0) is None
-    integ._wavefront_picks = None
+    assert wavefront.packet_u(m, lanes, narrow, 0) is None
     wide = SimpleNamespace(o=mi.Point3f(dr.zeros(mi.Float, 128)))
-    assert wavefront.packet_u(integ, wide, 0) is None
+    assert wavefront.packet_u(m, lanes, wide, 0) is not None
+    assert wavefront.packet_u(m, wavefront.Lanes(lanes.lane), wide, 0) is None
+    assert wavefront.packet_u(m, None, wide, 0) is None
 
 
 @pytest.fixture(scope="module")
@@ -157,16 +160,13 @@ def test05_the_per_lane_twin_and_the_packets_converge_to_one_image(translucent):
     two seeds of each 4.0e-4 and 4.2e-4; image means 0.2445 and 0.2440)."""
     integ = translucent.integrator()
 
-    def mean_image(seeds):
-        return np.mean([np.array(mi.render(translucent, seed=s), dtype=np.float64)
-                        for s in seeds], axis=0)
+    def mean_image(seeds, integrator=None):
+        return np.mean([np.array(mi.render(translucent, seed=s, integrator=integrator),
+                                 dtype=np.float64) for s in seeds], axis=0)
 
     shared = mean_image(range(24))
-    integ.packet_picks = False
-    try:
-        lanes_a, lanes_b = mean_image(range(24)), mean_image(range(100, 124))
-    finally:
-        integ.packet_picks = True
+    per_lane = with_twins(integ, Twins(packet_picks=False))
+    lanes_a, lanes_b = mean_image(range(24), per_lane), mean_image(range(100, 124), per_lane)
     shared_b = mean_image(range(200, 224))
     noise = (np.mean((lanes_a - lanes_b) ** 2) + np.mean((shared - shared_b) ** 2)) / 2
     assert shared.mean() > 0.05
@@ -180,8 +180,8 @@ def test06_at_one_sample_per_pixel_lanes_keep_their_own_numbers(scene_data_ready
     sc = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=32, resy=32, spp=1,
                     integrator=dict(TRANSLUCENT, layers="stochastic"))
     shared = np.array(mi.render(sc, seed=2))
-    sc.integrator().packet_picks = False
-    own = np.array(mi.render(sc, seed=2))
+    own = np.array(mi.render(sc, seed=2,
+                             integrator=with_twins(sc.integrator(), Twins(packet_picks=False))))
     assert shared.mean() > 0.05
     np.testing.assert_allclose(shared, own, rtol=1e-6, atol=1e-9)
 

@@ -30,13 +30,10 @@ def cache(tmp_path, monkeypatch):
     root = tmp_path / "cache"
     monkeypatch.setenv("MI_AMR_CACHE", str(root))
     monkeypatch.setattr(snapshot, "ENABLED", True)
-    prepared._CACHE.clear()
     yield root
-    prepared._CACHE.clear()
 
 
 def prepare(path):
-    prepared._CACHE.clear()             # a new process, as far as the preparation knows
     return prepared.prepare_file(path, "q_criterion", "speed", m=M)
 
 
@@ -84,7 +81,10 @@ def test01_a_second_load_reads_back_what_the_first_prepared(data, cache):
 
 def test02_a_restored_volume_renders_the_same_image(data, cache, variant, tmp_path):
     mi = variant
+    from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import load_scene
+
+    preparations = register()
 
     xml = tmp_path / "scene.xml"
     xml.write_text(textwrap.dedent(f"""
@@ -108,7 +108,7 @@ def test02_a_restored_volume_renders_the_same_image(data, cache, variant, tmp_pa
         </scene>"""))
     images = []         # a box filter: no splats of neighbours summed in varying order
     for _ in range(2):
-        prepared._CACHE.clear()
+        preparations.clear()            # a new process, as far as the integrator knows
         scene = load_scene(xml)
         images.append(np.array(mi.render(scene, seed=0)))
         del scene

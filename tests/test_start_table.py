@@ -1,7 +1,7 @@
 """Leaf searches start from the start table over the active box
 (:mod:`mi_amr.kernels.starts`) instead of the root: the table's nodes against a plain descent
 cell by cell, and the same crossings, layers, shadow-ray transmittances and images as searches
-from the root (``integrator.start_tables = False``, ``trace(start_table=False)``).
+from the root (``with_twins(integ, Twins(start_tables=False))``, ``trace(start_table=False)``).
 
 The scene is sphere_wake.xml (64^2, 1 spp), rays as in ``test_active_box``.
 """
@@ -17,6 +17,7 @@ dr = pytest.importorskip("drjit")
 from mi_amr.kernels import starts  # noqa: E402
 from mi_amr.kernels.config import clips, start_table  # noqa: E402
 from mi_amr.kernels.device import node_holds  # noqa: E402
+from mi_amr.plugin.twins import Twins, with_twins  # noqa: E402
 # (opaque, translucent: the fixtures of test_active_box, one scene each per module)
 from test_active_box import (ISOVALUES, assert_shadow_rays_and_images_agree,  # noqa: E402, F401
                              assert_trace_twins_agree, new_isovalue, opaque,
@@ -95,21 +96,13 @@ def test03_first_crossings_are_the_searches_from_the_root(opaque):
         np.testing.assert_array_equal(a, b)
 
 
-def twin(integ, fn):
-    integ.start_tables = False
-    try:
-        return fn()
-    finally:
-        integ.start_tables = True
-
-
 def test04_layers_are_the_searches_from_the_root(translucent):
     from test_translucent import layers
 
     integ = translucent.integrator()
     o, d = sample_rays(integ, n=6000)
     fast = layers(integ, o, d, resume=True)
-    slow = twin(integ, lambda: layers(integ, o, d, resume=True))
+    slow = layers(with_twins(integ, Twins(start_tables=False)), o, d, resume=True)
     assert (fast[1] >= 0).sum() > 2000
     np.testing.assert_array_equal(fast[1], slow[1])
     np.testing.assert_array_equal(fast[0], slow[0])
@@ -117,7 +110,8 @@ def test04_layers_are_the_searches_from_the_root(translucent):
 
 @pytest.mark.parametrize("which", ["opaque", "translucent"])
 def test05_shadow_rays_and_images_are_the_twins(request, which):
-    assert_shadow_rays_and_images_agree(request.getfixturevalue(which), "start_tables")
+    assert_shadow_rays_and_images_agree(request.getfixturevalue(which),
+                                        Twins(start_tables=False))
 
 
 def test06_a_new_isovalue_builds_its_table_without_compiling(opaque):

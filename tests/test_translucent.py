@@ -19,6 +19,7 @@ import pytest
 mi = pytest.importorskip("mitsuba")
 dr = pytest.importorskip("drjit")
 
+from mi_amr.plugin.twins import Twins, with_twins  # noqa: E402
 from mi_amr.plugin.scene import load_scene  # noqa: E402
 from mi_amr.workflows import project  # noqa: E402
 
@@ -80,13 +81,12 @@ def test01_resumed_walks_find_the_layers_a_new_search_finds(scenes, rec):
 
 
 def transmittance(integ, o, d, fast):
+    """Shadow-ray transmittances of ``integ`` (``fast`` False: of its layer-by-layer twin)."""
     ray = mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T))
     ray.maxt = mi.Float(50.0)
-    integ.layer_fast_paths = fast
-    try:
-        return np.array(integ.iso_transmittance(ray, False, mi.Bool(True)))
-    finally:
-        integ.layer_fast_paths = True
+    if not fast:
+        integ = with_twins(integ, Twins(layer_fast_paths=False))
+    return np.array(integ.iso_transmittance(ray, False, mi.Bool(True)))
 
 
 @pytest.mark.parametrize("rec", ["basis", "finest"])
@@ -106,11 +106,8 @@ def test03_images_with_the_fast_paths_match_the_slow_twins(scenes, rec):
     """Measured: max 9e-4 (basis), 4e-3 (finest) of a pixel; mean below 4e-6."""
     scene = scenes[rec]
     fast = np.array(mi.render(scene, seed=0), dtype=np.float64)
-    scene.integrator().layer_fast_paths = False
-    try:
-        slow = np.array(mi.render(scene, seed=0), dtype=np.float64)
-    finally:
-        scene.integrator().layer_fast_paths = True
+    slow_twin = with_twins(scene.integrator(), Twins(layer_fast_paths=False))
+    slow = np.array(mi.render(scene, seed=0, integrator=slow_twin), dtype=np.float64)
     assert fast.mean() > 0.1
     diff = np.abs(fast - slow)
     assert diff.max() < 0.02 and diff.mean() < 2e-5, (diff.max(), diff.mean())
@@ -149,37 +146,32 @@ def test04_a_jump_across_isovalues_is_a_layer_for_each(scenes):
 
 
 @pytest.mark.parametrize("rec", ["basis", "finest"])
-def test05_leaf_searches_in_parts_find_what_whole_searches_find(scenes, rec, monkeypatch):
-    """The march takes a few steps of a leaf search per piece (``traverse.SEEK_STEPS``); one
+def test05_leaf_searches_in_parts_find_what_whole_searches_find(scenes, rec):
+    """The march takes a few steps of a leaf search per piece (``Twins.seek_steps``); one
     step at a time and the whole search at once (None) give the same layers, bit for bit, and
     the same shadow-ray transmittance."""
-    from mi_amr.kernels import traverse
-
-    integ = scenes[rec].integrator()
-    o, d = random_rays(integ, n=3000, seed=2)
+    o, d = random_rays(scenes[rec].integrator(), n=3000, seed=2)
     results = []
     for steps in (1, None):
-        monkeypatch.setattr(traverse, "SEEK_STEPS", steps)
+        integ = with_twins(scenes[rec].integrator(), Twins(seek_steps=steps))
         results.append((*layers(integ, o, d, resume=True), transmittance(integ, o, d, True)))
     for a, b in zip(*results):
         np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("rec", ["basis", "finest"])
-def test06_two_levels_a_turn_take_the_steps_of_one_level_a_turn(scenes, rec, monkeypatch):
+def test06_two_levels_a_turn_take_the_steps_of_one_level_a_turn(scenes, rec):
     """A turn of the leaf search goes down through a non-empty inner node before its full step
-    (``traverse.TWO_LEVELS``); one level a turn, the slow twin, gives the same layers, bit for
+    (``Twins.two_levels``); one level a turn, the slow twin, gives the same layers, bit for
     bit, and the same shadow-ray transmittance, with the march's searches in parts as they are
     and whole."""
-    from mi_amr.kernels import traverse
+    from mi_amr.kernels.config import SEEK_STEPS
 
-    integ = scenes[rec].integrator()
-    o, d = random_rays(integ, n=3000, seed=3)
-    for steps in (traverse.SEEK_STEPS, None):
-        monkeypatch.setattr(traverse, "SEEK_STEPS", steps)
+    o, d = random_rays(scenes[rec].integrator(), n=3000, seed=3)
+    for steps in (SEEK_STEPS, None):
         results = []
         for two in (True, False):
-            monkeypatch.setattr(traverse, "TWO_LEVELS", two)
+            integ = with_twins(scenes[rec].integrator(), Twins(two_levels=two, seek_steps=steps))
             results.append((*layers(integ, o, d, resume=True), transmittance(integ, o, d, True)))
         for a, b in zip(*results):
             np.testing.assert_array_equal(a, b)

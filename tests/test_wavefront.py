@@ -100,21 +100,20 @@ CASES = {
 
 
 @pytest.mark.parametrize("case", sorted(CASES))
-def test03_in_scanline_order_the_loop_renders_what_mitsubas_loop_renders(variant, folder, case,
-                                                                        monkeypatch):
-    """``tiled_lanes = False``: the loop's image equals that of Mitsuba's own
+def test03_in_scanline_order_the_loop_renders_what_mitsubas_loop_renders(variant, folder, case):
+    """``Twins(tile_order=False)``: the loop's image equals that of Mitsuba's own
     ``SamplingIntegrator.render`` (the same sampler streams, sample positions, film channels,
     alpha and AOVs) up to float rounding."""
     mi = variant
-    from mi_amr.plugin import wavefront
+    from mi_amr.plugin.twins import Twins, with_twins
 
     scene = _scene(folder, "twin", **CASES[case])
     integ = scene.integrator()
-    integ.tiled_lanes = False
-    ours = np.array(mi.render(scene, seed=5))
-    # Where wavefront does not apply, the integrator hands the frame to Mitsuba's loop.
-    monkeypatch.setattr(wavefront, "supported", lambda sensor, spp: False)
-    theirs = np.array(mi.render(scene, seed=5))
+    scanlines = with_twins(integ, Twins(tile_order=False))
+    ours = np.array(mi.render(scene, seed=5, integrator=scanlines))
+    # (The twin that hands every frame to Mitsuba's loop, as where wavefront does not apply.)
+    theirs = np.array(mi.render(scene, seed=5,
+                                integrator=with_twins(integ, Twins(wavefront_loop=False))))
     assert ours.shape == theirs.shape and ours.shape[2] >= 3
     assert ours[..., :3].std() > 0.01, "the test scene shows nothing"   # (AOV depth: inf)
     np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-6)
@@ -126,10 +125,11 @@ def test04_tiled_lanes_give_the_same_image_up_to_noise(variant, folder):
     and the mean agrees."""
     mi = variant
     scene = _scene(folder, "noise", spp=16, width=48, height=48)
-    integ = scene.integrator()
-    integ.tiled_lanes = False
-    scan = [np.array(mi.render(scene, seed=s), dtype=np.float64) for s in (0, 1)]
-    integ.tiled_lanes = True
+    from mi_amr.plugin.twins import Twins, with_twins
+
+    scanlines = with_twins(scene.integrator(), Twins(tile_order=False))
+    scan = [np.array(mi.render(scene, seed=s, integrator=scanlines), dtype=np.float64)
+            for s in (0, 1)]
     tiled = np.array(mi.render(scene, seed=0), dtype=np.float64)
     rmse = lambda a, b: np.sqrt(np.mean((a - b) ** 2))  # noqa: E731
     assert rmse(tiled, scan[0]) > 0, "tile order changed nothing"
@@ -137,26 +137,26 @@ def test04_tiled_lanes_give_the_same_image_up_to_noise(variant, folder):
     assert abs(tiled.mean() - scan[0].mean()) < 0.01 * scan[0].mean()
 
 
-def test05_a_new_film_size_compiles_no_more_than_mitsubas_loop(variant, folder, monkeypatch):
+def test05_a_new_film_size_compiles_no_more_than_mitsubas_loop(variant, folder):
     """The tile order and the film's size are kernel inputs of the loop; Mitsuba's own parts
     (the image block's size) compile one kernel for a new film size, in either loop."""
     mi = variant
-    from mi_amr.plugin import wavefront
+    from mi_amr.plugin.twins import Twins, with_twins
 
     scene = _scene(folder, "sizes", spp=1, width=32, height=32)
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("film.size"))
 
-    def resized(width, height):
+    def resized(width, height, integrator=None):
         params[key] = mi.ScalarVector2u(width, height)
         params.update()
-        return kernels_compiled(lambda: np.array(mi.render(scene)))
+        return kernels_compiled(lambda: np.array(mi.render(scene, integrator=integrator)))
 
     mi.render(scene)
     image, ours = resized(40, 24)
     assert image.shape[:2] == (24, 40)
     _, again = resized(40, 24)
-    monkeypatch.setattr(wavefront, "supported", lambda sensor, spp: False)
-    mi.render(scene)
-    _, theirs = resized(44, 20)
+    mitsubas = with_twins(scene.integrator(), Twins(wavefront_loop=False))
+    mi.render(scene, integrator=mitsubas)
+    _, theirs = resized(44, 20, mitsubas)
     assert again == 0 and ours <= theirs

@@ -36,7 +36,7 @@ def velocity_fields(volume, velocity=None) -> tuple:
     for names in VELOCITY_NAMES:
         if all(n in volume.field_names for n in names):
             return names
-    raise AMRError(f"{volume._label()}no velocity components found (looked for "
+    raise AMRError(f"{volume.source_prefix()}no velocity components found (looked for "
                    f"{', '.join('/'.join(n) for n in VELOCITY_NAMES)}); available fields: "
                    f"{list(volume.field_names)}")
 

@@ -83,7 +83,7 @@ def _owners(tree, rng, sample) -> int:
 
 def _ropes(tree) -> int:
     nodes = np.arange(tree.num_nodes)
-    lo, hi, outside = tree._face_boxes(nodes)
+    lo, hi, outside = tree.face_boxes(nodes)
     rope = tree.node_ropes.reshape(-1)
     r_lo, r_hi = tree._node_lo[rope], tree._node_hi[rope]
     holds = np.all((r_lo <= lo) & (r_hi >= hi), axis=1)

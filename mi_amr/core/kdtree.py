@@ -27,7 +27,7 @@ from mi_amr import params
 from mi_amr.core import parallel
 from mi_amr.core.buffers import joined
 from mi_amr.core.boxes import contains_points
-from mi_amr.core.points import (_as_points, _finest_of,  # noqa: F401  (twins: tests)
+from mi_amr.core.points import (as_points, finest_of,  # noqa: F401  (twins: tests)
                                 finest_grid_bruteforce, support_grids_bruteforce)
 from mi_amr.errors import AMRError
 
@@ -49,11 +49,30 @@ class KDTree:
     All positions are world space.
     """
 
+    # What a built tree holds besides its volume: :meth:`arrays` gives them, and
+    # :meth:`from_arrays` makes the tree from them again without building it.
+    STATE = ("_ghi", "_glo", "_leaf_hi_f", "_leaf_lo_f", "_level_h", "_listed_windows",
+             "_node_hi", "_node_lo", "_node_split", "_root", "_shi", "_slo", "_step_f", "depth",
+             "grid_hi", "grid_lo", "h_fine", "hi", "leaf_cells", "leaf_grids", "leaf_hi",
+             "leaf_levels", "leaf_lo", "leaf_min_h", "leaf_nactive", "leaf_node",
+             "leaf_nsupport", "leaf_owner", "leaf_start", "level", "lo", "node_code",
+             "node_depth", "node_hi", "node_lo", "node_ropes", "node_split", "shape", "spacing",
+             "support_hi", "support_lo")
+
     def __init__(self, volume, *, leaf_cells: int = params.default("leaf_cells"),
-                 max_depth: int = 80):
+                 max_depth: int = 80, arrays: dict | None = None):
+        """Build the tree of ``volume``; or, given ``arrays`` (:meth:`arrays` of a tree of this
+        volume), take them as they are (:meth:`from_arrays`)."""
+        self.volume = volume
+        if arrays is not None:
+            missing = sorted(set(self.STATE) - set(arrays))
+            if missing:
+                raise AMRError(f"KDTree: saved tree state lacks {missing}")
+            for name in self.STATE:
+                setattr(self, name, arrays[name])
+            return
         if leaf_cells < 2:
             raise AMRError(f"KDTree: leaf_cells must be >= 2, got {leaf_cells}")
-        self.volume = volume
         self.leaf_cells = int(leaf_cells)
         self.grid_lo, self.grid_hi = volume.grid_boxes()
         self.spacing = volume.spacings()
@@ -83,6 +102,16 @@ class KDTree:
         self._build(max_depth)
         self._order_active()
         self._ropes()
+
+    @classmethod
+    def from_arrays(cls, volume, arrays: dict) -> "KDTree":
+        """The tree of ``volume`` whose state is ``arrays`` (what :meth:`arrays` gave, e.g.
+        read back from a snapshot), not built again."""
+        return cls(volume, arrays=arrays)
+
+    def arrays(self) -> dict:
+        """The tree's state (:data:`STATE`: NumPy arrays, tuples and numbers; not the volume)."""
+        return {name: getattr(self, name) for name in self.STATE}
 
     def _world(self, u, axis=None):
         """World coordinates of lattice coordinates ``u`` (all axes, or one ``axis``)."""
@@ -280,7 +309,7 @@ class KDTree:
         nodes = np.arange(self.num_nodes)
         return self._descend_faces(nodes, np.zeros(6 * len(nodes), dtype=np.int64)).reshape(-1, 6)
 
-    def _face_boxes(self, nodes):
+    def face_boxes(self, nodes):
         """Closed lattice boxes half a finest cell beyond each face of ``nodes`` (6 rows per
         node, face ``2 * axis + side``), and whether each lies outside the tree's box."""
         lo = np.repeat(self._node_lo[nodes], 6, axis=0)
@@ -297,7 +326,7 @@ class KDTree:
     def _descend_faces(self, nodes, start) -> np.ndarray:
         """For each face of ``nodes`` (6 per node), the deepest node holding its face box,
         descending from ``start`` (a node holding it); the root for faces outside the tree."""
-        lo, hi, outside = self._face_boxes(nodes)
+        lo, hi, outside = self.face_boxes(nodes)
         inside = ~outside
         node = np.zeros(len(lo), dtype=np.int64)
         node[inside] = self.descend_boxes(lo[inside], hi[inside],
@@ -493,14 +522,14 @@ class KDTree:
         """Index of the finest grid whose closed box contains each point (``-1``: none).
 
         Among grids of the same level that share a face, the lowest index wins."""
-        points = _as_points(points)
+        points = as_points(points)
         pi, gi = self._candidates(points)
         inside = contains_points(self.grid_lo[gi], self.grid_hi[gi], points[pi])
-        return _finest_of(points, pi[inside], gi[inside], self.level)
+        return finest_of(points, pi[inside], gi[inside], self.level)
 
     def support_grids(self, points) -> list:
         """For each point, the sorted indices of the grids whose (open) support contains it."""
-        points = _as_points(points)
+        points = as_points(points)
         pi, gi = self._candidates(points)
         inside = np.all((points[pi] > self.support_lo[gi]) & (points[pi] < self.support_hi[gi]),
                         axis=1)
@@ -657,8 +686,8 @@ def _leaf_count_tables(volume, grids):
     returns the tables and the offset of each grid's table (indexed by grid, -1 if absent).
     Grids of one shape are stacked and summed together; :func:`_leaf_count_tables_reference`
     is the slow twin (one grid at a time, tables in the order of ``grids``)."""
-    shapes = volume._grid_columns()["shape"]
-    cell_start = volume._grid_columns()["offset"]
+    shapes = volume.grid_columns()["shape"]
+    cell_start = volume.grid_columns()["offset"]
     flat = volume.leaf_mask_flat()
     offsets = np.full(len(volume.grids), -1, dtype=np.int64)
     grids = np.asarray(grids, dtype=np.int64)
@@ -732,8 +761,8 @@ def _window_min_max(volume, values, grid, lo, hi):
     Grids of one shape are stacked into one array; per block size a sparse table holds, per
     cell, the extremum over the block starting there, built by halving along each axis. The
     boxes are looked up :data:`CHUNK` at a time."""
-    shapes = volume._grid_columns()["shape"]
-    offsets = volume._grid_columns()["offset"]
+    shapes = volume.grid_columns()["shape"]
+    offsets = volume.grid_columns()["offset"]
     finite = np.isfinite(values)
     # In the values' own precision: their min and max are the same numbers in float64, and
     # float32 tables halve the memory the lookups stream through.

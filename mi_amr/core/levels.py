@@ -115,9 +115,21 @@ def grid_chunks(table, cells: int | None = None):
         start = stop
 
 
+class LevelCaches:
+    """What this module keeps of one volume (its ``level_caches``): ``index``, the
+    :class:`LevelIndex` of each level; ``values``, per ``(level, field name)`` the flat
+    :func:`level_values` with the grid arrays it was made from (``(ids, arrays, flat)``);
+    ``fields_fixed``, how many :func:`fields_fixed` blocks are open."""
+
+    def __init__(self):
+        self.index = {}
+        self.values = {}
+        self.fields_fixed = 0
+
+
 def level_index(volume, level: int) -> LevelIndex:
     """The (cached) :class:`LevelIndex` of ``level``."""
-    cache = volume.__dict__.setdefault("_level_index", {})
+    cache = volume.level_caches.index
     if level not in cache:
         cache[level] = LevelIndex(volume, level)
     return cache[level]
@@ -129,9 +141,9 @@ def level_values(volume, level: int, name: str) -> np.ndarray:
     (cached on the volume while the field is the same array). Read only: when the grids'
     arrays already lie end to end in one buffer (a file read whole, or :func:`mi_amr.derive`'s
     output) it is a view of that buffer, not a copy."""
-    cache = volume.__dict__.setdefault("_level_values", {})
+    cache = volume.level_caches.values
     key = (level, name)
-    if volume.__dict__.get("_fields_fixed") and key in cache:
+    if volume.level_caches.fields_fixed and key in cache:
         return cache[key][2]
     table = level_index(volume, level)
     arrays = [volume.grids[g].fields[name] for g in table.grids]
@@ -151,7 +163,7 @@ def share_level_values(volume, level: int, name: str, flat: np.ndarray) -> None:
     whole = joined(arrays, flat.dtype, aligned=False) if arrays else None
     if whole is not None and whole.size == flat.size and \
             whole.ctypes.data == flat.ctypes.data:
-        volume.__dict__.setdefault("_level_values", {})[(level, name)] = (
+        volume.level_caches.values[(level, name)] = (
             [id(a) for a in arrays], arrays, flat)
 
 
@@ -159,12 +171,10 @@ def adopt_caches(volume, source) -> None:
     """Give ``volume`` the level tables and the flat level values of its fields cached on
     ``source``, a volume of the same hierarchy (values are checked against the arrays before
     each use)."""
-    if "_level_index" in source.__dict__:
-        volume.__dict__["_level_index"] = dict(source.__dict__["_level_index"])
+    volume.level_caches.index = dict(source.level_caches.index)
     # Only fields the volume holds: a flat copy of a dropped field would stay alive with it.
-    kept = {k: v for k, v in source.__dict__.get("_level_values", {}).items()
-            if k[1] in volume.field_names}
-    volume.__dict__["_level_values"] = kept
+    volume.level_caches.values = {k: v for k, v in source.level_caches.values.items()
+                                  if k[1] in volume.field_names}
 
 
 def grid_offsets(volume, level: int) -> np.ndarray:
@@ -179,12 +189,13 @@ def fields_fixed(volume):
     what it has cached without first comparing every grid's array with it. That comparison is
     a pass over the level's grids; called per chunk of cells, with 10^4 grids to a level, it
     was a fifth of the derivation of 10^8 cells."""
-    before = volume.__dict__.get("_fields_fixed", 0)
-    volume.__dict__["_fields_fixed"] = before + 1
+    caches = volume.level_caches
+    before = caches.fields_fixed
+    caches.fields_fixed = before + 1
     try:
         yield
     finally:
-        volume.__dict__["_fields_fixed"] = before
+        caches.fields_fixed = before
 
 
 def cell_values(volume, level: int, index, fields):

@@ -11,14 +11,14 @@ from mi_amr.core.boxes import contains_points
 from mi_amr.errors import AMRError
 
 
-def _as_points(points) -> np.ndarray:
+def as_points(points) -> np.ndarray:
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise AMRError(f"points must be an (N, 3) array, got shape {points.shape}")
     return points
 
 
-def _finest_of(points, pi, gi, level) -> np.ndarray:
+def finest_of(points, pi, gi, level) -> np.ndarray:
     G = len(level)
     best = np.full(len(points), -1, dtype=np.int64)
     np.maximum.at(best, pi, level[gi].astype(np.int64) * G + (G - 1 - gi))
@@ -27,17 +27,17 @@ def _finest_of(points, pi, gi, level) -> np.ndarray:
 
 def finest_grid_bruteforce(volume, points) -> np.ndarray:
     """Slow twin of :meth:`KDTree.finest_grid`: tests every grid against every point."""
-    points = _as_points(points)
+    points = as_points(points)
     lo, hi = volume.grid_boxes()
     pi, gi = np.meshgrid(np.arange(len(points)), np.arange(len(lo)), indexing="ij")
     pi, gi = pi.ravel(), gi.ravel()
     inside = contains_points(lo[gi], hi[gi], points[pi])
-    return _finest_of(points, pi[inside], gi[inside], volume.levels)
+    return finest_of(points, pi[inside], gi[inside], volume.levels)
 
 
 def support_grids_bruteforce(volume, points) -> list:
     """Slow twin of :meth:`KDTree.support_grids`."""
-    points = _as_points(points)
+    points = as_points(points)
     lo, hi = volume.grid_boxes()
     h = volume.spacings()
     out = []

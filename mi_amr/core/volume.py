@@ -118,8 +118,13 @@ class AMRVolume:
         self._index_lo = index_lo
         self._leaf_flat = None   # every grid's leaf mask, flat, grid after grid (_leaf_masks)
         self._partly = None
-        self._columns = None     # per-grid arrays (_grid_columns), built once
+        self._columns = None     # per-grid arrays (grid_columns), built once
         self._ranges = {}
+        # Work derived from this volume that is kept with it: the level tables and flat level
+        # values (mi_amr.core.levels), and mi_amr.trace's preparations of it by field, leaf
+        # size and backend (mi_amr.kernels.trace).
+        self.level_caches = levels.LevelCaches()
+        self.trace_preparations = {}
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -156,7 +161,7 @@ class AMRVolume:
         _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix)
         volume = cls(tuple(records), allow_nonfinite=allow_nonfinite, source=source,
                      index_lo=index_lo, ratios=ratios, anchor=anchor)
-        # Levels are now known to be 0..L-1; the volume keeps the columns (_grid_columns).
+        # Levels are now known to be 0..L-1; the volume keeps the columns (grid_columns).
         volume._columns = {**columns, "level": columns["level"].astype(np.int32),
                            "offset": _cell_offsets(columns["shape"])}
         return volume
@@ -186,7 +191,7 @@ class AMRVolume:
         """A volume holding only the named fields (arrays shared, not copied)."""
         missing = [n for n in names if n not in self.field_names]
         if missing:
-            raise AMRError(f"{self._label()}unknown field(s) {missing}; "
+            raise AMRError(f"{self.source_prefix()}unknown field(s) {missing}; "
                            f"available: {list(self.field_names)}")
         grids = tuple(Grid(g.level, g.origin, g.spacing, g.shape, {n: g.fields[n] for n in names})
                       for g in self.grids)
@@ -216,10 +221,10 @@ class AMRVolume:
 
     def level_spacing(self, level: int) -> np.ndarray:
         """Cell size of ``level`` per axis (world units), shape ``(3,)``."""
-        first = np.flatnonzero(self._grid_columns()["level"] == level)[:1]
+        first = np.flatnonzero(self.grid_columns()["level"] == level)[:1]
         if len(first):
             return np.asarray(self.grids[first[0]].spacing, dtype=np.float64)
-        raise AMRError(f"{self._label()}no level {level}; levels are 0..{self.num_levels - 1}")
+        raise AMRError(f"{self.source_prefix()}no level {level}; levels are 0..{self.num_levels - 1}")
 
     @property
     def bounds(self):
@@ -230,37 +235,38 @@ class AMRVolume:
     @property
     def levels(self) -> np.ndarray:
         """Level of every grid, shape ``(G,)``."""
-        return self._grid_columns()["level"].copy()
+        return self.grid_columns()["level"].copy()
 
     def grid_boxes(self):
         """World-space boxes of all grids: ``(lo, hi)``, each shape ``(G, 3)``."""
-        lo = self._grid_columns()["origin"].copy()
+        lo = self.grid_columns()["origin"].copy()
         hi = lo + self.shapes() * self.spacings()
         return lo, hi
 
     def spacings(self) -> np.ndarray:
         """Cell size of every grid, shape ``(G, 3)`` (world units)."""
-        return self._grid_columns()["spacing"].copy()
+        return self.grid_columns()["spacing"].copy()
 
     def shapes(self) -> np.ndarray:
         """Cells per axis of every grid, shape ``(G, 3)`` int64."""
-        return self._grid_columns()["shape"].copy()
+        return self.grid_columns()["shape"].copy()
 
     def cell_offsets(self) -> np.ndarray:
         """Where each grid's cells start in the flat array of all cells (grid after grid, each
         raveled in C order), shape ``(G,)`` int64."""
-        return self._grid_columns()["offset"].copy()
+        return self.grid_columns()["offset"].copy()
 
     def index_boxes(self):
         """Integer index boxes ``(lo, hi)`` of all grids, each ``(G, 3)`` int64, half-open, in
         cells of each grid's own level counted from :attr:`anchor`."""
-        return self._index_lo, self._index_lo + self._grid_columns()["shape"]
+        return self._index_lo, self._index_lo + self.grid_columns()["shape"]
 
-    def _grid_columns(self) -> dict:
+    def grid_columns(self) -> dict:
         """Per-grid arrays gathered from the records once (the records never change): level
         ``(G,)`` int32, origin and spacing ``(G, 3)`` float64 (world), shape ``(G, 3)`` int64
         and the offset of each grid's cells in the flat array of all cells ``(G,)`` int64.
-        Callers get copies (the public accessors above)."""
+        The arrays are this volume's own, shared: read them, never write (the accessors above
+        give copies)."""
         if self._columns is None:
             shape = np.array([g.shape for g in self.grids], dtype=np.int64).reshape(-1, 3)
             self._columns = {
@@ -275,7 +281,7 @@ class AMRVolume:
         """Boolean array of the grid's shape: True where no finer cell covers the cell."""
         flat = self.leaf_mask_flat()
         g = self.grids[grid]
-        start = int(self._grid_columns()["offset"][grid])
+        start = int(self.grid_columns()["offset"][grid])
         return flat[start:start + g.num_cells].reshape(g.shape)
 
     def leaf_mask_flat(self) -> np.ndarray:
@@ -301,14 +307,14 @@ class AMRVolume:
         A grid (or volume) with no finite value gives ``(nan, nan)``.
         """
         if field not in self.field_names:
-            raise AMRError(f"{self._label()}unknown field '{field}'; "
+            raise AMRError(f"{self.source_prefix()}unknown field '{field}'; "
                            f"available: {list(self.field_names)}")
         if field not in self._ranges:
             self._ranges[field] = np.array([_finite_range(g.fields[field]) for g in self.grids])
         ranges = self._ranges[field]
         if grid is not None:
             if not 0 <= grid < len(self.grids):
-                raise AMRError(f"{self._label()}no grid {grid}; grids are 0..{len(self.grids) - 1}")
+                raise AMRError(f"{self.source_prefix()}no grid {grid}; grids are 0..{len(self.grids) - 1}")
             return tuple(float(x) for x in ranges[grid])
         with np.errstate(all="ignore"):
             if np.all(np.isnan(ranges[:, 0])):
@@ -359,7 +365,8 @@ class AMRVolume:
         return (f"AMRVolume({len(self.grids)} grids, {self.num_levels} levels, "
                 f"{self.num_cells} cells, fields={list(self.field_names)})")
 
-    def _label(self) -> str:
+    def source_prefix(self) -> str:
+        """``"<source>: "`` to begin a message about this volume (empty without a source)."""
         return f"{self.source}: " if self.source else ""
 
 
@@ -681,8 +688,8 @@ def _leaf_masks(volume: AMRVolume):
     The covered index boxes (cells of the coarse grid, from its lower corner) of all (coarse,
     fine) pairs of a level are cleared at once through their flat cell indices; boxes of more
     than :data:`MASK_BOX_CELLS` cells are cleared one by one with a slice."""
-    shapes = volume._grid_columns()["shape"]
-    offsets = volume._grid_columns()["offset"]
+    shapes = volume.grid_columns()["shape"]
+    offsets = volume.grid_columns()["offset"]
     flat = np.ones(int(np.prod(shapes, axis=1).sum()), dtype=bool)
     partly = np.zeros(len(shapes), dtype=bool)
     for c, a, b in _covered_boxes(volume):
@@ -727,7 +734,7 @@ def _covered_boxes(volume: AMRVolume):
     """Per level with a finer one, ``(c, a, b)``: for each (coarse grid, finer grid) pair that
     overlaps, the coarse grid ``c`` and the half-open index box ``[a, b)`` (its own cells,
     from its lower corner) the finer grid covers."""
-    levels = volume._grid_columns()["level"]
+    levels = volume.grid_columns()["level"]
     lo, hi = volume.index_boxes()
     for level, ratio in enumerate(volume.ratios):
         coarse = np.flatnonzero(levels == level)

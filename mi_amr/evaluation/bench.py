@@ -418,14 +418,14 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     from tqdm import tqdm
 
     from mi_amr.synthetic import datasets
-    from mi_amr.kernels import prepared, snapshot
+    from mi_amr.kernels import snapshot
     from mi_amr.readers import load
 
     mi.set_variant(variant)
     from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import load_scene
 
-    register()
+    preparations = register()
     project.ensure_scene_data()
     SCENES = project.scenes_dir()
     out = Path(out_dir)
@@ -459,7 +459,7 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     rows = []
     for what, res, make in tqdm(cases, desc="scaling", unit="case"):
         value, scene_file = make()
-        prepared._CACHE.clear()  # every load from the file, as a user's first load would be
+        preparations.clear()     # every load from the file, as a user's first load would be
         snapshot.ENABLED = False        # and none read back from a snapshot
         gc.collect()
         _dr().flush_malloc_cache()      # memory the cases before freed, not counted again

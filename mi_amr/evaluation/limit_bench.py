@@ -36,9 +36,10 @@ FRAMES = 5
 RAW_READS = 3       # the raw read is the best of these (the file then in the page cache)
 
 
-def _frame(mi, dr, scene, seed) -> float:
+def _frame(mi, dr, scene, seed, integrator=None) -> float:
+    """Seconds of one frame of ``scene`` (by ``integrator``, else the scene's own)."""
     t0 = time.perf_counter()
-    img = mi.render(scene, seed=seed)
+    img = mi.render(scene, seed=seed, integrator=integrator)
     dr.eval(img)
     dr.sync_thread()
     return time.perf_counter() - t0
@@ -53,14 +54,14 @@ def frame_against_mesh(sizes=SIZES, frames=FRAMES) -> list:
     from mi_amr.evaluation import peers
     from mi_amr.plugin.scene import load_scene
 
-    rs = peers._route_scene("sphere_wake")
+    rs = peers.route_scene("sphere_wake")
     arrays = [np.asarray(g.fields[rs.field]) for g in rs.vol.grids]
-    pieces = peers._grid_pieces(marching_cubes, rs.vol, arrays, rs.iso, False)
+    pieces = peers.grid_pieces(marching_cubes, rs.vol, arrays, rs.iso, False)
     rows = []
     for size in sizes:
         ours = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size, spp=1,
                           method="exact", reconstruction="basis")
-        _, mesh_scene, triangles = peers._mesh_scene(mi, dataclasses.replace(rs, scene=ours),
+        _, mesh_scene, triangles = peers.build_mesh_scene(mi, dataclasses.replace(rs, scene=ours),
                                                      pieces)
         # Where mi_amr's frame goes: the same scene without shadow rays.
         unlit = load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size,
@@ -103,6 +104,7 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
     import mitsuba as mi
 
     from mi_amr.plugin.scene import load_scene
+    from mi_amr.plugin.twins import Twins, with_twins
 
     def scene(spp=spp, **integrator):
         return load_scene(project.scenes_dir() / "sphere_wake.xml", resx=size, resy=size,
@@ -115,18 +117,17 @@ def translucent_against_opaque(frames=3, size=TRANSLUCENT_SIZE, spp=TRANSLUCENT_
     unshadowed = {key: scene(shadows="false", **kw) for key, kw in (
         ("opaque_unshadowed_s", {"isovalue": "0.05"}), ("translucent_unshadowed_s", TRANSLUCENT),
         ("stochastic_unshadowed_s", dict(TRANSLUCENT, layers="stochastic")))}
-    runs = [("opaque_s", opaque, True), ("translucent_s", layered, True),
-            ("one_shadow_s", one_shadow, True), ("stochastic_s", picked, True),
-            ("translucent_slow_s", layered, False)]
-    runs += [(key, sc, True) for key, sc in unshadowed.items()]
+    slow = with_twins(layered.integrator(), Twins(layer_fast_paths=False))
+    runs = [("opaque_s", opaque, None), ("translucent_s", layered, None),
+            ("one_shadow_s", one_shadow, None), ("stochastic_s", picked, None),
+            ("translucent_slow_s", layered, slow)]
+    runs += [(key, sc, None) for key, sc in unshadowed.items()]
     times = {key: [] for key, _, _ in runs}
     for i in range(frames + 1):
-        for key, sc, fast in runs:
-            sc.integrator().layer_fast_paths = fast
-            t = _frame(mi, dr, sc, i)
+        for key, sc, integ in runs:
+            t = _frame(mi, dr, sc, i, integ)
             if i:                                    # the first round compiles
                 times[key].append(t)
-    layered.integrator().layer_fast_paths = True
     row = {k: statistics.median(v) for k, v in times.items()}
     for ratio, key, base in (("ratio", "translucent_s", "opaque_s"),
                              ("ratio_slow", "translucent_slow_s", "opaque_s"),
@@ -213,15 +214,11 @@ def _snapshot_load(path):
 
     with tempfile.TemporaryDirectory(prefix="mi_amr-snapshots-") as folder, \
             snapshot.using(folder):
-        try:
-            prepared._CACHE.clear()
-            t0 = time.perf_counter()
-            prep = prepared.prepare_file(path, "q_criterion", "speed", m=dr.llvm.ad)
-            prep.device.node_ranges(True)
-            first = time.perf_counter() - t0
-            del prep
-        finally:
-            prepared._CACHE.clear()
+        t0 = time.perf_counter()        # (prepare_file keeps nothing: a first load)
+        prep = prepared.prepare_file(path, "q_criterion", "speed", m=dr.llvm.ad)
+        prep.device.node_ranges(True)
+        first = time.perf_counter() - t0
+        del prep
         os.sync()       # the snapshot on disk, as a later process finds it (not mid-write)
         root = str(Path(__file__).resolve().parents[2])      # this copy of mi_amr
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(

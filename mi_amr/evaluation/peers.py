@@ -196,12 +196,13 @@ def mi_amr_route(scene_name: str) -> dict:
     arrays) plus the first frame is the time to image; the warm frame is reported beside it."""
     import mitsuba as mi
 
-    from mi_amr.kernels import prepared, snapshot
+    from mi_amr.kernels import snapshot
+    from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import load_scene
 
     w, h = ref.RESOLUTION
     # A fresh load: forget volumes an earlier scene in this process has prepared.
-    prepared._CACHE.clear()
+    register().clear()
     snapshot.ENABLED = False        # and none read back from a snapshot
     t0 = time.perf_counter()
     scene = load_scene(ref.scene_path(scene_name), resx=w, resy=h, spp=1, method="exact",
@@ -263,7 +264,7 @@ def _load_reference_scene(scene_name: str):
 
 
 @dataclass
-class _RouteScene:
+class RouteScene:
     """What a peer route reads off the reference scene: the scene (references' resolution,
     1 spp), its reference hit buffers, the integrator, its volume, field and first isovalue
     (field units), and ``to_world`` (4x4, volume space to world)."""
@@ -277,12 +278,12 @@ class _RouteScene:
     to_world: np.ndarray
 
 
-def _route_scene(scene_name: str) -> _RouteScene:
+def route_scene(scene_name: str) -> RouteScene:
     """The reference scene ``scene_name`` and what the routes read off it."""
     scene, ref_hits = _load_reference_scene(scene_name)
     integ = scene.integrator()
     vol = integ.prep.volume
-    return _RouteScene(scene=scene, ref_hits=ref_hits, integ=integ, vol=vol,
+    return RouteScene(scene=scene, ref_hits=ref_hits, integ=integ, vol=vol,
                        field=integ.prep.field, iso=float(integ.opt.isovalues[0]),
                        to_world=_matrix(integ.frame.to_scene))
 
@@ -445,7 +446,7 @@ def marching_cubes_route(scene_name: str, *, ghost_cells: bool = False) -> dict:
     import scipy.ndimage  # noqa: F401  (imported before the clock starts; colours use it)
     from skimage.measure import marching_cubes
 
-    rs = _route_scene(scene_name)
+    rs = route_scene(scene_name)
     vol = rs.vol
 
     # ---- Marching cubes per grid.
@@ -454,12 +455,12 @@ def marching_cubes_route(scene_name: str, *, ghost_cells: bool = False) -> dict:
         [np.asarray(g.fields[rs.field]) for g in vol.grids]
     t_ghost = time.perf_counter() - t0
     t0 = time.perf_counter()
-    pieces = _grid_pieces(marching_cubes, vol, arrays, rs.iso, ghost_cells)
+    pieces = grid_pieces(marching_cubes, vol, arrays, rs.iso, ghost_cells)
     t_mc = time.perf_counter() - t0
 
     # ---- Mesh building: drop covered triangles, join, colour, place, hand to Mitsuba.
     t0 = time.perf_counter()
-    mesh, mesh_scene, triangles = _mesh_scene(mi, rs, pieces)
+    mesh, mesh_scene, triangles = build_mesh_scene(mi, rs, pieces)
     t_mesh = time.perf_counter() - t0
 
     first = _timed_render(mi, mesh_scene)
@@ -478,7 +479,7 @@ def marching_cubes_route(scene_name: str, *, ghost_cells: bool = False) -> dict:
                        rs.scene, notes=notes)
 
 
-def _grid_pieces(marching_cubes, vol, arrays, iso, ghost_cells) -> list:
+def grid_pieces(marching_cubes, vol, arrays, iso, ghost_cells) -> list:
     """``marching_cubes`` (scikit-image's) on each grid's cell-centred array in ``arrays``
     (padded by one ghost layer when ``ghost_cells``) at ``iso``: ``(grid index, vertices,
     faces, normals)`` per grid the isovalue cuts, vertices in volume space (the cell centres
@@ -495,7 +496,7 @@ def _grid_pieces(marching_cubes, vol, arrays, iso, ghost_cells) -> list:
     return pieces
 
 
-def _mesh_scene(mi, rs, pieces):
+def build_mesh_scene(mi, rs, pieces):
     """The per-grid pieces joined into one mesh (:func:`_join_pieces`) and put in a scene
     (:func:`_placed_mesh_scene`). Returns ``(mesh, scene, triangle count)``."""
     V, F, N, C = _join_pieces(rs.vol, pieces, rs.integ)
@@ -677,7 +678,7 @@ def vtk_amr_contour_route(scene_name: str, *, shared_vertices: bool = False,
     import mitsuba as mi
 
     vtk = peers_vtk.require_vtk()
-    rs = _route_scene(scene_name)
+    rs = route_scene(scene_name)
     peer = "vtk_amr_contour+shared_vertices" if shared_vertices else "vtk_amr_contour"
     report = _progress_printer(peer) if progress else None
 
@@ -804,7 +805,7 @@ def yt_volume_route(scene_name: str, *, ghost_zones: bool = False) -> dict:
     from yt.visualization.volume_rendering.api import ColorTransferFunction
     from yt.visualization.volume_rendering.zbuffer_array import ZBuffer
 
-    rs = _route_scene(scene_name)
+    rs = route_scene(scene_name)
     view = _yt_view(rs)
     with _quiet_yt():
         # ---- Dataset.
@@ -849,7 +850,7 @@ class _YtView:
     gmed: float
 
 
-def _yt_view(rs: _RouteScene) -> _YtView:
+def _yt_view(rs: RouteScene) -> _YtView:
     """Read :class:`_YtView` off the reference scene (AMRError unless ``to_world`` is a
     similarity)."""
     scale = _similarity_scale(rs.to_world)

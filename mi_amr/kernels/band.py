@@ -132,6 +132,24 @@ class OpacityBand:
         a = np.minimum(1.0, self.peak * np.exp(-0.5 * (np.asarray(x) / self.width) ** 2))
         return -np.log1p(-np.minimum(a, tol.OPACITY_CAP)) / self.dx0
 
+    def _fine_integral(self, n: int = 400001):
+        """``(x, T)``: the integral of the extinction over the support at ``n`` offsets, by
+        float64 trapezoids (no table)."""
+        x = np.linspace(self.lo, self.hi, n)
+        tau = self.extinction_numpy(x)
+        return x, np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(x))])
+
+    def integral_numpy(self, x):
+        """Slow twin of :func:`integral`: ``T`` at offsets ``x`` (clipped to the support)."""
+        xs, T = self._fine_integral()
+        return np.interp(np.asarray(x, dtype=np.float64), xs, T)
+
+    def inverse_numpy(self, T):
+        """Slow twin of :func:`integral_inverse`: the offsets at which the integral reaches
+        ``T`` (clipped to its range)."""
+        xs, Ts = self._fine_integral()
+        return np.interp(np.asarray(T, dtype=np.float64), Ts, xs)
+
     def alpha_numpy(self, v, centre):
         """Slow twin of :func:`alpha`."""
         x = np.asarray(v, dtype=np.float64) - centre
@@ -230,7 +248,7 @@ def segment_alpha(m, band: BandInputs, k, a, b, dx, centre, ends=None):
     return 1.0 - dr.exp(-_ramp_depth(m, band, k, a, b, dx, centre, ends)[0])
 
 
-def _inverse(m, band: BandInputs, k, T):
+def integral_inverse(m, band: BandInputs, k, T):
     """The offset at which band ``k``'s integral reaches ``T`` (the inverse of
     :func:`integral`)."""
     total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
@@ -278,7 +296,7 @@ def _place(m, band: BandInputs, k, ramp, r):
     :func:`_ramp`) a fraction ``r`` of its opacity is made (a fraction of the step)."""
     xa, xb, Ta, Tb, tau, short = ramp
     g = depth_fraction(r, tau)
-    u_long = (_inverse(m, band, k, dr.lerp(Ta, Tb, g)) - xa) / (xb - xa)
+    u_long = (integral_inverse(m, band, k, dr.lerp(Ta, Tb, g)) - xa) / (xb - xa)
     return dr.select(short, _short_ramp_u(m, band, k, xa, xb, g), u_long)
 
 

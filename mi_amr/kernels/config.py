@@ -17,6 +17,13 @@ import drjit as dr
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.params import METHODS, RECONSTRUCTIONS  # noqa: F401  (re-exported)
 
+# Steps of a leaf search per step of the march that waits for it
+# (:func:`~mi_amr.kernels.traverse.seek_part`): a SIMD packet runs a loop as long as its slowest
+# lane, so a whole search nested in the march makes every lane wait for the longest search in
+# the packet (a camera ray of sphere_wake takes 8 cubic pieces but 70 search steps); a few steps
+# a turn spread the search over the march's steps, too many bring the wait back.
+SEEK_STEPS = 6
+
 
 @dataclass
 class MarchConfig:
@@ -27,7 +34,13 @@ class MarchConfig:
     :class:`~mi_amr.kernels.transfer2d.Transfer2DInputs`, which then replaces the bands
     (every method); ``active_box``: ``(lo, hi)`` opaque points (volume world) holding every
     leaf whose range holds an isovalue (:meth:`~mi_amr.kernels.device.DeviceVolume.active_box`),
-    or None; see :func:`clip_box`."""
+    or None; see :func:`clip_box`; ``start_table``: the active box's
+    :class:`~mi_amr.kernels.starts.StartTable`, or None (see :func:`start_table`);
+    ``two_levels``: a turn of the leaf search goes down through a non-empty inner node before
+    its full step (:func:`~mi_amr.kernels.traverse.seek_steps`; False: one level a turn, the
+    slow twin, the same steps in the same order); ``seek_steps``: steps of a leaf search per
+    step of the march that waits for it (:data:`SEEK_STEPS`; None: the whole search at once,
+    a twin)."""
 
     method: str
     basis: bool
@@ -40,6 +53,8 @@ class MarchConfig:
     transfer2d: Any = None
     active_box: Any = None
     start_table: Any = None
+    two_levels: bool = True
+    seek_steps: Any = SEEK_STEPS
 
     def iso(self, dev, k):
         """Isovalue ``k`` (a Python int, or a per-lane index array)."""

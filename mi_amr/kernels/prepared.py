@@ -2,7 +2,8 @@
 and everything flattened onto the device. Shared by the integrator and :func:`mi_amr.trace`.
 
 Loading reads only the fields a scene uses (a derived field reads just the velocity).
-Preparing the same file twice in one process (a benchmark sweep, a movie) reuses the work;
+Preparing the same file twice in one session (a :class:`Preparations`: the integrator's, for a
+benchmark sweep or a movie) reuses the work;
 across processes (a render after the viewer, every Dask worker of a movie) a snapshot on disk
 does (:mod:`mi_amr.kernels.snapshot`).
 """
@@ -23,11 +24,6 @@ from mi_amr.kernels.device import DeviceVolume
 from mi_amr.errors import AMRError
 from mi_amr.core.kdtree import KDTree
 
-_CACHE: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
-# A callable taking one line of text, told each step of a preparation as it ends (the command
-# line sets it to print, so a load of several seconds shows what it is doing); None: silent.
-REPORT = None
-_CACHE_SIZE = 3
 
 
 class PreparedVolume:
@@ -39,9 +35,11 @@ class PreparedVolume:
     """
 
     def __init__(self, volume, field: str, color_field: str | None = None, *,
-                 leaf_cells: int = params.default("leaf_cells"), m=None):
+                 leaf_cells: int = params.default("leaf_cells"), m=None, report=None):
+        """``report``: a callable told each step as it ends (one line of text), or None."""
         clock = time.perf_counter()
         self.timings = {}
+        self.report = report
         volume, derived = needed_fields(volume, field, color_field, m=m or dr.llvm.ad)
         self.volume = volume
         self.field = field
@@ -54,19 +52,18 @@ class PreparedVolume:
         self._lap("device", clock)
 
     @classmethod
-    def restore(cls, snap, *, m=None) -> "PreparedVolume":
+    def restore(cls, snap, *, m=None, report=None) -> "PreparedVolume":
         """The preparation held by a snapshot (what :func:`snapshot.load` returns), its kd-tree
         and brick pools as they were saved, the device arrays mapped from them."""
         volume, tree_state, bricks, ranges, meta = snap
         self = cls.__new__(cls)
         self.volume, self.field, self.color_field = volume, meta["field"], meta["color_field"]
-        self.tree = KDTree.__new__(KDTree)
-        self.tree.__dict__.update(tree_state)
-        self.tree.volume = volume
+        self.tree = KDTree.from_arrays(volume, tree_state)
         self.device = DeviceVolume(volume, self.tree, self.field, self.color_field,
                                    m=m or dr.llvm.ad, bricks=bricks)
         self.device.host_ranges.update(ranges)
         self.timings = {}
+        self.report = report
         return self
 
     def search_ready(self, basis: bool) -> None:
@@ -82,19 +79,14 @@ class PreparedVolume:
     def _lap(self, name, since, quiet=False):
         now = time.perf_counter()
         self.timings[name] = now - since
-        if not quiet:
-            _report(f"{_STEPS[name]} in {now - since:.2f} s")
+        if not quiet and self.report is not None:
+            self.report(f"{_STEPS[name]} in {now - since:.2f} s")
         return now
 
 
 _STEPS = {"derive": "  derived fields", "tree": "  kd-tree", "device": "  device arrays",
           "ranges": "  leaf value ranges",
           "snapshot": "  prepared volume read back from its snapshot"}
-
-
-def _report(text: str) -> None:
-    if REPORT is not None:
-        REPORT(text)
 
 
 def needed_fields(volume, field: str, color_field: str | None, m=None):
@@ -109,7 +101,7 @@ def needed_fields(volume, field: str, color_field: str | None, m=None):
     derivable = [f for f in missing if f in DERIVED_FIELDS]
     unknown = [f for f in missing if f not in DERIVED_FIELDS]
     if unknown:
-        raise AMRError(f"{volume._label()}unknown field(s) {unknown}: the volume holds "
+        raise AMRError(f"{volume.source_prefix()}unknown field(s) {unknown}: the volume holds "
                        f"{list(volume.field_names)}; derived fields are "
                        f"{list(DERIVED_FIELDS)}")
     if derivable and m is not None:
@@ -144,58 +136,95 @@ def _velocity_names(available) -> list:
                    f"{', '.join('/'.join(n) for n in VELOCITY_NAMES)}); fields: {list(available)}")
 
 
+class Preparations:
+    """The volumes one session (an integrator class, a benchmark) prepared from files: the
+    last :attr:`SIZE` kept by file (and its modification time), fields, leaf size and backend,
+    and given again. ``report``: a callable told each step of a preparation as it ends (one
+    line of text; the command line prints them, so a load of several seconds shows what it
+    is doing), or None."""
+
+    SIZE = 3
+
+    def __init__(self, report=None):
+        self.report = report
+        self._kept: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
+
+    def clear(self) -> None:
+        """Forget every volume prepared so far (the next preparation reads its file)."""
+        self._kept.clear()
+
+    def say(self, text: str) -> None:
+        if self.report is not None:
+            self.report(text)
+
+    def prepare(self, path, field: str, color_field: str | None = None, *,
+                leaf_cells: int = params.default("leaf_cells"), m=None) -> PreparedVolume:
+        """:func:`prepare_file`, given again while it is kept."""
+        path = os.path.abspath(path)
+        try:
+            stamp = os.stat(path).st_mtime_ns
+        except OSError:
+            raise AMRError(f"{path}: no such file or folder") from None
+        key = (path, stamp, field, color_field, leaf_cells, getattr(m, "__name__", None))
+        if key in self._kept:
+            self._kept.move_to_end(key)
+            return self._kept[key]
+        prepared = prepare_file(path, field, color_field, leaf_cells=leaf_cells, m=m,
+                                report=self.report)
+        self._kept[key] = prepared
+        while len(self._kept) > self.SIZE:
+            self._kept.popitem(last=False)
+        return prepared
+
+
 def prepare_file(path, field: str, color_field: str | None = None, *,
-                 leaf_cells: int = params.default("leaf_cells"), m=None) -> PreparedVolume:
-    """Load ``path`` (only what is needed) and prepare it; cached by file, fields and backend
-    in this process, and on disk as a snapshot (read back instead of preparing again)."""
+                 leaf_cells: int = params.default("leaf_cells"), m=None,
+                 report=None) -> PreparedVolume:
+    """Load ``path`` (only what is needed) and prepare it, or read it back from its snapshot
+    on disk; ``report`` as :class:`PreparedVolume`'s. (A :class:`Preparations` keeps what
+    it prepared and gives it again.)"""
     path = os.path.abspath(path)
-    try:
-        stamp = os.stat(path).st_mtime_ns
-    except OSError:
-        raise AMRError(f"{path}: no such file or folder") from None
-    key = (path, stamp, field, color_field, leaf_cells, getattr(m, "__name__", None))
-    if key in _CACHE:
-        _CACHE.move_to_end(key)
-        return _CACHE[key]
+    if not os.path.exists(path):
+        raise AMRError(f"{path}: no such file or folder")
+    say = report or (lambda text: None)
     snap_key = snapshot.entry_key(path, field, color_field, leaf_cells) \
         if snapshot.cache_root() is not None else None
     t0 = time.perf_counter()
     snap = snapshot.load(snap_key) if snap_key else None
     if snap is not None:
-        prepared = PreparedVolume.restore(snap, m=m)
+        prepared = PreparedVolume.restore(snap, m=m, report=report)
         prepared._lap("snapshot", t0)
     else:
-        prepared = _prepare_from_file(path, field, color_field, leaf_cells, m)
+        prepared = _prepare_from_file(path, field, color_field, leaf_cells, m, report)
         if snap_key:
             t0 = time.perf_counter()
             if snapshot.save(snap_key, prepared):
-                _report(f"  snapshot written in {time.perf_counter() - t0:.2f} s")
+                say(f"  snapshot written in {time.perf_counter() - t0:.2f} s")
     if snap_key:
         prepared.device.on_new_ranges = lambda kind, host: snapshot.save_ranges(snap_key, kind,
                                                                                 host)
-    _CACHE[key] = prepared
-    while len(_CACHE) > _CACHE_SIZE:
-        _CACHE.popitem(last=False)
     return prepared
 
 
-def _prepare_from_file(path, field, color_field, leaf_cells, m) -> PreparedVolume:
+def _prepare_from_file(path, field, color_field, leaf_cells, m, report) -> PreparedVolume:
     """Read what ``field``/``color_field`` need from ``path`` and prepare it."""
     from mi_amr.readers import available_fields, load
 
+    say = report or (lambda text: None)
     names = fields_to_read(field, color_field, available_fields(path))
     t0 = time.perf_counter()
     volume = load(path, fields=names)
     read = time.perf_counter() - t0
-    _report(f"  read {os.path.basename(path)} ({', '.join(names)}: {volume.num_cells:,} cells, "
-            f"{len(volume.grids):,} grids) in {read:.2f} s")
+    say(f"  read {os.path.basename(path)} ({', '.join(names)}: {volume.num_cells:,} cells, "
+        f"{len(volume.grids):,} grids) in {read:.2f} s")
     # Derived here, so that the velocity read for it is freed before the kd-tree and the
     # device arrays are built (a third of the peak memory of a large load).
     t0 = time.perf_counter()
     volume, derived = needed_fields(volume, field, color_field, m=m or dr.llvm.ad)
     derive_s = time.perf_counter() - t0
     if derived:
-        _report(f"{_STEPS['derive']} in {derive_s:.2f} s")
-    prepared = PreparedVolume(volume, field, color_field, leaf_cells=leaf_cells, m=m)
+        say(f"{_STEPS['derive']} in {derive_s:.2f} s")
+    prepared = PreparedVolume(volume, field, color_field, leaf_cells=leaf_cells, m=m,
+                              report=report)
     prepared.timings = {"read": read, **prepared.timings, "derive": derive_s}
     return prepared

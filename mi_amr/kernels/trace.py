@@ -149,8 +149,9 @@ def _isovalues(isovalue) -> list:
 
 
 def _prepared(volume, field, leaf_cells, m) -> PreparedVolume:
-    """One PreparedVolume per (volume, field, leaf size, backend), kept on the volume."""
-    cache = volume.__dict__.setdefault("_prepared", {})
+    """One PreparedVolume per (volume, field, leaf size, backend), kept on the volume (its
+    ``trace_preparations``)."""
+    cache = volume.trace_preparations
     key = (field, leaf_cells, m.__name__)
     if key not in cache:
         cache[key] = PreparedVolume(volume, field, leaf_cells=leaf_cells, m=m)

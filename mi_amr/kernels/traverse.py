@@ -200,26 +200,18 @@ def seek(dev, cfg, o, d, t, t1, node, face, side, active) -> Stretch:
                       None).stretch()
 
 
-# Steps of a leaf search per step of the march that waits for it (:func:`seek_part`): a SIMD
-# packet runs a loop as long as its slowest lane, so a whole search nested in the march made
-# every lane wait for the longest search in the packet (a camera ray of the report's scene takes
-# 8 cubic pieces but 70 search steps, 32 per search). 4-8 were equally fast (1024^2 frame 1.17
-# -> 0.97 s), 16 slower.
-SEEK_STEPS = 6
-
-
 def seek_part(dev, cfg, o, d, t1, w: Walk, sk: Seeking, side, active):
-    """Up to :data:`SEEK_STEPS` steps of the leaf search of the lanes of walk ``w`` that have
-    used up their leaf (starting a search where none is under way, from ``side``). Returns the
-    search and the lanes whose search ended now: for them ``sk.stretch()`` is what
-    :func:`seek` gives. Lanes still searching must not work on a leaf this step. A march whose
-    step costs far more than a search step (volume mode's exact pieces, each lit with its own
-    shadow rays) is faster with :func:`seek`, the whole search at once: the search's state
-    carried in the loop costs more than the waiting saves there."""
+    """Up to ``cfg.seek_steps`` (:data:`~mi_amr.kernels.config.SEEK_STEPS`) steps of the leaf
+    search of the lanes of walk ``w`` that have used up their leaf (starting a search where none
+    is under way, from ``side``). Returns the search and the lanes whose search ended now: for
+    them ``sk.stretch()`` is what :func:`seek` gives. Lanes still searching must not work on a
+    leaf this step. A march whose step costs far more than a search step (volume mode's exact
+    pieces, each lit with its own shadow rays) is faster with :func:`seek`, the whole search at
+    once: the search's state carried in the loop costs more than the waiting saves there."""
     begin = active & w.needs_leaf() & lnot(sk.searching)
     sk = sk.replaced(begin, seek_start(dev, o, d, w.t, w.node, w.face, side, begin,
                                        start_table(cfg)))
-    sk = seek_steps(dev, cfg, o, d, t1, sk, SEEK_STEPS)
+    sk = seek_steps(dev, cfg, o, d, t1, sk, cfg.seek_steps)
     return sk, active & w.needs_leaf() & lnot(sk.searching)
 
 
@@ -234,14 +226,6 @@ def seek_start(dev, o, d, t, node, face, side, active, table=None) -> Seeking:
                    t_side=m.Float(dr.nan), leaf=m.UInt32(0), t_exit=m.Float(t),
                    face=m.UInt32(6), found=m.Bool(False), turned=m.Bool(False),
                    turn_value=m.Float(dr.nan), searching=m.Bool(active))
-
-
-# A turn of the search loop first goes down through a non-empty inner node without its exit
-# and rope work (its record holds its children's, :meth:`DeviceVolume.node_search`), then takes
-# the full step on the child: a camera ray's search is mostly such descents (68 of its 76 steps
-# at 512^2): side by side, the 1024^2 frame 0.93 -> 0.87 s. The steps taken and their order
-# are the same as one level per turn (False: the slow twin, for tests).
-TWO_LEVELS = True
 
 
 @dr.syntax
@@ -260,8 +244,11 @@ def seek_steps(dev, cfg, o, d, t1, sk: Seeking, max_steps) -> Seeking:
         eps = epsilon(dev, t, dnorm)
         p = dr.fma(d, t + eps, o)
         cs = dr.gather(m.Array4u, search, NODE_RECORDS * node, going)
-        if dr.hint(TWO_LEVELS, mode="scalar"):
-            # --- Through a non-empty inner node to its child (what a full step would do).
+        if dr.hint(cfg.two_levels, mode="scalar"):
+            # --- Through a non-empty inner node to its child (what a full step would do): its
+            # record holds its children's (:meth:`DeviceVolume.node_search`), so the exit and
+            # rope work waits for the child. A camera ray's search is mostly such descents; the
+            # steps and their order are one level a turn's (cfg.two_levels False, the twin).
             lo = dr.reinterpret_array(m.Float, cs.z)
             hi = dr.reinterpret_array(m.Float, cs.w)
             through = going & holds(dev, cfg, lo, hi) & ((cs.x & 3) != 3) & (t < t1) & \

@@ -48,7 +48,8 @@ def iso_aovs(integ, ray, o, d, t_mesh, jitter, active, miss_depth=0.0) -> list:
     cfg = integ.config()
     if cfg.band is not None:
         cfg = type(cfg)(method=cfg.method, basis=cfg.basis, isovalues=cfg.isovalues,
-                        step_scale=cfg.step_scale, num_iso=cfg.num_iso)
+                        step_scale=cfg.step_scale, num_iso=cfg.num_iso,
+                        two_levels=cfg.two_levels, seek_steps=cfg.seek_steps)
     c = first_crossing(dev, cfg, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh), jitter,
                        m.Bool(active))
     hit = c.hit

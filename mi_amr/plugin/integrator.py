@@ -25,6 +25,8 @@ a variant is already set; call it again after ``mi.set_variant``).
 
 from __future__ import annotations
 
+import functools
+
 import drjit as dr
 import mitsuba as mi
 
@@ -34,7 +36,7 @@ from mi_amr.kernels.composite import composite
 from mi_amr.kernels.config import MarchConfig, clips
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
-from mi_amr.kernels.prepared import prepare_file
+from mi_amr.kernels.prepared import Preparations
 from mi_amr.plugin import bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.aovs import NAMES as AOV_NAMES
 from mi_amr.plugin.aovs import centre_aovs, iso_aovs
@@ -42,14 +44,16 @@ from mi_amr.plugin.frame import VolumeFrame
 from mi_amr.plugin.inputs import FLAGS, PHONG, FrameInputs
 from mi_amr.plugin.scene import resolve_data_file
 from mi_amr.plugin.transfer2d import host_transfer2d
+from mi_amr.plugin.twins import FAST, Twins
 from mi_amr.plugin.iso import IsoShader
 
 __doc__ = __doc__.replace("{table}", params.docstring_table())
 _CLASSES = {}
 
 
-def register() -> None:
-    """Register ``amr_iso`` with Mitsuba for the active variant."""
+def register() -> Preparations:
+    """Register ``amr_iso`` for the active variant. Returns the volumes its integrators
+    prepared and reuse (``clear()`` it for a first load; its ``report`` hears each step)."""
     variant = mi.variant()
     if variant is None:
         raise AMRError("mi_amr.register(): set a Mitsuba variant first (mi.set_variant(...))")
@@ -57,9 +61,10 @@ def register() -> None:
         # (nanobind classes take one base: the methods are copied in rather than mixed in.)
         methods = {k: v for k, v in vars(_AMRIso).items() if k not in ("__dict__", "__weakref__")}
         _CLASSES[variant] = type("AMRIsoIntegrator", (mi.SamplingIntegrator,),
-                                 dict(methods, __doc__=__doc__))
+                                 dict(methods, __doc__=__doc__, preparations=Preparations()))
     cls = _CLASSES[variant]
     mi.register_integrator("amr_iso", lambda props: cls(props))
+    return cls.preparations
 
 
 def _warn_outside(prep, isovalues) -> None:
@@ -75,8 +80,16 @@ def _warn_outside(prep, isovalues) -> None:
 class _AMRIso:
     """The integrator's methods (the class itself is made per variant by :func:`register`)."""
 
-    def __init__(self, props):
+    def __init__(self, props, twins: Twins = FAST, like=None):
+        """``twins``: the fast paths taken (all for users); ``like``: an integrator whose
+        parameters, volume, inputs and transform this one shares (:mod:`~.twins`)."""
         mi.SamplingIntegrator.__init__(self, props)
+        self.twins = twins
+        self.pixel_orders = wavefront.Orders()
+        if like is not None:
+            self.opt, self.m, self.prep, self.dev = like.opt, like.m, like.prep, like.dev
+            self.frame, self.inputs = like.frame, like.inputs
+            return
         values = {k: props[k] for k in props.keys()}
         to_world = values.pop("to_world", None)
         self.opt = opt = options.parse(values)
@@ -91,17 +104,11 @@ class _AMRIso:
         data_range = self.prep.volume.value_range(self.prep.color_field)
         self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host,
                                   host_transfer2d(opt))
-        self.shader = IsoShader(self)
-        self.layer_fast_paths = True
-        self.clip_to_active = True      # False: the whole volume, not the active box (twin)
-        self.start_tables = True        # False: leaf searches start at the root (twin)
-        self.packet_picks = True        # False: stochastic layers picked per lane (twin)
-        wavefront.attach(self)
         _warn_outside(self.prep, opt.isovalues)
 
     def _prepare(self, path):
-        self.prep = prepare_file(path, self.opt.field, self.opt.color_field,
-                                 leaf_cells=self.opt.leaf_cells, m=self.m)
+        self.prep = self.preparations.prepare(path, self.opt.field, self.opt.color_field,
+                                              leaf_cells=self.opt.leaf_cells, m=self.m)
         self.dev = self.prep.device
         self.prep.search_ready(self.opt.reconstruction == "basis")
 
@@ -125,16 +132,19 @@ class _AMRIso:
 
     def config(self) -> MarchConfig:
         """What the kernels look for, with this frame's values. Surfaces drawn by the exact
-        method on the basis blend clip their rays to the isovalues' active box."""
+        method on the basis blend clip their rays to the isovalues' active box (unless the
+        twins say otherwise)."""
         cfg = MarchConfig(method=self.opt.method, basis=self.opt.reconstruction == "basis",
                           isovalues=self.inputs["isovalue"], step_scale=self.inputs["step_scale"],
                           num_iso=len(self.opt.isovalues), band=self.inputs.band,
                           preintegrated=self.opt.preintegrated,
                           shading_extrema=self.opt.shading_extrema,
-                          transfer2d=self.inputs.transfer2d)
-        if self.opt.mode == "surface" and self.clip_to_active and clips(cfg):
+                          transfer2d=self.inputs.transfer2d,
+                          two_levels=self.twins.two_levels,
+                          seek_steps=self.twins.seek_steps)
+        if self.opt.mode == "surface" and self.twins.clip_to_active and clips(cfg):
             cfg.active_box = self.dev.active_box(self.inputs.host["isovalue"])
-            if self.start_tables:
+            if self.twins.start_tables:
                 cfg.start_table = self.dev.start_table(self.inputs.host["isovalue"])
         return cfg
 
@@ -152,13 +162,15 @@ class _AMRIso:
     # ------------------------------------------------------------------ rendering
     def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
         """Mitsuba's render loop with the wavefront's lanes in tiles of pixels
-        (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply."""
+        (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply (or
+        the twins say so)."""
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-        if not wavefront.supported(sensor, spp):
+        if not (self.twins.wavefront_loop and wavefront.supported(sensor, spp)):
             image = mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop,
                                                  evaluate)
         else:
             image = wavefront.render(self, scene, sensor, seed, spp, develop, evaluate,
+                                     tiled=self.twins.tile_order,
                                      by_sample=self.picks_by_packet())
         if self.opt.aovs and image is not None and dr.is_jit_v(mi.Float):
             # The AOVs unfiltered: the film's filter blends labels (plugin.aovs).
@@ -171,15 +183,19 @@ class _AMRIso:
     def picks_by_packet(self) -> bool:
         """Do frames of 2 or more spp share the numbers that pick by SIMD packet
         (:func:`mi_amr.plugin.wavefront.packet_u`)? Stochastic layers, unless the twin."""
-        return self.packet_picks and self.opt.layers == "stochastic"
+        return self.twins.packet_picks and self.opt.layers == "stochastic"
 
-    def sample(self, scene, sampler, ray, medium=None, active=True):
+    def sample(self, scene, sampler, ray, medium=None, active=True, lanes=None):
+        """Mitsuba's ``sample``; ``lanes``: the :class:`~mi_amr.plugin.wavefront.Lanes` of
+        the frame :func:`mi_amr.plugin.wavefront.render` traces (None in Mitsuba's loop)."""
         active = mi.Bool(active)
+        # Shadow rays see the frame's lanes (their roulette may pick by packet).
+        shader = IsoShader(self, functools.partial(self.iso_transmittance, lanes=lanes))
         # ---- The first mesh along the ray bounds the search for isosurfaces.
         si = scene.ray_intersect(ray, active)
         t_mesh = dr.select(si.is_valid(), si.t, dr.inf)
         o, d = self.frame.ray_to_volume(self.m, ray.o, ray.d)
-        jitter = self._jitter(sampler.next_1d(active), ray)
+        jitter = self._jitter(sampler.next_1d(active), ray, lanes)
         # One light sample per emitter and ray, drawn here: the sampler's state must not
         # change inside the symbolic loops below.
         light_u = [sampler.next_2d(active) for _ in scene.emitters()]
@@ -190,15 +206,16 @@ class _AMRIso:
         u = sampler.next_1d(active) if surfaces.draws_u(self) else None
         # Where the frame picks by packet: one number per packet (stratified over the pixel's
         # samples), so its lanes stop at their picked layers together.
-        shared = wavefront.packet_u(self, ray, salt=0)
+        shared = wavefront.packet_u(self.m, lanes, ray, salt=0)
         u = u if shared is None else shared
         if self.opt.mode == "surface":
-            L, T = surfaces.surfaces(self, scene, light_u, ray, o, d, t_mesh, jitter, u, active)
+            L, T = surfaces.surfaces(shader, scene, light_u, ray, o, d, t_mesh, jitter, u,
+                                     active)
         else:
-            L, T = self._volume(scene, light_u, ray, o, d, t_mesh, jitter, active)
+            L, T = self._volume(shader, scene, light_u, ray, o, d, t_mesh, jitter, active)
         # ---- What lies behind them: a mesh, an emitter, or nothing.
         L += T * shading.mesh_light(scene, sampler, ray, si, self.phong(), active & (T > 0.0),
-                                    self.shadows(), self.iso_transmittance)
+                                    self.shadows(), shader.transmittance)
         # ---- Alpha is the coverage by surfaces (the environment behind counts as empty);
         # with stochastic layers, the share of samples that stop at a layer (1 - T on average).
         covered = active & (si.is_valid() | (T < 1.0))
@@ -208,17 +225,18 @@ class _AMRIso:
     def aov_names(self):
         return list(AOV_NAMES) if self.opt.aovs else []
 
-    def _jitter(self, u, ray):
+    def _jitter(self, u, ray, lanes):
         """The sampling methods' step offset: ``u`` from the sampler, or (``jitter="stable"``)
-        a hash of the lane -- pixel and sample index of Mitsuba's wavefront -- the same every
-        frame."""
+        a hash of the lane -- pixel and sample index of Mitsuba's wavefront, ``lanes`` -- the
+        same every frame."""
         if self.opt.jitter == "random" or not bridge.vectorised():
             return bridge.to_kernel(self.m, u)
-        return stable_jitter(self.m, self.m.UInt32(wavefront.lane_index(self, ray)))
+        return stable_jitter(self.m, self.m.UInt32(wavefront.lane_index(lanes, ray)))
 
-    def iso_transmittance(self, ray, from_iso, active):
+    def iso_transmittance(self, ray, from_iso, active, lanes=None):
         """Light passing the isosurfaces (or the band) along a scene ray up to ``ray.maxt``;
-        ``from_iso``: the ray leaves an isosurface (start just past it)."""
+        ``from_iso``: the ray leaves an isosurface (start just past it); ``lanes``: the
+        frame's :class:`~mi_amr.plugin.wavefront.Lanes` (see :meth:`sample`)."""
         m = self.m
         o, d = self.frame.ray_to_volume(m, ray.o, ray.d)
         t0 = self.dev.layer_offset / dr.norm(d) if from_iso else m.Float(0.0)
@@ -229,13 +247,13 @@ class _AMRIso:
             return bridge.to_mi(res.T, mi.Float)
         # Where the frame picks by packet: Russian roulette, a number per packet deciding where
         # the walks stop (the packet's lanes together); else None, the exact transmittance.
-        u = wavefront.packet_u(self, ray, salt=1)
+        u = wavefront.packet_u(m, lanes, ray, salt=1)
         return surfaces.transmittance(self, self.config(), o, d, t0, t1, active, u)
 
-    def _volume(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
+    def _volume(self, shader, scene, light_u, ray, o, d, t_mesh, jitter, active):
         """Front-to-back compositing of the opacity band up to the mesh hit."""
         m = self.m
         res = composite(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh), jitter,
-                        self.shader.band_colors(), self.shader.lighting(scene, light_u, ray, o, d),
+                        shader.band_colors(), shader.lighting(scene, light_u, ray, o, d),
                         m.Bool(active))
         return mi.Spectrum(res.C.x, res.C.y, res.C.z), mi.Float(res.T)

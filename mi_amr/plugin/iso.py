@@ -13,11 +13,13 @@ from mi_amr.plugin import bridge, shading
 
 class IsoShader:
     """Shades the crossings of the integrator ``integ`` (its device volume, frame inputs and
-    placement in the scene)."""
+    placement in the scene); ``transmittance(ray, from_iso, active)``: what the shadow rays of
+    the frame's samples see (:meth:`iso_transmittance` of the integrator for those lanes)."""
 
-    def __init__(self, integ):
+    def __init__(self, integ, transmittance):
         self.integ = integ
         self.m = integ.m
+        self.transmittance = transmittance
 
     def color(self, k, value):
         """Colour (kernel ``Array3f``) of isovalue ``k`` at colour-field ``value``: the colour
@@ -55,7 +57,7 @@ class IsoShader:
         integ = self.integ
         n = self.normal(grad, ray)
         return shading.iso_light(scene, light_u, ray, ray(t), n, integ.phong(), active,
-                                 integ.shadows(), integ.iso_transmittance)
+                                 integ.shadows(), self.transmittance)
 
     def shade(self, scene, light_u, ray, o, d, c, k, hit):
         """Phong-shaded colour of the crossing ``c`` (kernel types) where ``hit``."""
@@ -112,7 +114,7 @@ class VolumeLighting:
         t = bridge.to_mi(dr.dot(p - self.o, self.d) / ray_len2, mi.Float)
         shadows = integ.shadows() if visible else False
         return shading.light_samples(self.scene, self.light_u, self.ray, self.ray(t),
-                                     mi.Bool(lit), shadows, integ.iso_transmittance)
+                                     mi.Bool(lit), shadows, self.shader.transmittance)
 
     def terms(self, samples, grad, lit):
         """``(A, S)`` (kernel ``Array3f``) of a point with volume-space gradient ``grad``."""

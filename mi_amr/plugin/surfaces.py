@@ -17,8 +17,8 @@ the shadow rays' roulette, are shared by the lanes of a SIMD packet (:func:`mi_a
 the numbers stratified over a pixel's samples). A packet runs its loops until its last lane
 is done, so with a number per lane nearly every packet had a lane walking past every layer
 (three translucent isovalues, 256^2, 4 spp: frame 0.49 -> 0.42 s with the roulette; squared
-error per pixel 1.45e-3 -> 1.26e-3, the stratification's gain; ``integrator.packet_picks =
-False`` is the per-lane twin). The noise of neighbouring pixels is then correlated, by the
+error per pixel 1.45e-3 -> 1.26e-3, the stratification's gain; ``Twins(packet_picks=False)``
+is the per-lane twin). The noise of neighbouring pixels is then correlated, by the
 pixels of a packet; their expectations are what compositing gives. At 1 spp, where a pixel's
 one number would be its 4 x 4 tile's too (blocks of noise), lanes keep their own numbers.
 
@@ -44,11 +44,11 @@ def draws_u(integ) -> bool:
 
 def layer_crossing(integ, o, d, t_start, t_end, jitter):
     """``(state, crossing)`` for the layer loops along a ray in the volume (kernel
-    ``t_start``, ``t_end``). ``integ.layer_fast_paths`` False restarts every layer's search
-    (the slow twin, for tests)."""
+    ``t_start``, ``t_end``). ``integ.twins.layer_fast_paths`` False restarts every layer's
+    search (the slow twin, for tests)."""
     m = integ.m
     state, after = crossings(integ.dev, integ.config(), o, d, t_start, t_end, jitter,
-                             m.Bool(True), resume=integ.layer_fast_paths)
+                             m.Bool(True), resume=integ.twins.layer_fast_paths)
 
     def crossing(state, alive):
         c, state = after(state, m.Bool(alive))
@@ -64,10 +64,12 @@ def opacity(integ, k):
                                   integ.m.UInt32(k)), mi.Float)
 
 
-def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
+def surfaces(shader, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
     """``(L, T)``: the shaded isosurfaces in front of the mesh at ``t_mesh`` and the weight of
-    what lies behind them; ``u``: where :func:`draws_u`, the uniform number per sample
+    what lies behind them, shaded by ``shader`` (:class:`~mi_amr.plugin.iso.IsoShader`, of the
+    integrator ``shader.integ``); ``u``: where :func:`draws_u`, the uniform number per sample
     (``mi.Float``) that picks, else None."""
+    integ = shader.integ
     m = integ.m
     state, crossing = layer_crossing(integ, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh),
                                      jitter)
@@ -77,17 +79,17 @@ def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
 
     if integ.opt.layers == "one_shadow":
         def parts(hit, c, k):
-            return integ.shader.shade_parts(scene, light_u, ray, o, d, c, hit)
+            return shader.shade_parts(scene, light_u, ray, o, d, c, hit)
 
         def visible(shadow, on):
             return shading.ray_visibility(scene, shadow, on, integ.shadows(),
-                                          integ.iso_transmittance, from_iso=True)
+                                          shader.transmittance, from_iso=True)
 
         return one_shadow_ray(state, crossing, opacity_of, parts, visible,
                               integ.opt.max_layers, u, len(scene.emitters()), active)
     if integ.opt.layers == "composite":
         def shade(hit, c, k):
-            return integ.shader.shade(scene, light_u, ray, o, d, c, k, hit)
+            return shader.shade(scene, light_u, ray, o, d, c, k, hit)
 
         return front_to_back(state, crossing, opacity_of, shade, integ.opt.max_layers, active)
 
@@ -98,7 +100,7 @@ def surfaces(integ, scene, light_u, ray, o, d, t_mesh, jitter, u, active):
 
     def shade_at(hit, t, k):
         c = Crossing(hit=m.Bool(hit), t=bridge.to_kernel(m, t), k=m.UInt32(k), samples=None)
-        return integ.shader.shade(scene, light_u, ray, o, d, c, k, hit)
+        return shader.shade(scene, light_u, ray, o, d, c, k, hit)
 
     return pick_one(state, crossing_t, opacity_of, shade_at, integ.opt.max_layers, u,
                     mi.Float(dr.inf), active)
@@ -110,7 +112,7 @@ def transmittance(integ, cfg, o, d, t0, t1, active, u=None):
     ``u`` (``mi.Float`` in ``[0, 1)``, ``exact`` only): an unbiased sample of it by Russian
     roulette (:func:`~mi_amr.kernels.transmit.transmittance_exact`)."""
     m = integ.m
-    if cfg.method == "exact" and integ.layer_fast_paths:
+    if cfg.method == "exact" and integ.twins.layer_fast_paths:
         return bridge.to_mi(transmittance_exact(
             integ.dev, cfg, integ.inputs["iso_opacity"], o, d, t0, t1, integ.opt.max_layers,
             m.Bool(active), None if u is None else bridge.to_kernel(m, u)), mi.Float)

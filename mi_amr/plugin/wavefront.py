@@ -24,6 +24,9 @@ film's top left), as Mitsuba's.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any, Optional
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -69,20 +72,22 @@ class Orders:
         return self._cache[key]
 
 
-def attach(integrator) -> None:
-    """Give ``integrator`` what :func:`render` keeps on it: ``tiled_lanes`` (True: tile order;
-    False: scanlines, the slow twin), the orders, and the scanline lane of each lane while a
-    frame is traced (:func:`lane_index`)."""
-    integrator.tiled_lanes = True
-    integrator._orders = Orders()
-    integrator._wavefront_lane = None
-    integrator._wavefront_picks = None
+@dataclass(frozen=True)
+class Lanes:
+    """What :func:`render` hands each ``sample`` call of the frame it traces (the sample's
+    lanes, not the integrator, hold it): ``lane``, each lane's scanline lane ``pixel * spp +
+    sample`` (a device ``UInt32``); ``picks``, for a wavefront by sample, ``(spp, seed)`` as
+    opaque device values that :func:`packet_u` hashes, else None."""
+
+    lane: Any
+    picks: Any = None
 
 
-def lane_index(integrator, ray):
+def lane_index(lanes: Optional[Lanes], ray):
     """Each lane's scanline lane ``pixel * spp + sample`` (what a per-pixel hash such as the
-    stable jitter takes), for the wavefront :func:`render` is tracing; else the lane itself."""
-    lane = integrator._wavefront_lane
+    stable jitter takes), for the wavefront ``lanes`` of :func:`render`; else (Mitsuba's own
+    loop, or a ray of another width) the lane itself."""
+    lane = None if lanes is None else lanes.lane
     if lane is None or dr.width(lane) != dr.width(ray.o):
         lane = dr.arange(mi.UInt32, dr.width(ray.o))
     return lane
@@ -109,15 +114,17 @@ def supported(sensor, spp: int) -> bool:
         width * height * spp < 2 ** 32
 
 
-def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, by_sample=False):
+def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, *,
+           tiled=True, by_sample=False):
     """Render ``scene`` through ``sensor`` with ``integrator.sample``, the wavefront's pixels
-    in tile order (scanlines where ``integrator.tiled_lanes`` is False). Returns the developed
-    image as ``mi.render`` does (None unless ``develop``). ``by_sample`` (tile order and 2 or
-    more samples per pixel only): each packet holds one sample index of :data:`PACKET`
-    pixels, and :func:`packet_u` gives the packet's shared numbers."""
+    in tile order (scanlines where ``tiled`` is False, the slow twin; the tile orders come from
+    ``integrator.pixel_orders``, an :class:`Orders`). Returns the developed image as
+    ``mi.render`` does (None unless ``develop``). ``by_sample`` (tile order and 2 or more
+    samples per pixel only): each packet holds one sample index of :data:`PACKET` pixels,
+    and :func:`packet_u` gives the packet's shared numbers."""
     film = sensor.film()
     width, height, spp, border = film_shape(sensor, spp)
-    order = integrator._orders(width, height) if integrator.tiled_lanes else None
+    order = integrator.pixel_orders(width, height) if tiled else None
     sampler = sensor.sampler().clone()
     sampler.set_sample_count(spp)
     sampler.set_samples_per_wavefront(spp)
@@ -133,16 +140,13 @@ def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, by
     by_sample = by_sample and order is not None and spp > 1
     lane = tiled_lanes(order, n, spp, by_sample) if order is not None else \
         dr.arange(mi.UInt32, n)
-    integrator._wavefront_lane = lane
-    integrator._wavefront_picks = None
+    picks = None
     if by_sample:
         seed_u = mi.UInt32(seed)
         dr.make_opaque(seed_u)          # a new seed compiles nothing
-        integrator._wavefront_picks = (dr.opaque(mi.UInt32, spp), seed_u)
-    try:
-        _render_lanes(integrator, scene, sensor, sampler, block, lane, width, spp, border)
-    finally:
-        integrator._wavefront_lane = integrator._wavefront_picks = None
+        picks = (dr.opaque(mi.UInt32, spp), seed_u)
+    _render_lanes(integrator, scene, sensor, sampler, block, Lanes(lane, picks), width, spp,
+                  border)
     film.put_block(block)
     result = None
     if develop:
@@ -175,19 +179,18 @@ def tiled_lanes(order, n: int, spp: int, by_sample: bool):
     return pixel * spp_u + sample
 
 
-def packet_u(integrator, ray, salt: int):
+def packet_u(m, lanes: Optional[Lanes], ray, salt: int):
     """A uniform number in ``[0, 1)`` per lane that all lanes of a packet share, stratified
     over a pixel's samples: ``((sample + r) mod spp + xi) / spp``, ``xi`` a hash of the
     packet and ``r`` (in ``0 .. spp - 1``) of its group of pixels, both of the frame's seed
-    and ``salt`` (one stream per use: the streams of a sample are independent). None unless
-    :func:`render` traces a ``by_sample`` wavefront of ``ray``'s width. A packet's lanes end
-    their walks together where the number decides how far they go (stochastic layers)."""
-    picks = integrator._wavefront_picks
-    lane = integrator._wavefront_lane
-    if picks is None or lane is None or dr.width(lane) != dr.width(ray.o):
+    and ``salt`` (one stream per use: the streams of a sample are independent); computed on
+    the kernels' backend ``m``. None unless ``lanes`` are those of a ``by_sample`` wavefront
+    of :func:`render` of ``ray``'s width. A packet's lanes end their walks together where the
+    number decides how far they go (stochastic layers)."""
+    if lanes is None or lanes.picks is None or dr.width(lanes.lane) != dr.width(ray.o):
         return None
+    picks, lane = lanes.picks, lanes.lane
     spp_u, seed = picks
-    m = integrator.m
     pos = dr.arange(m.UInt32, dr.width(lane))
     key = m.UInt32(seed) * 32 + 2 * salt
     xi = stable_jitter(m, pos // PACKET, key)
@@ -197,9 +200,10 @@ def packet_u(integrator, ray, salt: int):
     return dr.minimum(u, ONE_BELOW)
 
 
-def _render_lanes(integrator, scene, sensor, sampler, block, lane, width, spp, border):
+def _render_lanes(integrator, scene, sensor, sampler, block, lanes: Lanes, width, spp, border):
     """One sample per lane, put into ``block`` (Mitsuba's ``render_sample``)."""
     film = sensor.film()
+    lane = lanes.lane
     # The film's size and offset are opaque inputs (Mitsuba's image block still compiles once
     # for a new size, as with Mitsuba's loop: tests/test_wavefront.py test05).
     width_u = dr.opaque(mi.UInt32, width)
@@ -220,7 +224,7 @@ def _render_lanes(integrator, scene, sensor, sampler, block, lane, width, spp, b
     ray, weight = sensor.sample_ray_differential(time, 0.0, adjusted, aperture)
     if ray.has_differentials:
         ray.scale_differential(dr.rsqrt(spp))
-    L, valid, aovs = integrator.sample(scene, sampler, ray, None, True)
+    L, valid, aovs = integrator.sample(scene, sampler, ray, None, True, lanes=lanes)
     rgb = weight * L
     if mi.has_flag(film.flags(), mi.FilmFlags.Alpha):
         values = [rgb.x, rgb.y, rgb.z, dr.select(valid, 1.0, 0.0), mi.Float(1.0)]

@@ -24,7 +24,7 @@ MAX_BINS = 4096
 def value_and_gradient(volume, field: str):
     """``(values, |grad|)`` of ``field`` over the volume's finite leaf cells (float64)."""
     if field not in volume.field_names:
-        raise AMRError(f"{volume._label()}unknown field '{field}'; the volume holds "
+        raise AMRError(f"{volume.source_prefix()}unknown field '{field}'; the volume holds "
                        f"{list(volume.field_names)}")
     values, grads = [], []
     for gi, g in enumerate(volume.grids):

@@ -37,18 +37,17 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
 
     use_variant(variant)
     say = (lambda *a: None) if quiet else (lambda *a: print(*a, flush=True))
-    from mi_amr.kernels import prepared
     from mi_amr.plugin.integrator import register
 
-    register()
+    preparations = register()
     t0 = time.perf_counter()
     say(f"loading {scene_path} ({variant})")
-    prepared.REPORT = None if quiet else say
+    preparations.report = None if quiet else say
     try:
         scene = load_scene(scene_path, integrator={"aovs": True} if aovs else None,
                            pixel_format="rgba", **params)
     finally:
-        prepared.REPORT = None
+        preparations.report = None
     t1 = time.perf_counter()
     sensor = scene.sensors()[0]
     size = sensor.film().size()

@@ -6,7 +6,7 @@ simulation), among them what the scene shows. A step is a new ``data_file`` in t
 state, an ``integrator.load_volume`` in the render thread: everything else (camera, isovalues,
 colours, colour range) stays, and no kernel compiles. While step ``k`` is shown, a background
 thread (:class:`Prefetcher`) prepares step ``k + 1`` (reads it, builds its kd-tree and device
-arrays into :func:`~mi_amr.kernels.prepared.prepare_file`'s cache), so that stepping forward
+arrays into the integrator's :class:`~mi_amr.kernels.prepared.Preparations`), so that stepping forward
 costs a frame, not a load.
 """
 
@@ -54,8 +54,8 @@ def check_series(files, field: str, color_field) -> None:
 
 
 class Prefetcher:
-    """Prepares one data file at a time in a background thread, into the prepared-volume cache
-    of the integrator's process (the render thread then finds it there). The render thread
+    """Prepares one data file at a time in a background thread, into the integrator's
+    :class:`~mi_amr.kernels.prepared.Preparations` (the render thread then finds it there). The render thread
     calls :meth:`wait` before it loads anything itself, so the two never prepare at once."""
 
     def __init__(self):
@@ -67,8 +67,8 @@ class Prefetcher:
         """Prepare ``path`` for ``integrator`` (its field, colour field, backend), unless it is
         prepared (or being prepared) for it already."""
         opt = integrator.opt
-        args = (str(path), opt.field, opt.color_field, opt.leaf_cells, integrator.m,
-                opt.reconstruction == "basis")
+        args = (integrator.preparations, str(path), opt.field, opt.color_field, opt.leaf_cells,
+                integrator.m, opt.reconstruction == "basis")
         if args == self._args:
             return
         self.wait()
@@ -77,13 +77,12 @@ class Prefetcher:
                                         name="mi_amr-view-prefetch", daemon=True)
         self._thread.start()
 
-    def _prepare(self, path, field, color_field, leaf_cells, m, basis) -> None:
+    def _prepare(self, preparations, path, field, color_field, leaf_cells, m, basis) -> None:
         import drjit as dr
 
-        from mi_amr.kernels.prepared import prepare_file
-
         try:
-            prepare_file(path, field, color_field, leaf_cells=leaf_cells, m=m).search_ready(basis)
+            preparations.prepare(path, field, color_field, leaf_cells=leaf_cells,
+                                 m=m).search_ready(basis)
             dr.sync_thread()
         except AMRError:                # a bad file: the step loads it itself and says why
             pass

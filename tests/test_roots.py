@@ -1,0 +1,82 @@
+"""The first root of a cubic (:mod:`mi_amr.kernels.roots`) on its hard cases, in float32 and
+with no way around them: tangents (an extremum touching zero without a sign change) and double
+roots, at the first extremum, the second and the interval's end.
+
+The cubics are built from roots and offsets that float32 holds exactly, and their extrema and
+values there come out exact in float32 (checked below), so each case takes the path it names:
+a value of exactly 0 at an extremum counts as a sign change, a tiny positive value does not
+and must be caught by the tangent tolerance. Runs on every present variant.
+"""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("drjit")
+
+from mi_amr.kernels import roots  # noqa: E402
+
+TINY = 2.0 ** -20           # far inside the tangent tolerance (2e-6 of the terms' size)
+
+
+def poly(double, simple, lead=1.0, lift=0.0):
+    """Coefficients ``(c0, c1, c2, c3)`` of ``lead (s - double)^2 (s - simple) + lift``."""
+    p = lead * np.polynomial.polynomial.polyfromroots([double, double, simple])
+    p[0] += lift
+    assert np.array_equal(p.astype(np.float32).astype(np.float64), p)   # float32 holds it
+    return p
+
+
+def first_root(m, p, L=1.0):
+    """``(found, root, r1, r2, f(r1), f(r2))`` of the kernels for the cubic ``p`` on
+    ``[0, L]``, in float32."""
+    c = [m.Float(np.float32(x)) for x in p]
+    L = m.Float(np.float32(L))
+    scale = m.Float(np.float32(np.abs(p).sum()))
+    found, a, b = roots.first_root_bracket(c, L, scale)
+    r1, r2 = roots.extrema(c, L)
+    out = (found, roots.refine_root(c, a, b), r1, r2, roots.cubic(c, r1), roots.cubic(c, r2))
+    return [np.array(v)[0] for v in out]
+
+
+# (double root, simple root, lead, lift, expected first root in [0, 1], the extremum it is at,
+#  f there in float32)
+CASES = {
+    # A tangent from above at the first extremum (a maximum of -(...)); nothing else in [0, 1].
+    "tangent above at r1": (0.5, -2.0, 1.0, TINY, 0.5, "r1", TINY),
+    # The same from below (a negative leading term).
+    "tangent below at r1": (0.5, -2.0, -1.0, -TINY, 0.5, "r1", -TINY),
+    # A tangent from above at the second extremum, the first one lying before it in [0, 1].
+    "tangent above at r2": (0.75, -0.25, 1.0, TINY, 0.75, "r2", TINY),
+    # A double root at the first extremum (f there exactly 0), then a simple root at 0.75:
+    # the first root is the double one, not the crossing after it.
+    "double root, then a crossing": (0.25, 0.75, 1.0, 0.0, 0.25, "r1", 0.0),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test01_tangents_and_double_roots_are_first_roots(backend, case):
+    double, simple, lead, lift, want, where, f_there = CASES[case]
+    found, root, r1, r2, f1, f2 = first_root(backend, poly(double, simple, lead, lift))
+    # The case is what it says in float32: the extremum exact, the value there as built.
+    extremum, value = (r1, f1) if where == "r1" else (r2, f2)
+    assert extremum == np.float32(want) and value == np.float32(f_there)
+    assert found
+    assert root == np.float32(want)
+
+
+@pytest.mark.parametrize("lead", [1.0, -1.0])
+def test02_a_near_miss_beyond_the_tolerance_is_no_root(backend, lead):
+    """The tangent cubic of test01 lifted off zero by 4x the tolerance: no root."""
+    p = poly(0.5, -2.0, lead, 0.0)
+    lift = lead * np.float32(2.0 ** -14)             # 6.1e-5 > 4 * 2e-6 * sum |c| (3.4e-5)
+    assert lift * lead > 4 * 2e-6 * np.abs(p).sum()
+    found, *_ = first_root(backend, poly(0.5, -2.0, lead, float(lift)))
+    assert not found
+
+
+def test03_a_tangent_at_the_intervals_end_is_a_root(backend):
+    """A double root at ``L`` (f(L) tiny, no sign change on [0, L]) is found at ``L``: the
+    next interval's cubic takes over from there."""
+    p = poly(0.5, -2.0, 1.0, TINY)
+    found, root, *_ = first_root(backend, p, L=0.5)
+    assert found and root == np.float32(0.5)
