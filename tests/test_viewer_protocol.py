@@ -290,7 +290,7 @@ def test10_a_tiled_image_is_the_image_of_a_whole_render(tmp_path, variant):
         whole = session.render_refined((100, 70), 16)
     finally:
         session.close()
-    assert tiled.shape == whole.shape == (70, 100, 3)
+    assert tiled.shape == whole.shape == (70, 100, 4)      # RGBA, as render writes
     shift = np.abs(whole[:, 1:] - whole[:, :-1]).mean()
     assert np.abs(tiled - whole).mean() < 0.15 * shift, (np.abs(tiled - whole).mean(), shift)
 

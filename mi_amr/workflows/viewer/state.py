@@ -428,8 +428,8 @@ class Session:
         return tuple(max(n, 2 * edge + MIN_TILE_KEPT) for n in self.resolution)
 
     def render_tiled(self, size, spp: int) -> np.ndarray:
-        """The ``spp``-sample image at ``size`` pixels ``(width, height)``, linear RGB
-        ``(height, width, 3)``, rendered in tiles of :meth:`tile_size` (:mod:`.tiles`): an
+        """The ``spp``-sample image at ``size`` pixels ``(width, height)``, linear RGBA
+        ``(height, width, 4)`` (RGB where the film is RGB), rendered in tiles of :meth:`tile_size` (:mod:`.tiles`): an
         image of any size compiles no kernel of its own. At the tile size itself, the image
         of :meth:`render_refined` (the pixels ``python -m mi_amr render`` gives). Each tile
         has seeds of its own, so the tiles' noise does not repeat."""
@@ -438,12 +438,14 @@ class Session:
             return self.render_refined(size, spp)
         edge = tiles.margin(self._tiling["radius"])
         passes = refine_passes(spp, least_pass_spp(self.scene.integrator()))
-        image = np.zeros((size[1], size[0], 3), dtype=np.float32)
+        image = None
         try:
             for k, t in enumerate(tiles.layout(size, tile, edge)):
                 self._aim_tile(size, tile, (t.x0, t.y0))
                 accum = sum(self._pass(tile, n, seed + k * len(passes)) * n
                             for seed, n in passes)
+                if image is None:
+                    image = np.zeros((size[1], size[0], accum.shape[-1]), dtype=np.float32)
                 rows, cols = t.taken()
                 image[t.y_lo:t.y_hi, t.x_lo:t.x_hi] = (accum / spp)[rows, cols]
         finally:
@@ -469,7 +471,7 @@ class Session:
         image = mi.render(self.scene, spp=spp, seed=seed)
         dr.eval(image)
         dr.sync_thread()
-        return np.array(image, dtype=np.float32)[..., :3]
+        return np.array(image, dtype=np.float32)[..., :4]      # colour and alpha, no AOVs
 
     def close(self) -> None:
         import shutil
