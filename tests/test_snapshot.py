@@ -11,7 +11,7 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from mi_amr.kernels import prepared, snapshot
+from mi_amr.kernels import prepared, snapshot, snapshot_folder
 from mi_amr.synthetic import datasets
 
 M = dr.llvm.ad
@@ -29,15 +29,14 @@ def data(tmp_path_factory):
 def cache(tmp_path, monkeypatch):
     root = tmp_path / "cache"
     monkeypatch.setenv("MI_AMR_CACHE", str(root))
-    monkeypatch.setattr(snapshot, "ENABLED", True)
     prepared._CACHE.clear()
     yield root
     prepared._CACHE.clear()
 
 
-def prepare(path):
+def prepare(path, cache=None):
     prepared._CACHE.clear()             # a new process, as far as the preparation knows
-    return prepared.prepare_file(path, "q_criterion", "speed", m=M)
+    return prepared.prepare_file(path, "q_criterion", "speed", m=M, cache=cache)
 
 
 def host(prep):
@@ -66,7 +65,7 @@ def test01_a_second_load_reads_back_what_the_first_prepared(data, cache):
     assert "derive" in first.timings and "snapshot" not in first.timings
     want = host(first)                          # computes the ranges: added to the entry
     (entry,) = entries(cache)
-    assert (cache / entry / "ranges_basis.npy").is_file()
+    assert '"ranges":{"basis"' in (cache / entry / "meta.json").read_text()
     second = prepare(data)
     assert "snapshot" in second.timings and "derive" not in second.timings
     assert_same(want, host(second))
@@ -131,15 +130,15 @@ def test03_a_changed_file_is_prepared_again(data, cache, tmp_path):
 def test04_an_unreadable_entry_is_dropped_and_the_volume_prepared_afresh(data, cache):
     want = host(prepare(data))
     (entry,) = entries(cache)
-    pool = cache / entry / "pool0.npy"
+    pool = cache / entry / "pool0.arr"
     pool.write_bytes(pool.read_bytes()[: pool.stat().st_size // 2])     # truncated
     with pytest.warns(UserWarning, match="unreadable snapshot"):
         again = prepare(data)
     assert "derive" in again.timings
     assert_same(want, host(again))
     (entry2,) = entries(cache)                      # written anew
-    assert (cache / entry2 / "pool0.npy").stat().st_size == len(
-        (cache / entry2 / "pool0.npy").read_bytes())
+    assert (cache / entry2 / "pool0.arr").stat().st_size == len(
+        (cache / entry2 / "pool0.arr").read_bytes())
     assert "snapshot" in prepare(data).timings
 
 
@@ -148,8 +147,7 @@ def test05_off_reads_and_writes_nothing(data, cache, monkeypatch):
     prepare(data)
     assert "derive" in prepare(data).timings
     monkeypatch.setenv("MI_AMR_CACHE", str(cache))
-    monkeypatch.setattr(snapshot, "ENABLED", False)
-    prepare(data)
+    prepare(data, cache=snapshot.SnapshotCache.off())     # the caller's own setting wins
     assert not cache.exists()
 
 
@@ -163,8 +161,12 @@ def test06_the_least_recently_used_entries_go_beyond_the_limit(data, cache, tmp_
         time.sleep(0.02)
     assert len(entries(cache)) == 3
     sizes = {e: sum(f.stat().st_size for f in (cache / e).iterdir()) for e in entries(cache)}
-    stale = cache / ".tmp-crashed"
+    stale = cache / ".tmp-crashed"          # the cache's own, left by a crash long ago
     stale.mkdir()
+    fd = os.open(stale, os.O_RDONLY)
+    snapshot_folder.write_marker(fd)
+    os.close(fd)
+    os.utime(stale / snapshot_folder.MARKER, (0, 0))
     os.utime(stale, (0, 0))
     # Room for two entries: using c0 again makes c1 the least recently used.
     assert "snapshot" in prepare(copies[0]).timings
@@ -182,13 +184,13 @@ def test07_a_folder_that_cannot_be_written_only_costs_the_snapshot(data, tmp_pat
     blocked = tmp_path / "not_a_folder"
     blocked.write_text("a file where the cache folder should be")
     monkeypatch.setenv("MI_AMR_CACHE", str(blocked / "cache"))
-    monkeypatch.setattr(snapshot, "ENABLED", True)
     with pytest.warns(UserWarning, match="could not write a snapshot"):
         p = prepare(data)
     assert "derive" in p.timings and blocked.read_text().startswith("a file")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert snapshot.load(snapshot.entry_key(data, "q_criterion", "speed", 64)) is None
+        assert snapshot.SnapshotCache.from_env().load(
+            snapshot.entry_key(data, "q_criterion", "speed", 64)) is None
 
 
 def test08_data_files_beside_the_named_file_are_part_of_the_key(data, cache, tmp_path,
@@ -216,7 +218,7 @@ def test09_a_second_writer_of_the_same_entry_leaves_the_first_one(data, cache):
     p = prepare(data)
     (entry,) = entries(cache)
     before = sorted(f.name for f in (cache / entry).iterdir())
-    assert snapshot.save(entry, p)
+    assert snapshot.SnapshotCache.from_env().save(entry, p)
     assert entries(cache) == [entry]
     assert not [d for d in cache.iterdir() if d.name.startswith(".tmp-")]
     assert sorted(f.name for f in (cache / entry).iterdir()) == before

@@ -55,7 +55,8 @@ class PreparedVolume:
 
     @classmethod
     def restore(cls, snap, *, m=None) -> "PreparedVolume":
-        """The preparation held by a snapshot (what :func:`snapshot.load` returns), its kd-tree
+        """The preparation held by a snapshot (what :meth:`SnapshotCache.load
+        <mi_amr.kernels.snapshot.SnapshotCache.load>` returns), its kd-tree
         and brick pools as they were saved, the device arrays mapped from them."""
         volume, tree_state, bricks, ranges, meta = snap
         self = cls.__new__(cls)
@@ -145,9 +146,12 @@ def _velocity_names(available) -> list:
 
 
 def prepare_file(path, field: str, color_field: str | None = None, *,
-                 leaf_cells: int = params.default("leaf_cells"), m=None) -> PreparedVolume:
+                 leaf_cells: int = params.default("leaf_cells"), m=None,
+                 cache: snapshot.SnapshotCache | None = None) -> PreparedVolume:
     """Load ``path`` (only what is needed) and prepare it; cached by file, fields and backend
-    in this process, and on disk as a snapshot (read back instead of preparing again)."""
+    in this process, and on disk as a snapshot in ``cache`` (read back instead of preparing
+    again; by default the cache that ``$MI_AMR_CACHE`` describes, see
+    :meth:`SnapshotCache.from_env <mi_amr.kernels.snapshot.SnapshotCache.from_env>`)."""
     path = os.path.abspath(path)
     try:
         stamp = os.stat(path).st_mtime_ns
@@ -157,10 +161,11 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
+    cache = snapshot.SnapshotCache.from_env() if cache is None else cache
     snap_key = snapshot.entry_key(path, field, color_field, leaf_cells) \
-        if snapshot.cache_root() is not None else None
+        if cache.enabled else None
     t0 = time.perf_counter()
-    snap = snapshot.load(snap_key) if snap_key else None
+    snap = cache.load(snap_key) if snap_key else None
     if snap is not None:
         prepared = PreparedVolume.restore(snap, m=m)
         prepared._lap("snapshot", t0)
@@ -168,11 +173,11 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
         prepared = _prepare_from_file(path, field, color_field, leaf_cells, m)
         if snap_key:
             t0 = time.perf_counter()
-            if snapshot.save(snap_key, prepared):
+            if cache.save(snap_key, prepared):
                 _report(f"  snapshot written in {time.perf_counter() - t0:.2f} s")
     if snap_key:
-        prepared.device.on_new_ranges = lambda kind, host: snapshot.save_ranges(snap_key, kind,
-                                                                                host)
+        prepared.device.on_new_ranges = lambda kind, host: cache.save_ranges(snap_key, kind,
+                                                                             host)
     _CACHE[key] = prepared
     while len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)
