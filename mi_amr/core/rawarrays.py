@@ -22,6 +22,7 @@ import re
 import stat
 import struct
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -104,34 +105,75 @@ def _count(n) -> bool:
     return type(n) is int and 0 <= n < 2 ** 48
 
 
-def read_array(dir_fd: int, record: dict, into: np.ndarray | None = None) -> np.ndarray:
+class Checks:
+    """CRC-32s that a worker thread computes while the caller reads on (``zlib.crc32``
+    releases the GIL): :func:`read_array` hands it each chunk it has read, :meth:`verify` waits
+    for them all. A context manager: leaving it waits for the worker."""
+
+    def __init__(self):
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mi_amr-crc")
+        self._files = []        # (file name, the record's CRC, [the CRC so far])
+
+    def start(self, name: str, want: int) -> list:
+        self._files.append((name, want, [0]))
+        return self._files[-1][2]
+
+    def update(self, state: list, chunk: memoryview) -> None:
+        # One worker, first in first out: the chunks of a file are taken in order.
+        self._pool.submit(_crc_step, state, chunk)
+
+    def verify(self) -> None:
+        """Wait for every checksum; :class:`BadFile` naming the first file that changed."""
+        self._pool.shutdown(wait=True)
+        for name, want, state in self._files:
+            expect(state[0] == want, f"{name}: checksum mismatch (the data changed on disk)")
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self._pool.shutdown(wait=True)
+
+
+def _crc_step(state: list, chunk: memoryview) -> None:
+    state[0] = zlib.crc32(chunk, state[0])
+
+
+def read_array(dir_fd: int, record: dict, into: np.ndarray | None = None,
+               checks: Checks | None = None) -> np.ndarray:
     """The array of ``record`` (see :func:`check_record`), read from its file in the folder
     open as ``dir_fd`` into new :data:`~mi_amr.core.buffers.ALIGN`-aligned memory, or into
     the flat array ``into`` (which must have its size and dtype); :class:`BadFile` when the
     file is not exactly what the record says (truncated, longer, another header, a changed
-    byte)."""
+    byte). With ``checks``, the checksum is computed there, beside the reading, and compared
+    by :meth:`Checks.verify`; without, here (the plain twin)."""
     name = record["file"]
     dtype, size = np.dtype(record["dtype"]), int(np.prod(record["shape"], dtype=np.int64))
     if into is not None:
         expect(into.size == size and into.dtype == dtype and into.flags.c_contiguous,
                f"{name}: {size} values of {dtype}, expected {into.size} of {into.dtype}")
-    with _open_regular(dir_fd, name) as f:
+    with open_regular(dir_fd, name) as f:
         start = _read_header(f, record)
         expect(os.fstat(f.fileno()).st_size == start + record["nbytes"],
                f"{name}: {os.fstat(f.fileno()).st_size - start} bytes of data, expected "
                f"{record['nbytes']} (truncated or extended)")
         out = aligned_empty(size, dtype) if into is None else into
         data = memoryview(out.reshape(-1).view(np.uint8))
-        crc = 0
+        state = [0] if checks is None else checks.start(name, record["crc32"])
         for at in range(0, len(data), CHUNK):
             chunk = data[at:at + CHUNK]
             expect(_fill(f, chunk), f"{name}: truncated")
-            crc = zlib.crc32(chunk, crc)
-    expect(crc == record["crc32"], f"{name}: checksum mismatch (the data changed on disk)")
+            if checks is None:
+                _crc_step(state, chunk)
+            else:
+                checks.update(state, chunk)
+    if checks is None:
+        expect(state[0] == record["crc32"],
+               f"{name}: checksum mismatch (the data changed on disk)")
     return out.reshape(record["shape"])
 
 
-def _open_regular(dir_fd: int, name: str):
+def open_regular(dir_fd: int, name: str):
     """``name`` in the folder ``dir_fd`` open for reading, when it is a regular file (not a
     link, FIFO or device: those are refused before anything is read)."""
     fd = os.open(name, _READ, dir_fd=dir_fd)

@@ -237,7 +237,9 @@ def _load(root_fd: int, entry: Path, key: str):
                           f"format {FORMAT}); left alone, the volume is prepared without it")
             return None
         try:
-            snap = _read_entry(fd, key)
+            with rawarrays.Checks() as checks:
+                snap = _read_entry(fd, key, checks)
+                checks.verify()
         except (BadFile, OSError, ValueError, TypeError, KeyError, RecursionError) as exc:
             warnings.warn(f"mi_amr: dropping the unreadable snapshot {entry} ({exc}); "
                           f"preparing the volume afresh")
@@ -252,7 +254,7 @@ def _load(root_fd: int, entry: Path, key: str):
 
 def _read_meta(fd: int, key: str) -> dict:
     """The checked body of the entry's ``meta.json`` (see :func:`_write_meta`)."""
-    with rawarrays._open_regular(fd, META) as f:
+    with rawarrays.open_regular(fd, META) as f:
         text = f.read(_MAX_META + 1)
     expect(len(text) <= _MAX_META, f"{META}: larger than {_MAX_META} bytes")
     head, sep, body = text.partition(b"\n")
@@ -271,15 +273,19 @@ def _read_meta(fd: int, key: str) -> dict:
         raise BadFile(f"{META}: unreadable ({type(e).__name__})") from None
 
 
-def _read_entry(fd: int, key: str):
+def _read_entry(fd: int, key: str, checks):
+    """What :meth:`SnapshotCache.load` returns, read from the entry open as ``fd``; the
+    arrays' checksums computed by ``checks`` (a :class:`~mi_amr.core.rawarrays.Checks`,
+    verified by the caller)."""
     meta = _read_meta(fd, key)
     records = meta["arrays"]
 
-    def get(name, into=None):
-        """The array ``name`` (or the one a ``{"$array": name}`` reference names)."""
+    def get(name, into=None, now=False):
+        """The array ``name`` (or the one a ``{"$array": name}`` reference names); ``now``:
+        verified before it is returned (what sizes the other arrays)."""
         name = name["$array"] if isinstance(name, dict) else name
         expect(isinstance(name, str) and name in records, f"no array {name!r}")
-        return rawarrays.read_array(fd, records[name], into)
+        return rawarrays.read_array(fd, records[name], into, None if now else checks)
 
     vol = meta["volume"]
     volume = _volume(vol, dict(zip(vol["fields"], meta["fields"])), get, records)
@@ -370,7 +376,7 @@ def _ints(values, lowest: int) -> bool:
 def _volume(state: dict, fields: dict, get, records: dict) -> AMRVolume:
     """The volume of a snapshot: grid records whose fields are views of the per-level flat
     arrays (which also become the volume's cached :func:`levels.level_values`)."""
-    level, shape = get(state["level"]), get(state["shape"])
+    level, shape = get(state["level"], now=True), get(state["shape"], now=True)
     num_levels = len(state["ratios"]) + 1
     expect(level.size == 0 or (level.min() >= 0 and level.max() < num_levels), "level range")
     expect(shape.size == 0 or shape.min() >= 1, "grid shape")
