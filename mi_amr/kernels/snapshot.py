@@ -116,7 +116,7 @@ class SnapshotCache:
                 folder.sweep(root_fd, self.limit, keep=key)
             finally:
                 os.close(root_fd)
-        except OSError as exc:
+        except (OSError, TypeError) as exc:     # TypeError: a value the format cannot hold
             warnings.warn(f"mi_amr: could not write a snapshot in {self.root} ({exc}); set "
                           f"MI_AMR_CACHE to another folder, or to off")
             return False
@@ -508,13 +508,19 @@ def _add_ranges(fd: int, key: str, kind: str, host: np.ndarray) -> None:
     body = _read_meta(fd, key)
     token = secrets.token_hex(4)
     name = f"ranges_{kind}.{token}"
-    record = rawarrays.write_array(fd, name + ".arr", np.asarray(host, dtype=np.float32))
-    body["arrays"][name] = record
-    old = body["ranges"].get(kind)
-    old = None if old is None else body["arrays"].pop(old["$array"])
-    body["ranges"][kind] = {"$array": name}
-    _write_meta(fd, key, body, f"{META}.{token}")
-    os.replace(f"{META}.{token}", META, src_dir_fd=fd, dst_dir_fd=fd)
+    try:
+        record = rawarrays.write_array(fd, name + ".arr", np.asarray(host, dtype=np.float32))
+        body["arrays"][name] = record
+        old = body["ranges"].get(kind)
+        old = None if old is None else body["arrays"].pop(old["$array"])
+        body["ranges"][kind] = {"$array": name}
+        _write_meta(fd, key, body, f"{META}.{token}")
+        os.replace(f"{META}.{token}", META, src_dir_fd=fd, dst_dir_fd=fd)
+    except BaseException:           # interrupted, or a full disk: leave the entry as it was
+        for leftover in (name + ".arr", f"{META}.{token}"):
+            with contextlib.suppress(OSError):
+                os.unlink(leftover, dir_fd=fd)
+        raise
     if old is not None:
         with contextlib.suppress(OSError):
             os.unlink(old["file"], dir_fd=fd)
