@@ -260,8 +260,9 @@ def header_cases(work: Path, count: int, seed: int):
 def fuzz(npz: int, header: int, seeds, *, cache: int = 0, jobs: int = 2,
          timeout: float = TIMEOUT, keep: Path | None = None) -> dict:
     """Run ``npz`` byte-mutation, ``header`` Header-mutation and ``cache`` snapshot-cache
-    cases for each seed; returns ``{"npz": Tally, "header": Tally, "cache": Tally}``."""
-    tallies = {"npz": Tally(), "header": Tally(), "cache": Tally()}
+    cases for each seed; returns ``{"npz": Tally, "header": Tally}``, and ``"cache": Tally``
+    when ``cache``."""
+    tallies = {"npz": Tally(), "header": Tally()} | ({"cache": Tally()} if cache else {})
     with tempfile.TemporaryDirectory(prefix="mi_amr_fuzz_") as folder:
         work = Path(folder)
         todo = []
