@@ -215,8 +215,10 @@ def _apply(op: str, entry: Path, ctx: dict, rng: random.Random) -> None:  # noqa
             entry.symlink_to(away, target_is_directory=True)
     elif op == "link_tmp":
         marked = outside / "marked"
-        if not marked.exists():
-            shutil.copytree(entry if entry.is_dir() else cache, marked, symlinks=True)
+        if not marked.exists():             # a marked folder outside, a link to it inside
+            marked.mkdir()
+            for f in _files(entry):
+                shutil.copy(f, marked / f.name)
         (cache / ".tmp-evil").unlink(missing_ok=True)
         (cache / ".tmp-evil").symlink_to(marked, target_is_directory=True)
         (cache / ".del-evil").unlink(missing_ok=True)
