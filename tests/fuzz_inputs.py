@@ -10,7 +10,11 @@ Two kinds of cases, each read in its own process (``mi_amr.load`` then ``summary
   half of them aimed at the zip and ``.npy`` headers, where damage reaches the parser;
 * ``header`` -- mutations of the ``Header`` of a small AMReX plotfile (tests/amrex_writer.py):
   numbers replaced by boundary values (0, -1, 2^31, 1e26, a 27-digit integer, nan, inf, ...),
-  lines deleted, duplicated, swapped or replaced by junk, characters changed, the text cut.
+  lines deleted, duplicated, swapped or replaced by junk, characters changed, the text cut;
+* ``cache`` -- a snapshot cache with flipped bits, truncated or extended arrays, planted files
+  and pickles, bad or retyped metadata, a user's folders, links pointing outside it, FIFOs
+  (tests/fuzz_cache.py): each must end as a fresh preparation with the right result, with no
+  code run and nothing outside the cache's own folders touched.
 
 A third kind, ``protocol``, runs against a viewer (``python -m mi_amr view``, its own process)
 instead: fixed malformed messages (JSON nested 100k deep, 4000-digit integers, names as lists,
@@ -20,10 +24,12 @@ followed by a probe the viewer must answer at once, and a client that floods and
 log or replies, an unanswered probe, or a file written outside its output folder fails a case.
 
 Usage: ``python tests/fuzz_inputs.py --cases N --seed S`` (N of each kind unless
-``--header-cases`` says otherwise). Prints the cases run and the number of non-AMRError
-exceptions, hangs and crashes; exits 1 when any of those is not zero. ``--keep DIR`` keeps the
-failing inputs; ``--protocol-cases N`` adds the protocol kind. ``tests/test_fuzz.py`` runs a
-small fixed set of seeds.
+Usage: ``python tests/fuzz_inputs.py --cases N --seed S`` (N of each kind unless
+``--header-cases`` or ``--cache-cases`` says otherwise). Prints the cases run and the number of
+non-AMRError exceptions, hangs, crashes, tracebacks, wrong results, pickles run and files touched;
+exits 1 when any of those is not zero. ``--keep DIR`` keeps the failing inputs;
+``--protocol-cases N`` adds the protocol kind. ``tests/test_fuzz.py`` runs a small fixed set of
+seeds.
 """
 
 from __future__ import annotations
@@ -85,17 +91,27 @@ class Outcome:
     detail: str = ""
 
 
+# How a case may fail: the readers' cases end as ``exception``, ``hang`` or ``crash``; the
+# cache's also as ``traceback`` (printed, though the process went on), ``wrong`` (another
+# result than without a cache), ``ran_code`` (a pickle was loaded) or ``touched`` (a file
+# outside the cache's own folders changed or went).
+FAILURES = ("exception", "hang", "crash", "traceback", "wrong", "ran_code", "touched")
+
+
 @dataclass
 class Tally:
     cases: int = 0
     exceptions: int = 0
     hangs: int = 0
     crashes: int = 0
+    others: int = 0             # the cache's failures: traceback, wrong, ran_code, touched
     statuses: dict = field(default_factory=dict)
     failures: list = field(default_factory=list)
+    outcomes: list = field(default_factory=list)
 
     def add(self, o: Outcome) -> None:
         self.cases += 1
+        self.outcomes.append(o)
         self.statuses[o.status] = self.statuses.get(o.status, 0) + 1
         if o.status == "exception":
             self.exceptions += 1
@@ -103,7 +119,9 @@ class Tally:
             self.hangs += 1
         elif o.status == "crash":
             self.crashes += 1
-        if o.status in ("exception", "hang", "crash"):
+        elif o.status in FAILURES:
+            self.others += 1
+        if o.status in FAILURES:
             self.failures.append(o)
 
 
@@ -250,11 +268,12 @@ def header_cases(work: Path, count: int, seed: int):
         yield f"header seed {seed} case {i}", root
 
 
-def fuzz(npz: int, header: int, seeds, *, jobs: int = 2, timeout: float = TIMEOUT,
-         keep: Path | None = None) -> dict:
-    """Run ``npz`` byte-mutation and ``header`` Header-mutation cases for each seed; returns
-    ``{"npz": Tally, "header": Tally}``."""
-    tallies = {"npz": Tally(), "header": Tally()}
+def fuzz(npz: int, header: int, seeds, *, cache: int = 0, jobs: int = 2,
+         timeout: float = TIMEOUT, keep: Path | None = None) -> dict:
+    """Run ``npz`` byte-mutation, ``header`` Header-mutation and ``cache`` snapshot-cache
+    cases for each seed; returns ``{"npz": Tally, "header": Tally}``, and ``"cache": Tally``
+    when ``cache``."""
+    tallies = {"npz": Tally(), "header": Tally()} | ({"cache": Tally()} if cache else {})
     with tempfile.TemporaryDirectory(prefix="mi_amr_fuzz_") as folder:
         work = Path(folder)
         todo = []
@@ -263,8 +282,12 @@ def fuzz(npz: int, header: int, seeds, *, jobs: int = 2, timeout: float = TIMEOU
             todo += [("header", c, p) for c, p in header_cases(work, header, seed)]
         with ThreadPoolExecutor(max_workers=jobs) as pool:
             outcomes = list(pool.map(lambda t: run_case(*t, timeout), todo))
+            if cache:
+                outcomes += _cache_outcomes(work, cache, seeds, pool, timeout)
         for (kind, _, path), o in zip(todo, outcomes):
             tallies[kind].add(o)
+        for o in outcomes[len(todo):]:
+            tallies["cache"].add(o)
             if keep is not None and o.status in ("exception", "hang", "crash"):
                 keep.mkdir(parents=True, exist_ok=True)
                 target = keep / path.name
@@ -273,6 +296,19 @@ def fuzz(npz: int, header: int, seeds, *, jobs: int = 2, timeout: float = TIMEOU
                 else:
                     shutil.copy(path, target)
     return tallies
+
+
+def _cache_outcomes(work: Path, count: int, seeds, pool, timeout: float) -> list:
+    """Outcomes of ``count`` snapshot-cache cases per seed (tests/fuzz_cache.py)."""
+    import fuzz_cache
+
+    setup = fuzz_cache.Setup(work / "cache-setup", timeout)
+    cases = [c for seed in seeds for c in fuzz_cache.cache_cases(work, count, seed, setup)]
+
+    def one(case):
+        name, ctx, before = case
+        return Outcome("cache", name, *fuzz_cache.check(ctx, setup, before, timeout))
+    return list(pool.map(one, cases))
 
 
 # ---------------------------------------------------------------------- the viewer's protocol
@@ -438,14 +474,21 @@ def report(tallies: dict) -> str:
     lines = []
     for kind, t in tallies.items():
         lines.append(f"{kind}: {t.cases} cases, {t.exceptions} non-AMRError exceptions, "
-                     f"{t.hangs} hangs, {t.crashes} crashes (outcomes {t.statuses})")
+                     f"{t.hangs} hangs, {t.crashes} crashes, {t.others} tracebacks / wrong "
+                     f"results / pickles run / files touched (outcomes {t.statuses})")
     total = [sum(getattr(t, a) for t in tallies.values())
-             for a in ("cases", "exceptions", "hangs", "crashes")]
+             for a in ("cases", "exceptions", "hangs", "crashes", "others")]
     lines.append(f"total: {total[0]} cases, {total[1]} non-AMRError exceptions, {total[2]} "
-                 f"hangs, {total[3]} crashes")
+                 f"hangs, {total[3]} crashes, {total[4]} tracebacks / wrong results / pickles "
+                 f"run / files touched")
     for t in tallies.values():
         for o in t.failures[:20]:
             lines.append(f"  {o.status}: {o.case}: {o.detail}")
+    cache = [o for o in tallies.get("cache", Tally()).outcomes if o.status == "ok"]
+    if cache:
+        afresh = sum(o.detail == "prepared afresh" for o in cache)
+        lines.append(f"cache: {afresh} of the {len(cache)} good cases prepared afresh, "
+                     f"{len(cache) - afresh} read their entry back")
     return "\n".join(lines)
 
 
@@ -453,6 +496,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--cases", type=int, default=100, help="cases of each kind (default 100)")
     p.add_argument("--header-cases", type=int, help="Header cases (default: --cases)")
+    p.add_argument("--cache-cases", type=int, help="snapshot-cache cases (default: --cases)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--jobs", type=int, default=2, help="cases run at once (default 2)")
     p.add_argument("--timeout", type=float, default=TIMEOUT, help="seconds per case")
@@ -462,12 +506,13 @@ def main(argv=None) -> int:
                         "ones and a slow reader) against a running viewer (default 0: none)")
     args = p.parse_args(argv)
     header = args.cases if args.header_cases is None else args.header_cases
-    tallies = fuzz(args.cases, header, [args.seed], jobs=args.jobs, timeout=args.timeout,
-                   keep=args.keep)
+    cache = args.cases if args.cache_cases is None else args.cache_cases
+    tallies = fuzz(args.cases, header, [args.seed], cache=cache, jobs=args.jobs,
+                   timeout=args.timeout, keep=args.keep)
     if args.protocol_cases:
         tallies.update(fuzz_protocol(args.protocol_cases, [args.seed], keep=args.keep))
     print(report(tallies))
-    bad = sum(t.exceptions + t.hangs + t.crashes for t in tallies.values())
+    bad = sum(t.exceptions + t.hangs + t.crashes + t.others for t in tallies.values())
     return 1 if bad else 0
 
 

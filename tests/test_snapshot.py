@@ -11,7 +11,7 @@ import drjit as dr
 import numpy as np
 import pytest
 
-from mi_amr.kernels import prepared, snapshot
+from mi_amr.kernels import prepared, snapshot, snapshot_folder
 from mi_amr.synthetic import datasets
 
 M = dr.llvm.ad
@@ -29,12 +29,11 @@ def data(tmp_path_factory):
 def cache(tmp_path, monkeypatch):
     root = tmp_path / "cache"
     monkeypatch.setenv("MI_AMR_CACHE", str(root))
-    monkeypatch.setattr(snapshot, "ENABLED", True)
     yield root
 
 
-def prepare(path):
-    return prepared.prepare_file(path, "q_criterion", "speed", m=M)
+def prepare(path, cache=None):
+    return prepared.prepare_file(path, "q_criterion", "speed", m=M, cache=cache)
 
 
 def host(prep):
@@ -63,7 +62,7 @@ def test01_a_second_load_reads_back_what_the_first_prepared(data, cache):
     assert "derive" in first.timings and "snapshot" not in first.timings
     want = host(first)                          # computes the ranges: added to the entry
     (entry,) = entries(cache)
-    assert (cache / entry / "ranges_basis.npy").is_file()
+    assert '"ranges":{"basis"' in (cache / entry / "meta.json").read_text()
     second = prepare(data)
     assert "snapshot" in second.timings and "derive" not in second.timings
     assert_same(want, host(second))
@@ -131,15 +130,15 @@ def test03_a_changed_file_is_prepared_again(data, cache, tmp_path):
 def test04_an_unreadable_entry_is_dropped_and_the_volume_prepared_afresh(data, cache):
     want = host(prepare(data))
     (entry,) = entries(cache)
-    pool = cache / entry / "pool0.npy"
+    pool = cache / entry / "pool0.arr"
     pool.write_bytes(pool.read_bytes()[: pool.stat().st_size // 2])     # truncated
     with pytest.warns(UserWarning, match="unreadable snapshot"):
         again = prepare(data)
     assert "derive" in again.timings
     assert_same(want, host(again))
     (entry2,) = entries(cache)                      # written anew
-    assert (cache / entry2 / "pool0.npy").stat().st_size == len(
-        (cache / entry2 / "pool0.npy").read_bytes())
+    assert (cache / entry2 / "pool0.arr").stat().st_size == len(
+        (cache / entry2 / "pool0.arr").read_bytes())
     assert "snapshot" in prepare(data).timings
 
 
@@ -148,8 +147,7 @@ def test05_off_reads_and_writes_nothing(data, cache, monkeypatch):
     prepare(data)
     assert "derive" in prepare(data).timings
     monkeypatch.setenv("MI_AMR_CACHE", str(cache))
-    monkeypatch.setattr(snapshot, "ENABLED", False)
-    prepare(data)
+    prepare(data, cache=snapshot.SnapshotCache.off())     # the caller's own setting wins
     assert not cache.exists()
 
 
@@ -163,8 +161,12 @@ def test06_the_least_recently_used_entries_go_beyond_the_limit(data, cache, tmp_
         time.sleep(0.02)
     assert len(entries(cache)) == 3
     sizes = {e: sum(f.stat().st_size for f in (cache / e).iterdir()) for e in entries(cache)}
-    stale = cache / ".tmp-crashed"
+    stale = cache / ".tmp-crashed"          # the cache's own, left by a crash long ago
     stale.mkdir()
+    fd = os.open(stale, os.O_RDONLY)
+    snapshot_folder.write_marker(fd)
+    os.close(fd)
+    os.utime(stale / snapshot_folder.MARKER, (0, 0))
     os.utime(stale, (0, 0))
     # Room for two entries: using c0 again makes c1 the least recently used.
     assert "snapshot" in prepare(copies[0]).timings
@@ -182,13 +184,13 @@ def test07_a_folder_that_cannot_be_written_only_costs_the_snapshot(data, tmp_pat
     blocked = tmp_path / "not_a_folder"
     blocked.write_text("a file where the cache folder should be")
     monkeypatch.setenv("MI_AMR_CACHE", str(blocked / "cache"))
-    monkeypatch.setattr(snapshot, "ENABLED", True)
     with pytest.warns(UserWarning, match="could not write a snapshot"):
         p = prepare(data)
     assert "derive" in p.timings and blocked.read_text().startswith("a file")
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert snapshot.load(snapshot.entry_key(data, "q_criterion", "speed", 64)) is None
+        assert snapshot.SnapshotCache.from_env().load(
+            snapshot.entry_key(data, "q_criterion", "speed", 64)) is None
 
 
 def test08_data_files_beside_the_named_file_are_part_of_the_key(data, cache, tmp_path,
@@ -216,7 +218,7 @@ def test09_a_second_writer_of_the_same_entry_leaves_the_first_one(data, cache):
     p = prepare(data)
     (entry,) = entries(cache)
     before = sorted(f.name for f in (cache / entry).iterdir())
-    assert snapshot.save(entry, p)
+    assert snapshot.SnapshotCache.from_env().save(entry, p)
     assert entries(cache) == [entry]
     assert not [d for d in cache.iterdir() if d.name.startswith(".tmp-")]
     assert sorted(f.name for f in (cache / entry).iterdir()) == before
@@ -236,3 +238,317 @@ def test10_a_restored_field_is_held_once(data, cache):
         flat = joined([g.fields[name] for g in vol.grids], np.float32)
         assert flat is not None, name
         assert arr.numpy().ctypes.data == flat.ctypes.data, name
+
+
+# ---------------------------------------------------------------------- issue 33: trust nothing
+
+def snapshot_arrays(root, entry):
+    return sorted(p.name for p in (root / entry).iterdir() if p.name.endswith(".arr"))
+
+
+def mark(folder, age_s=None):
+    """Make ``folder`` look like one of the cache's own folders (``age_s`` seconds old)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        snapshot_folder.write_marker(fd)
+    finally:
+        os.close(fd)
+    if age_s is not None:
+        then = time.time() - age_s
+        for p in [*folder.iterdir(), folder]:
+            os.utime(p, (then, then), follow_symlinks=False)
+
+
+def tree_listing(folder):
+    """Every path under ``folder`` (links not followed) with its size and contents' hash."""
+    import hashlib
+
+    out = {}
+    for dirpath, dirs, files in os.walk(folder):
+        for name in dirs + files:
+            p = os.path.join(dirpath, name)
+            if os.path.islink(p):
+                out[p] = ("link", os.readlink(p))
+            elif os.path.isfile(p):
+                out[p] = ("file", hashlib.sha256(open(p, "rb").read()).hexdigest())
+            else:
+                out[p] = ("dir",)
+    return out
+
+
+def test11_a_users_folders_in_the_cache_are_never_removed_nor_counted(data, cache, tmp_path,
+                                                                      monkeypatch):
+    """Issue 33 item 1: folders that do not carry the cache's marker (a user's ``sim/``, a
+    key-named folder, a ``.tmp-`` folder, a link to a folder outside, a file) stay as they are
+    when the cache evicts down to nothing, and do not count against its limit."""
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "keep.txt").write_text("the user's")
+    cache.mkdir()
+    (cache / "sim").mkdir()
+    (cache / "sim" / "checkpoint.bin").write_bytes(b"\0" * 100_000)
+    (cache / ("ab" * 16)).mkdir()
+    (cache / ("ab" * 16) / "notes.txt").write_text("mine")
+    (cache / ".tmp-user").mkdir()
+    (cache / ".tmp-user" / "x").write_text("mine too")
+    os.utime(cache / ".tmp-user", (0, 0))
+    (cache / ("cd" * 16)).symlink_to(outside, target_is_directory=True)
+    (cache / "README.txt").write_text("a file")
+    before = tree_listing(cache) | tree_listing(outside)
+    monkeypatch.setenv("MI_AMR_CACHE_GB", "0")
+    prepare(data)
+    after = tree_listing(cache) | tree_listing(outside)
+    assert {p: v for p, v in before.items()} == {p: after[p] for p in before}
+    # Entries of the cache's own do go (the limit is 0): only the new one is kept.
+    copy = tmp_path / "copy.npz"
+    copy.write_bytes(data.read_bytes())
+    prepare(copy)
+    ours = [p for p in cache.iterdir() if (p / snapshot_folder.MARKER).is_file()]
+    assert len(ours) == 1
+    assert {p: after[p] for p in before} == {p: tree_listing(cache).get(p, tree_listing(
+        outside).get(p)) for p in before}
+
+
+def test12_a_planted_pickle_never_runs(data, cache, tmp_path):
+    """Issue 33 item 2: no pickle is ever loaded from the cache. A pickle that would create a
+    file when loaded, planted as ``meta.pkl`` in an entry and as an old-format entry under the
+    key, never runs; the cache's code imports no pickle at all."""
+    import ast
+    import pickle
+
+    sentinel = tmp_path / "pwned"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.mkdir, (str(sentinel),))
+
+    evil = pickle.dumps(Payload())
+    key = snapshot.entry_key(data, "q_criterion", "speed", 64)
+    old = cache / key
+    old.mkdir(parents=True)
+    (old / "meta.pkl").write_bytes(evil)
+    (old / "pool0.npy").write_bytes(b"\0" * 256)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        first = prepare(data)
+    assert not sentinel.exists() and "derive" in first.timings
+    entry = next(p for p in cache.iterdir() if (p / snapshot_folder.MARKER).is_file())
+    (entry / "meta.pkl").write_bytes(evil)
+    assert "snapshot" in prepare(data).timings
+    assert not sentinel.exists()
+    for module in ("mi_amr/kernels/snapshot.py", "mi_amr/kernels/snapshot_folder.py",
+                   "mi_amr/core/rawarrays.py"):
+        tree = ast.parse(open(os.path.join(os.path.dirname(__file__), "..", module)).read())
+        names = {a.name for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
+                 for a in n.names} | {n.module for n in ast.walk(tree)
+                                      if isinstance(n, ast.ImportFrom)}
+        assert not names & {"pickle", "cPickle", "dill", "marshal", "shelve"}, module
+
+
+@pytest.mark.parametrize("target", ["pool0.arr", "field2_0.arr", "tree.node_code.arr",
+                                    "volume.origin.arr", "table2.arr", "meta.json"])
+def test13_a_changed_byte_is_caught_and_prepared_afresh(data, cache, target):
+    """Issue 33 item 3: one flipped bit anywhere in an entry's data (an array's values, its
+    header, the metadata) is caught by the checksums: a warning naming the entry and the file,
+    the entry removed and the volume prepared afresh -- the same arrays as the first time, never
+    silently other ones."""
+    want = host(prepare(data))
+    (entry,) = entries(cache)
+    path = cache / entry / target
+    raw = bytearray(path.read_bytes())
+    if target == "meta.json":       # a digit changed into another: still valid JSON
+        at = raw.index(b'"count":') + len(b'"count":')
+        raw[at] = ord("0") + (raw[at] - ord("0") + 1) % 10
+    else:
+        raw[len(raw) - 7] ^= 0x10
+    path.write_bytes(bytes(raw))
+    with pytest.warns(UserWarning, match=f"unreadable snapshot .*{entry}.*"
+                                         f"({target.replace('.', '[.]')}|checksum)"):
+        again = prepare(data)
+    assert "derive" in again.timings
+    assert_same(want, host(again))
+    assert "snapshot" in prepare(data).timings
+
+
+def test14_files_that_are_links_or_not_files_are_refused(data, cache, tmp_path):
+    """Links pointing outside the cache are never read through nor their targets removed: an
+    array file replaced by a link to a file outside, a FIFO planted as the metadata."""
+    want = host(prepare(data))
+    (entry,) = entries(cache)
+    outside = tmp_path / "outside.arr"
+    outside.write_bytes((cache / entry / "pool1.arr").read_bytes())
+    (cache / entry / "pool1.arr").unlink()
+    (cache / entry / "pool1.arr").symlink_to(outside)
+    with pytest.warns(UserWarning, match="unreadable snapshot"):
+        assert_same(want, host(prepare(data)))
+    assert outside.is_file()
+    (entry,) = entries(cache)
+    (cache / entry / "meta.json").unlink()
+    os.mkfifo(cache / entry / "meta.json")
+    with pytest.warns(UserWarning, match="not a regular file"):
+        assert_same(want, host(prepare(data)))
+
+
+def test15_metadata_of_the_wrong_types_is_refused(data, cache):
+    """Every field of the metadata is checked: JSON that parses and carries a valid checksum
+    but holds a wrong type or value is refused (warning, prepared afresh), never used."""
+    import json
+    import zlib
+
+    want = host(prepare(data))
+    (entry,) = entries(cache)
+    meta = cache / entry / "meta.json"
+    head, body = meta.read_bytes().split(b"\n", 1)
+    edits = [lambda b: b["volume"].__setitem__("ratios", ["2", 2, 2]),
+             lambda b: b["volume"].__setitem__("fields", []),
+             lambda b: b["arrays"]["pool0"].__setitem__("dtype", "|O"),
+             lambda b: b["arrays"]["pool0"].__setitem__("file", "../../outside"),
+             lambda b: b["arrays"]["pool0"].__setitem__("shape", [-1]),
+             lambda b: b["bricks"].pop(),
+             lambda b: b.__setitem__("tree", {"$array": "nothing"}),
+             lambda b: b.__setitem__("extra", 1)]
+    for edit in edits:
+        parsed = json.loads(body)
+        edit(parsed)
+        text = json.dumps(parsed).encode()
+        h = json.loads(head)
+        h["crc32"] = zlib.crc32(text)
+        (entry,) = entries(cache)
+        (cache / entry / "meta.json").write_bytes(json.dumps(h).encode() + b"\n" + text)
+        with pytest.warns(UserWarning, match="unreadable snapshot"):
+            assert_same(want, host(prepare(data)))
+    (entry,) = entries(cache)
+    (cache / entry / "meta.json").write_bytes(b'{"kind": ' + b"[" * 100_000)
+    with pytest.warns(UserWarning, match="unreadable snapshot"):
+        assert_same(want, host(prepare(data)))
+
+
+def test16_a_plotfile_folder_with_broken_links_gets_a_key_and_renders(cache, tmp_path,
+                                                                      caplog):
+    """Issue 33 item 7: the key's file walk skips a dangling link and a loop of links (named
+    in a debug message) and the folder is prepared, written and read back."""
+    import logging
+    import sys
+
+    sys.path.insert(0, os.path.dirname(__file__))
+    from amrex_writer import write_plotfile
+
+    plt = write_plotfile(tmp_path / "plt00010")
+    (plt / "dangling").symlink_to(tmp_path / "nowhere")
+    (plt / "Level_0" / "loop").symlink_to(plt / "Level_0" / "loop")
+    with caplog.at_level(logging.DEBUG, logger="mi_amr.snapshot"):
+        key = snapshot.entry_key(plt, "density", "temp", 4)
+    assert "dangling" in caplog.text and "loop" in caplog.text
+    prepared._CACHE.clear()
+    first = prepared.prepare_file(plt, "density", "temp", m=M)
+    prepared._CACHE.clear()
+    again = prepared.prepare_file(plt, "density", "temp", m=M)
+    assert "snapshot" in again.timings and entries(cache) == [key]
+    assert_same(host(first), host(again))
+
+
+def test17_entries_follow_the_umask_in_a_private_root(data, tmp_path, monkeypatch):
+    """A cache folder the cache makes is 0700; entries in it are written with the umask (a
+    shared folder made beforehand keeps its own mode)."""
+    root = tmp_path / "made" / "cache"
+    monkeypatch.setenv("MI_AMR_CACHE", str(root))
+    saved = os.umask(0o027)
+    try:
+        prepare(data)
+    finally:
+        os.umask(saved)
+    assert root.stat().st_mode & 0o777 == 0o700
+    (entry,) = entries(root)
+    assert (root / entry).stat().st_mode & 0o777 == 0o750
+    assert {f.stat().st_mode & 0o777 for f in (root / entry).iterdir()} == {0o640}
+    shared = tmp_path / "shared"
+    shared.mkdir(mode=0o775)
+    os.chmod(shared, 0o2775)
+    monkeypatch.setenv("MI_AMR_CACHE", str(shared))
+    saved = os.umask(0o002)
+    try:
+        prepare(data)
+    finally:
+        os.umask(saved)
+    assert shared.stat().st_mode & 0o7777 == 0o2775
+    (entry,) = entries(shared)
+    assert {f.stat().st_mode & 0o777 for f in (shared / entry).iterdir()} == {0o664}
+
+
+def test18_temporary_and_old_format_folders(data, cache, tmp_path, monkeypatch):
+    """Temporary folders count against the limit: a fresh one of a live process stays, one a
+    killed process left (its pid gone) or an old one goes, an unmarked one stays. Old-format
+    entries (``meta.pkl`` and ``.npy`` files in a key-named folder) are never read and are
+    removed in turn; one holding anything else is not the cache's and stays."""
+    import subprocess
+    import sys
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True, check=True).stdout.strip()
+    mark(cache / ".tmp-live")
+    (cache / ".tmp-live" / "pool0.arr").write_bytes(b"\0" * 50_000)
+    mark(cache / ".tmp-killed")
+    marker = cache / ".tmp-killed" / snapshot_folder.MARKER
+    marker.write_text(marker.read_text().replace(f'"pid": {os.getpid()}', f'"pid": {dead}'))
+    mark(cache / ".tmp-old", age_s=2 * snapshot_folder.STALE_TMP_S)
+    (cache / ".tmp-unmarked").mkdir()
+    old = cache / ("0123456789abcdef" * 2)
+    old.mkdir()
+    (old / "meta.pkl").write_bytes(b"not a pickle")
+    (old / "field0_q.npy").write_bytes(b"\0" * 10)
+    foreign = cache / ("fedcba9876543210" * 2)
+    foreign.mkdir()
+    (foreign / "meta.pkl").write_bytes(b"x")
+    (foreign / "thesis.tex").write_text("mine")
+    monkeypatch.setenv("MI_AMR_CACHE_GB", "0")
+    prepare(data)
+    names = {p.name for p in cache.iterdir()}
+    assert {".tmp-live", ".tmp-unmarked", foreign.name} <= names
+    assert not names & {".tmp-killed", ".tmp-old", old.name}
+    assert (foreign / "thesis.tex").read_text() == "mine"
+
+
+def test19_ctrl_c_while_a_snapshot_is_written_leaves_nothing_and_exits_130(data, tmp_path):
+    """Issue 33 item 11 (Ctrl-C): SIGINT while the entry is written removes the temporary
+    folder; the command line says one line and exits with 130, no traceback."""
+    import subprocess
+    import sys
+
+    xml = tmp_path / "scene.xml"
+    xml.write_text(textwrap.dedent(f"""
+        <scene version="3.0.0">
+            <integrator type="amr_iso">
+                <string name="filename" value="{data}"/>
+                <string name="field" value="q_criterion"/>
+                <string name="color_field" value="speed"/>
+                <string name="colormap" value="0: 0 0 1, 1: 1 0 0"/>
+                <float name="isovalue" value="0.05"/>
+            </integrator>
+            <sensor type="perspective">
+                <film type="hdrfilm"><integer name="width" value="8"/>
+                    <integer name="height" value="8"/></film>
+            </sensor>
+        </scene>"""))
+    child = textwrap.dedent("""
+        import os, signal, sys
+        from mi_amr.core import rawarrays
+        from mi_amr.cli import main
+        write = rawarrays.write_array
+        def interrupted(dir_fd, name, array):
+            if name.startswith("pool"):
+                os.kill(os.getpid(), signal.SIGINT)
+            return write(dir_fd, name, array)
+        rawarrays.write_array = interrupted
+        sys.exit(main(["render", sys.argv[1], "-o", sys.argv[2]]))
+        """)
+    root = tmp_path / "cache"
+    env = dict(os.environ, MI_AMR_CACHE=str(root), PYTHONPATH=os.pathsep.join(
+        [os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+         os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.run([sys.executable, "-c", child, str(xml), str(tmp_path / "o.exr")],
+                          capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == "interrupted", proc.stderr
+    assert "Traceback" not in proc.stderr and "KeyboardInterrupt" not in proc.stderr
+    assert [p.name for p in root.iterdir()] == []

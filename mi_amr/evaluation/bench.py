@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_amr.errors import AMRError
+from mi_amr.kernels import snapshot
 from mi_amr.workflows import project
 
 DEFAULT_SCENE = "sphere_wake.xml"    # in the checkout's scenes_xml/
@@ -408,6 +409,7 @@ def chart(rows, path):
 
 # ---------------------------------------------------------------------- scaling
 
+@snapshot.using("off")   # every load prepared from the file, as a user's first
 def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) -> list:
     """How the warm frame time of the default scene (exact, basis, shadows) grows with the image
     size, the number of grids (the same cells cut into smaller grids) and the number of cells
@@ -418,7 +420,6 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     from tqdm import tqdm
 
     from mi_amr.synthetic import datasets
-    from mi_amr.kernels import snapshot
     from mi_amr.readers import load
 
     mi.set_variant(variant)
@@ -460,7 +461,6 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
     for what, res, make in tqdm(cases, desc="scaling", unit="case"):
         value, scene_file = make()
         preparations.clear()     # every load from the file, as a user's first load would be
-        snapshot.ENABLED = False        # and none read back from a snapshot
         gc.collect()
         _dr().flush_malloc_cache()      # memory the cases before freed, not counted again
         measured = reset_peak_rss()

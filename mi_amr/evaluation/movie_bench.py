@@ -52,13 +52,12 @@ def _breakdown(files, scene) -> dict:
     """One new time step in one process: read, derive, tree, device, ranges, compile, frame."""
     import drjit as dr
 
-    from mi_amr.kernels import snapshot
     from mi_amr.plugin.integrator import register
     from mi_amr.workflows.movie.frames import FrameRenderer
     from mi_amr.workflows.movie.spec import FrameSpec
 
     register().clear()              # the runs before prepared these files: start afresh
-    snapshot.ENABLED = False        # and none read back from a snapshot
+    # (run_movie_bench turned snapshots off for this process and its workers)
 
     r = FrameRenderer(scene, resolution=RESOLUTION, defines={"filename": str(files[0])})
     cam = r.base_camera()

@@ -62,6 +62,7 @@ from mi_amr.evaluation import peers_vtk
 from mi_amr.evaluation import references as ref
 from mi_amr.core.boxes import intersection_volume, overlap_pairs
 from mi_amr.errors import AMRError
+from mi_amr.kernels import snapshot
 from mi_amr.evaluation.references import pixel_rays
 
 INSTALL_HINT = "pip install 'mi_amr[peers]'"
@@ -191,19 +192,18 @@ def _row(scene, peer, time_s, detail, score, *, cracks=math.nan, notes="") -> di
 
 # ---------------------------------------------------------------------- our own method
 
+@snapshot.using("off")   # a fresh load: none read back from a snapshot
 def mi_amr_route(scene_name: str) -> dict:
     """mi_amr's ``exact`` method, from nothing: scene load (reading, deriving, kd-tree, device
     arrays) plus the first frame is the time to image; the warm frame is reported beside it."""
     import mitsuba as mi
 
-    from mi_amr.kernels import snapshot
     from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import load_scene
 
     w, h = ref.RESOLUTION
     # A fresh load: forget volumes an earlier scene in this process has prepared.
     register().clear()
-    snapshot.ENABLED = False        # and none read back from a snapshot
     t0 = time.perf_counter()
     scene = load_scene(ref.scene_path(scene_name), resx=w, resy=h, spp=1, method="exact",
                        reconstruction="basis")

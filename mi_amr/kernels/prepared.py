@@ -53,7 +53,8 @@ class PreparedVolume:
 
     @classmethod
     def restore(cls, snap, *, m=None, report=None) -> "PreparedVolume":
-        """The preparation held by a snapshot (what :func:`snapshot.load` returns), its kd-tree
+        """The preparation held by a snapshot (what :meth:`SnapshotCache.load
+        <mi_amr.kernels.snapshot.SnapshotCache.load>` returns), its kd-tree
         and brick pools as they were saved, the device arrays mapped from them."""
         volume, tree_state, bricks, ranges, meta = snap
         self = cls.__new__(cls)
@@ -179,18 +180,21 @@ class Preparations:
 
 def prepare_file(path, field: str, color_field: str | None = None, *,
                  leaf_cells: int = params.default("leaf_cells"), m=None,
-                 report=None) -> PreparedVolume:
+                 report=None, cache: snapshot.SnapshotCache | None = None) -> PreparedVolume:
     """Load ``path`` (only what is needed) and prepare it, or read it back from its snapshot
-    on disk; ``report`` as :class:`PreparedVolume`'s. (A :class:`Preparations` keeps what
-    it prepared and gives it again.)"""
+    in ``cache`` (by default the cache that ``$MI_AMR_CACHE`` describes, see
+    :meth:`SnapshotCache.from_env <mi_amr.kernels.snapshot.SnapshotCache.from_env>`);
+    ``report`` as :class:`PreparedVolume`'s. (A :class:`Preparations` keeps what it prepared
+    and gives it again.)"""
     path = os.path.abspath(path)
     if not os.path.exists(path):
         raise AMRError(f"{path}: no such file or folder")
     say = report or (lambda text: None)
+    cache = snapshot.SnapshotCache.from_env() if cache is None else cache
     snap_key = snapshot.entry_key(path, field, color_field, leaf_cells) \
-        if snapshot.cache_root() is not None else None
+        if cache.enabled else None
     t0 = time.perf_counter()
-    snap = snapshot.load(snap_key) if snap_key else None
+    snap = cache.load(snap_key) if snap_key else None
     if snap is not None:
         prepared = PreparedVolume.restore(snap, m=m, report=report)
         prepared._lap("snapshot", t0)
@@ -198,11 +202,11 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
         prepared = _prepare_from_file(path, field, color_field, leaf_cells, m, report)
         if snap_key:
             t0 = time.perf_counter()
-            if snapshot.save(snap_key, prepared):
+            if cache.save(snap_key, prepared):
                 say(f"  snapshot written in {time.perf_counter() - t0:.2f} s")
     if snap_key:
-        prepared.device.on_new_ranges = lambda kind, host: snapshot.save_ranges(snap_key, kind,
-                                                                                host)
+        prepared.device.on_new_ranges = lambda kind, host: cache.save_ranges(snap_key, kind,
+                                                                             host)
     return prepared
 
 

@@ -1,9 +1,12 @@
 """A disk cache of prepared volumes (*snapshots*): loading the same data again is a read.
 
 Preparing a volume (derived fields, kd-tree, brick pools, leaf value ranges) costs about a
-hundred times reading the file. A snapshot keeps the result as raw arrays; reloading reads
-them into aligned memory that Dr.Jit maps as it is, and trusts the hierarchy (it was validated
-when the snapshot was made).
+hundred times reading the file. A snapshot keeps the result as raw arrays, each with a CRC-32
+(:mod:`mi_amr.core.rawarrays`), described by a JSON file (``meta.json``, with a checksum of its
+own). Reloading reads the arrays into aligned memory that Dr.Jit maps as it is, checks every
+byte against its checksum, and trusts the hierarchy (it was validated when the snapshot was
+made). Nothing read from the cache runs code: there is no pickle, and every field of the JSON
+is checked for its type and range before it is used.
 
 An entry is a folder named by a key covering everything the preparation depends on: the data's
 absolute path, the size and modification time of every file under it, the fields, ``leaf_cells``
@@ -11,12 +14,16 @@ and the code itself (a hash of the package's source files). Any change gives ano
 stale entry is never used; it is evicted in time. Leaf value ranges are added to the entry when
 a render first computes them.
 
-Where: ``$MI_AMR_CACHE`` (a folder; ``off`` turns snapshots off), else
-``$XDG_CACHE_HOME/mi_amr/prepared`` (``~/.cache/mi_amr/prepared``). At most ``$MI_AMR_CACHE_GB``
+A :class:`SnapshotCache` says where entries live and how much they may hold; its caller owns it
+(:func:`~mi_amr.kernels.prepared.prepare_file` builds one from the environment unless given
+one): ``$MI_AMR_CACHE`` (a folder; ``off`` turns snapshots off), else
+``$XDG_CACHE_HOME/mi_amr/prepared`` (``~/.cache/mi_amr/prepared``), at most ``$MI_AMR_CACHE_GB``
 gigabytes (default :data:`DEFAULT_LIMIT_GB`): the least recently used entries are removed first.
-An entry is written in a temporary folder and renamed into place, so a crash or two processes
-preparing at once never leave half an entry; an entry that cannot be read is removed and the
-volume prepared afresh. Nothing outside the cache folder is ever written or removed.
+An entry is written in a temporary folder (removed again when the write is interrupted) and
+renamed into place, so a crash or two processes preparing at once never leave half an entry.
+An entry that is damaged (a changed byte, a truncated or planted file, bad JSON) is warned about
+by name, removed, and the volume prepared afresh. Only the cache's own folders are ever removed
+(:mod:`mi_amr.kernels.snapshot_folder`); nothing outside the cache folder is written or removed.
 """
 
 from __future__ import annotations
@@ -24,63 +31,115 @@ from __future__ import annotations
 import contextlib
 import functools
 import hashlib
+import json
+import logging
 import os
-import pickle
-import shutil
-import tempfile
-import time
+import secrets
 import warnings
+import zlib
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from mi_amr.core import levels
+from mi_amr.core import levels, rawarrays
+from mi_amr.core.rawarrays import BadFile, expect
 from mi_amr.core.volume import AMRVolume, Grid
-from mi_amr.core.buffers import aligned_empty, aligned_parts
+from mi_amr.core.buffers import aligned_parts
+from mi_amr.kernels import snapshot_folder as folder
+from mi_amr.kernels.snapshot_folder import FORMAT, META
 
-FORMAT = 1                  # bump when the layout below changes
-# False: no snapshot is read or written in this process (benchmarks of first loads set it).
-ENABLED = True
 DEFAULT_LIMIT_GB = 8.0
-_META = "meta.pkl"
-_STALE_TMP_S = 3600.0       # a temporary folder older than this was left by a crash
+_OFF = ("off", "0", "none", "no", "false", "")
+_META_KIND = "mi_amr snapshot"
+_MAX_META = 1 << 24         # bytes: a longer meta.json is damage
+_DIR = os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC
+_log = logging.getLogger("mi_amr.snapshot")
 
 
-def cache_root() -> Path | None:
-    """The snapshot folder, or None when ``$MI_AMR_CACHE`` is ``off`` (or ``0``, ``none``) or
-    :data:`ENABLED` is False."""
-    if not ENABLED:
-        return None
-    env = os.environ.get("MI_AMR_CACHE")
-    if env is not None and env.strip().lower() in ("off", "0", "none", "no", "false", ""):
-        return None
-    if env:
-        return Path(env).expanduser()
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "mi_amr" / "prepared"
+@dataclass(frozen=True)
+class SnapshotCache:
+    """Where snapshots are read and written (``root``; None: nowhere, snapshots off) and the
+    most bytes the cache's own folders there may hold (``limit``)."""
+
+    root: Path | None
+    limit: int = int(DEFAULT_LIMIT_GB * 2 ** 30)
+
+    @classmethod
+    def from_env(cls, environ=None) -> "SnapshotCache":
+        """The cache that ``$MI_AMR_CACHE`` and ``$MI_AMR_CACHE_GB`` describe (see the module
+        docstring); ``environ`` defaults to the process's environment."""
+        environ = os.environ if environ is None else environ
+        env = environ.get("MI_AMR_CACHE")
+        if env is not None and env.strip().lower() in _OFF:
+            return cls(None, 0)
+        if env:
+            return cls(Path(env).expanduser(), limit_bytes(environ))
+        base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        return cls(Path(base) / "mi_amr" / "prepared", limit_bytes(environ))
+
+    @classmethod
+    def off(cls) -> "SnapshotCache":
+        """No snapshot read or written."""
+        return cls(None, 0)
+
+    @property
+    def enabled(self) -> bool:
+        return self.root is not None
+
+    def load(self, key: str):
+        """``(volume, tree_state, bricks, ranges, meta)`` of entry ``key``, or None when there
+        is none. A damaged entry is warned about, removed, and None returned; a folder of that
+        name that is not the cache's own is warned about and left alone. Marks the entry as
+        recently used."""
+        if self.root is None:
+            return None
+        root_fd = folder.open_root(self.root, create=False)
+        if root_fd is None:
+            return None
+        try:
+            return _load(root_fd, self.root / key, key)
+        finally:
+            os.close(root_fd)
+
+    def save(self, key: str, prepared) -> bool:
+        """Write ``prepared`` (a :class:`PreparedVolume`) as entry ``key``; False (with a
+        warning) when it cannot be written. Evicts the least recently used entries beyond the
+        limit. Interrupted (Ctrl-C), it removes its temporary folder and lets the interrupt go
+        on."""
+        if self.root is None:
+            return False
+        try:
+            root_fd = folder.open_root(self.root, create=True)
+            try:
+                placed = _save(root_fd, key, prepared)
+                folder.sweep(root_fd, self.limit, keep=key)
+            finally:
+                os.close(root_fd)
+        except (OSError, TypeError) as exc:     # TypeError: a value the format cannot hold
+            warnings.warn(f"mi_amr: could not write a snapshot in {self.root} ({exc}); set "
+                          f"MI_AMR_CACHE to another folder, or to off")
+            return False
+        return placed
+
+    def save_ranges(self, key: str, kind: str, host: np.ndarray) -> None:
+        """Add leaf value ranges (``kind`` ``basis`` or ``finest``) to entry ``key`` if it
+        exists (best effort: a failure only costs recomputing them next time)."""
+        if self.root is None or kind not in ("basis", "finest"):
+            return
+        with contextlib.suppress(OSError, BadFile, ValueError, RecursionError):
+            fd = os.open(self.root / key, _DIR)
+            try:
+                if folder.read_marker(fd) is not None:
+                    _add_ranges(fd, key, kind, host)
+            finally:
+                os.close(fd)
 
 
-@contextlib.contextmanager
-def using(folder):
-    """Snapshots in ``folder`` (or none for ``"off"``) while the block runs, in this process
-    and in the processes it starts (``$MI_AMR_CACHE``, :data:`ENABLED`); restored afterwards."""
-    global ENABLED
-    saved = os.environ.get("MI_AMR_CACHE"), ENABLED
-    os.environ["MI_AMR_CACHE"], ENABLED = str(folder), True
-    try:
-        yield
-    finally:
-        ENABLED = saved[1]
-        if saved[0] is None:
-            os.environ.pop("MI_AMR_CACHE", None)
-        else:
-            os.environ["MI_AMR_CACHE"] = saved[0]
-
-
-def limit_bytes() -> int:
+def limit_bytes(environ=None) -> int:
     """The most the snapshot folder may hold, from ``$MI_AMR_CACHE_GB`` (a number of
     gigabytes; anything else is warned about and the default used)."""
-    text = os.environ.get("MI_AMR_CACHE_GB")
+    text = (os.environ if environ is None else environ).get("MI_AMR_CACHE_GB")
     try:
         gb = DEFAULT_LIMIT_GB if text is None else float(text)
         if not gb >= 0.0:
@@ -89,8 +148,26 @@ def limit_bytes() -> int:
         warnings.warn(f"mi_amr: MI_AMR_CACHE_GB={text!r} is not a number of gigabytes >= 0; "
                       f"using {DEFAULT_LIMIT_GB}")
         gb = DEFAULT_LIMIT_GB
-    return int(gb * 2 ** 30)
+    return int(min(gb, 2.0 ** 40) * 2 ** 30)
 
+
+@contextlib.contextmanager
+def using(where):
+    """``$MI_AMR_CACHE`` set to ``where`` (a folder, or ``"off"``) while the block runs, for
+    the caches built from the environment in this process and in the processes it starts;
+    restored afterwards. Also a decorator."""
+    saved = os.environ.get("MI_AMR_CACHE")
+    os.environ["MI_AMR_CACHE"] = str(where)
+    try:
+        yield
+    finally:
+        if saved is None:
+            os.environ.pop("MI_AMR_CACHE", None)
+        else:
+            os.environ["MI_AMR_CACHE"] = saved
+
+
+# ---------------------------------------------------------------------- the key
 
 def entry_key(path, field: str, color_field, leaf_cells: int) -> str:
     """The key of the snapshot of ``path`` prepared for ``field``/``color_field``."""
@@ -102,23 +179,33 @@ def entry_key(path, field: str, color_field, leaf_cells: int) -> str:
 def _stamp(path) -> tuple:
     """Size and modification time of ``path`` and of the files beside it whose names extend its
     name (``DD0010`` and its ``DD0010.cpu0000`` ... data files, as Enzo writes them), or of
-    every file under it (a plotfile folder)."""
+    every file under it (a plotfile folder). What cannot be stat'ed (a dangling link, a loop of
+    links) is left out and named in a debug message: the reader decides whether it matters."""
     if not os.path.isdir(path):
-        folder, name = os.path.split(os.path.abspath(path))
-        out = []
-        for other in sorted(os.listdir(folder)):
-            if other == name or other.startswith(name + "."):
-                st = os.stat(os.path.join(folder, other))
-                out.append((other, st.st_size, st.st_mtime_ns))
-        return tuple(out)
+        where, name = os.path.split(os.path.abspath(path))
+        names = [n for n in sorted(os.listdir(where)) if n == name or n.startswith(name + ".")]
+        return tuple(s for s in (_file_stamp(where, n, n) for n in names) if s)
     out = []
-    for folder, dirs, files in os.walk(path):
+
+    def unreadable(error):
+        _log.debug("snapshot key: skipped %s (%s)", error.filename, error.strerror)
+
+    for where, dirs, files in os.walk(path, onerror=unreadable):
         dirs.sort()
         for name in sorted(files):
-            st = os.stat(os.path.join(folder, name))
-            out.append((os.path.relpath(os.path.join(folder, name), path), st.st_size,
-                        st.st_mtime_ns))
-    return tuple(out)
+            rel = os.path.relpath(os.path.join(where, name), path)
+            out.append(_file_stamp(where, name, rel))
+    return tuple(s for s in out if s)
+
+
+def _file_stamp(where: str, name: str, label: str):
+    """``(label, size, mtime)`` of the file ``name`` in ``where``, or None (debug message)."""
+    try:
+        st = os.stat(os.path.join(where, name))
+    except OSError as e:
+        _log.debug("snapshot key: skipped %s (%s)", os.path.join(where, name), e.strerror)
+        return None
+    return label, st.st_size, st.st_mtime_ns
 
 
 @functools.lru_cache(maxsize=1)
@@ -134,187 +221,306 @@ def _code_hash() -> str:
 
 # ---------------------------------------------------------------------- reading
 
-def load(key: str):
-    """``(volume, tree_state, bricks, ranges, meta)`` of entry ``key``, or None when there is
-    none (or it cannot be read: then it is removed). Marks the entry as recently used."""
-    root = cache_root()
-    if root is None:
+def _load(root_fd: int, entry: Path, key: str):
+    """:meth:`SnapshotCache.load` in the cache folder open as ``root_fd``."""
+    try:
+        fd = os.open(key, _DIR, dir_fd=root_fd)
+    except FileNotFoundError:
         return None
-    entry = root / key
-    if not (entry / _META).is_file():
+    except OSError as exc:
+        warnings.warn(f"mi_amr: {entry} is not a snapshot of this cache ({exc.strerror}); "
+                      f"left alone, the volume is prepared without it")
         return None
     try:
-        with open(entry / _META, "rb") as f:
-            meta = pickle.load(f)
-        if meta.get("format") != FORMAT:
-            raise ValueError(f"format {meta.get('format')}")
-        volume = _volume(entry, meta["volume"])
-        parts = [(lo, dims, _read(entry / f"table{level}.npy"), n)
-                 for level, (lo, dims, n) in enumerate(meta["bricks"])]
-        pools = [_read(entry / f"pool{i}.npy") for i in range(meta["pools"])]
-        ranges = {kind: _read(entry / f"ranges_{kind}.npy") for kind in ("basis", "finest")
-                  if (entry / f"ranges_{kind}.npy").is_file()}
-        os.utime(entry / _META)
-    except Exception as exc:  # noqa: BLE001 - any unreadable entry is dropped, never fatal
-        warnings.warn(f"mi_amr: dropping the unreadable snapshot {entry} ({exc})")
-        shutil.rmtree(entry, ignore_errors=True)
-        return None
-    return volume, meta["tree"], (parts, pools), ranges, meta
+        if folder.read_marker(fd) is None:
+            warnings.warn(f"mi_amr: {entry} is not a snapshot of this cache (no marker of "
+                          f"format {FORMAT}); left alone, the volume is prepared without it")
+            return None
+        try:
+            with rawarrays.Checks() as checks:
+                snap = _read_entry(fd, key, checks)
+                checks.verify()
+        except (BadFile, OSError, ValueError, TypeError, KeyError, RecursionError) as exc:
+            warnings.warn(f"mi_amr: dropping the unreadable snapshot {entry} ({exc}); "
+                          f"preparing the volume afresh")
+            folder.remove(root_fd, key)
+            return None
+        with contextlib.suppress(OSError):
+            os.utime(META, dir_fd=fd, follow_symlinks=False)
+        return snap
+    finally:
+        os.close(fd)
 
 
-def _read(path, into=None) -> np.ndarray:
-    """A ``.npy`` file read straight into new :data:`~mi_amr.core.buffers.ALIGN`-aligned memory,
-    or into the flat array ``into`` (which must have its size and dtype)."""
-    with open(path, "rb") as f:
-        shape, fortran, dtype = _header(f)
-        if fortran or dtype.hasobject:
-            raise ValueError(f"{path.name}: not a plain C-ordered array")
-        size = int(np.prod(shape))
-        if into is not None and (into.size != size or into.dtype != dtype):
-            raise ValueError(f"{path.name}: {size} values of {dtype}, expected {into.size} of "
-                             f"{into.dtype}")
-        out = aligned_empty(size, dtype) if into is None else into
-        if f.readinto(memoryview(out.view(np.uint8))) != out.nbytes:
-            raise ValueError(f"{path.name}: truncated")
-    return out.reshape(shape)
+def _read_meta(fd: int, key: str) -> dict:
+    """The checked body of the entry's ``meta.json`` (see :func:`_write_meta`)."""
+    with rawarrays.open_regular(fd, META) as f:
+        text = f.read(_MAX_META + 1)
+    expect(len(text) <= _MAX_META, f"{META}: larger than {_MAX_META} bytes")
+    head, sep, body = text.partition(b"\n")
+    expect(sep, f"{META}: no header line")
+    try:
+        header = json.loads(head.decode("utf-8"))
+    except ValueError:
+        raise BadFile(f"{META}: unreadable header line") from None
+    expect(isinstance(header, dict) and set(header) == {"kind", "format", "key", "crc32"} and
+           header["kind"] == _META_KIND and header["format"] == FORMAT and
+           header["key"] == key, f"{META}: not the metadata of entry {key} of format {FORMAT}")
+    expect(header["crc32"] == zlib.crc32(body), f"{META}: checksum mismatch")
+    try:
+        return _checked_body(json.loads(body.decode("utf-8")))
+    except (ValueError, RecursionError) as e:
+        raise BadFile(f"{META}: unreadable ({type(e).__name__})") from None
 
 
-def _header(f):
-    """``(shape, fortran_order, dtype)`` of the ``.npy`` file open in ``f`` (left at its data)."""
-    version = np.lib.format.read_magic(f)
-    header = np.lib.format.read_array_header_1_0 if version == (1, 0) else \
-        np.lib.format.read_array_header_2_0
-    return header(f)
+def _read_entry(fd: int, key: str, checks):
+    """What :meth:`SnapshotCache.load` returns, read from the entry open as ``fd``; the
+    arrays' checksums computed by ``checks`` (a :class:`~mi_amr.core.rawarrays.Checks`,
+    verified by the caller)."""
+    meta = _read_meta(fd, key)
+    records = meta["arrays"]
+
+    def get(name, into=None, now=False):
+        """The array ``name`` (or the one a ``{"$array": name}`` reference names); ``now``:
+        verified before it is returned (what sizes the other arrays)."""
+        name = name["$array"] if isinstance(name, dict) else name
+        expect(isinstance(name, str) and name in records, f"no array {name!r}")
+        return rawarrays.read_array(fd, records[name], into, None if now else checks)
+
+    vol = meta["volume"]
+    volume = _volume(vol, dict(zip(vol["fields"], meta["fields"])), get, records)
+    tree = rawarrays.decode(meta["tree"], get)
+    expect(isinstance(tree, dict), "tree: not a mapping")
+    parts = [(np.array(b["lo"], dtype=np.int64), np.array(b["dims"], dtype=np.int64),
+              get(b["table"]), b["count"]) for b in meta["bricks"]]
+    pools = [get(r) for r in meta["pools"]]
+    ranges = {kind: get(r) for kind, r in meta["ranges"].items()}
+    return volume, tree, (parts, pools), ranges, {"field": meta["field"],
+                                                  "color_field": meta["color_field"]}
 
 
-def _field_levels(entry: Path, state: dict, name: str) -> list:
-    """Field ``name``'s per-level flat arrays, read into consecutive slices of one aligned
-    buffer (level after level), so that the device maps it as it is when the grids are in
-    level order (:func:`mi_amr.core.buffers.joined`)."""
-    num_levels = len(state["ratios"]) + 1
-    counts = np.prod(state["shape"], axis=1)
-    sizes = [int(counts[state["level"] == level].sum()) for level in range(num_levels)]
-    with open(entry / f"field0_{name}.npy", "rb") as f:
-        dtype = _header(f)[2]
-    return [_read(entry / f"field{level}_{name}.npy", into=part)
-            for level, part in enumerate(aligned_parts(sizes, dtype))]
+def _checked_body(body) -> dict:
+    """``body`` when each of its fields has the type and range it should (the arrays are
+    checked against their records as they are read); otherwise :class:`BadFile`."""
+    keys = {"field", "color_field", "volume", "tree", "bricks", "pools", "fields", "ranges",
+            "arrays"}
+    expect(isinstance(body, dict) and set(body) == keys, "meta: unexpected fields")
+    expect(isinstance(body["arrays"], dict), "meta: arrays")
+    for name, record in body["arrays"].items():
+        rawarrays.check_record(name, record)
+    vol = body["volume"]
+    expect(isinstance(vol, dict) and set(vol) == {"level", "origin", "spacing", "shape",
+                                                  "index_lo", "anchor", "fields", "ratios",
+                                                  "allow_nonfinite", "source"}, "meta: volume")
+    names = vol["fields"]
+    expect(isinstance(names, list) and names and len(set(names)) == len(names) and
+           all(isinstance(n, str) for n in names), "meta: field names")
+    expect(body["field"] in names and body["color_field"] in names, "meta: field")
+    ratios = vol["ratios"]
+    expect(isinstance(ratios, list) and len(ratios) < 64 and
+           all(type(r) is int and 2 <= r <= 64 for r in ratios), "meta: ratios")
+    expect(type(vol["allow_nonfinite"]) is bool, "meta: allow_nonfinite")
+    expect(vol["source"] is None or isinstance(vol["source"], str), "meta: source")
+    _check_arrays(body, len(ratios) + 1)
+    expect(isinstance(body["tree"], dict), "meta: tree")
+    return body
 
 
-def _volume(entry: Path, state: dict) -> AMRVolume:
+def _check_arrays(body: dict, num_levels: int) -> None:
+    """The array references of ``body`` name arrays of the right kinds and shapes."""
+    records, vol = body["arrays"], body["volume"]
+
+    def ref(r, dtypes, shape=None):
+        expect(isinstance(r, dict) and set(r) == {"$array"} and r["$array"] in records,
+               f"meta: bad array reference {r!r}")
+        rec = records[r["$array"]]
+        expect(rec["dtype"] in dtypes and (shape is None or rec["shape"] == shape),
+               f"{rec['file']}: {rec['dtype']} {rec['shape']}, expected {dtypes} {shape}")
+        return rec
+
+    ints, f8 = ("<i4", "<i8"), ("<f8",)
+    grids = ref(vol["level"], ints)["shape"]
+    expect(len(grids) == 1, "meta: level")
+    for name, dtypes in (("origin", f8), ("spacing", f8), ("shape", ints),
+                         ("index_lo", ints)):
+        ref(vol[name], dtypes, [grids[0], 3])
+    ref(vol["anchor"], f8, [3])
+    fields = body["fields"]
+    expect(isinstance(fields, list) and len(fields) == len(vol["fields"]) and
+           all(isinstance(f, list) and len(f) == num_levels for f in fields), "meta: fields")
+    for per_level in fields:
+        dtype = ref(per_level[0], ("<f4", "<f8"))["dtype"]
+        for r in per_level:
+            ref(r, (dtype,))
+    bricks = body["bricks"]
+    expect(isinstance(bricks, list) and len(bricks) == num_levels, "meta: bricks")
+    for b in bricks:
+        expect(isinstance(b, dict) and set(b) == {"lo", "dims", "count", "table"} and
+               _ints(b["lo"], -2 ** 40) and _ints(b["dims"], 0) and
+               type(b["count"]) is int and b["count"] >= 0, "meta: bricks")
+        ref(b["table"], ("<u4", "<i4", "<i8", "<u8"))
+    expect(isinstance(body["pools"], list) and 1 <= len(body["pools"]) <= 2, "meta: pools")
+    for r in body["pools"]:
+        expect(len(ref(r, ("<f4",))["shape"]) == 1, "meta: pool shape")
+    expect(isinstance(body["ranges"], dict) and set(body["ranges"]) <= {"basis", "finest"},
+           "meta: ranges")
+    for r in body["ranges"].values():
+        ref(r, ("<f4",))
+
+
+def _ints(values, lowest: int) -> bool:
+    return isinstance(values, list) and len(values) == 3 and \
+        all(type(v) is int and lowest <= v < 2 ** 40 for v in values)
+
+
+def _volume(state: dict, fields: dict, get, records: dict) -> AMRVolume:
     """The volume of a snapshot: grid records whose fields are views of the per-level flat
     arrays (which also become the volume's cached :func:`levels.level_values`)."""
-    flats = {(level, name): flat for name in state["fields"]
-             for level, flat in enumerate(_field_levels(entry, state, name))}
-    fields = [dict() for _ in state["level"]]
-    for level in range(len(state["ratios"]) + 1):
-        ids = np.flatnonzero(state["level"] == level)
-        counts = np.prod(state["shape"][ids], axis=1)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        for name in state["fields"]:
-            flat = flats[(level, name)]
-            for g, start, n in zip(ids, starts, counts):
-                fields[g][name] = flat[start:start + n].reshape(tuple(state["shape"][g]))
+    level, shape = get(state["level"], now=True), get(state["shape"], now=True)
+    num_levels = len(state["ratios"]) + 1
+    expect(level.size == 0 or (level.min() >= 0 and level.max() < num_levels), "level range")
+    expect(shape.size == 0 or shape.min() >= 1, "grid shape")
+    counts = np.prod(shape, axis=1)
+    sizes = [int(counts[level == lv].sum()) for lv in range(num_levels)]
+    flats = {}
+    for name, refs in fields.items():
+        dtype = np.dtype(records[refs[0]["$array"]]["dtype"])
+        for lv, part in enumerate(aligned_parts(sizes, dtype)):
+            flats[(lv, name)] = get(refs[lv], into=part)
+    grid_fields = [dict() for _ in level]
+    for lv in range(num_levels):
+        ids = np.flatnonzero(level == lv)
+        starts = np.concatenate([[0], np.cumsum(counts[ids])[:-1]])
+        for name in fields:
+            flat = flats[(lv, name)]
+            for g, start in zip(ids, starts):
+                n = int(counts[g])
+                grid_fields[g][name] = flat[start:start + n].reshape(tuple(shape[g]))
+    origin, spacing = get(state["origin"]), get(state["spacing"])
     grids = tuple(Grid(int(lv), tuple(o), tuple(h), tuple(int(n) for n in sh), f)
-                  for lv, o, h, sh, f in zip(state["level"], state["origin"].tolist(),
-                                             state["spacing"].tolist(), state["shape"], fields))
+                  for lv, o, h, sh, f in zip(level, origin.tolist(), spacing.tolist(), shape,
+                                             grid_fields))
     # Trusted: the hierarchy was validated by from_grids when the snapshot was made.
     volume = AMRVolume(grids, allow_nonfinite=state["allow_nonfinite"], source=state["source"],
-                       index_lo=state["index_lo"], ratios=state["ratios"],
-                       anchor=state["anchor"])
-    for (level, name), flat in flats.items():
-        levels.share_level_values(volume, level, name, flat)
+                       index_lo=get(state["index_lo"]),
+                       ratios=tuple(state["ratios"]), anchor=get(state["anchor"]))
+    for (lv, name), flat in flats.items():
+        levels.share_level_values(volume, lv, name, flat)
     return volume
 
 
 # ---------------------------------------------------------------------- writing
 
-def save(key: str, prepared) -> bool:
-    """Write ``prepared`` (a :class:`PreparedVolume`) as entry ``key``; False (with a warning)
-    when it cannot be written. Evicts the least recently used entries beyond the limit."""
-    root = cache_root()
-    if root is None:
-        return False
+def _save(root_fd: int, key: str, prepared) -> bool:
+    """Write entry ``key`` in a new temporary folder of the cache folder ``root_fd`` and
+    rename it into place; True when the entry is there afterwards (another process may have
+    placed it first). Whatever ends the write early, the temporary folder goes with it."""
+    tmp = folder.TMP + secrets.token_hex(8)
+    os.mkdir(tmp, 0o777, dir_fd=root_fd)            # the umask decides who may read it
     try:
-        root.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=".tmp-", dir=root))
+        fd = os.open(tmp, _DIR, dir_fd=root_fd)
         try:
-            _write(tmp, prepared)
-            os.rename(tmp, root / key)
-        except OSError:
-            shutil.rmtree(tmp, ignore_errors=True)
-            if not (root / key / _META).is_file():
-                raise
-        evict(root, limit_bytes(), keep=key)
-    except OSError as exc:
-        warnings.warn(f"mi_amr: could not write a snapshot in {root} ({exc}); set MI_AMR_CACHE "
-                      f"to another folder, or to off")
+            folder.write_marker(fd)
+            _write_entry(fd, key, prepared)
+        finally:
+            os.close(fd)
+        if _exists(root_fd, key):
+            folder.remove(root_fd, tmp)
+        else:
+            os.rename(tmp, key, src_dir_fd=root_fd, dst_dir_fd=root_fd)
+    except BaseException:
+        folder.remove(root_fd, tmp)
+        raise
+    return _complete(root_fd, key)
+
+
+def _exists(root_fd: int, name: str) -> bool:
+    try:
+        os.stat(name, dir_fd=root_fd, follow_symlinks=False)
+    except FileNotFoundError:
         return False
     return True
 
 
-def _write(folder: Path, prepared) -> None:
+def _complete(root_fd: int, key: str) -> bool:
+    """Entry ``key`` is there, the cache's own, with its metadata."""
+    try:
+        fd = os.open(key, _DIR, dir_fd=root_fd)
+    except OSError:
+        return False
+    try:
+        return folder.read_marker(fd) is not None and _exists(fd, META)
+    finally:
+        os.close(fd)
+
+
+def _write_entry(fd: int, key: str, prepared) -> None:
+    """The arrays of ``prepared`` and, last, the ``meta.json`` that describes them, in the new
+    folder open as ``fd``."""
+    records = {}
+
+    def put(name, array):
+        records[name] = rawarrays.write_array(fd, name + ".arr", np.asarray(array))
+
     vol, dev = prepared.volume, prepared.device
     parts, pools = dev.host_bricks
-    for level in range(vol.num_levels):
-        for name in vol.field_names:
-            np.save(folder / f"field{level}_{name}.npy", levels.level_values(vol, level, name))
-    for level, part in enumerate(parts):
-        np.save(folder / f"table{level}.npy", part[2])
-    for i, pool in enumerate(pools):
-        np.save(folder / f"pool{i}.npy", pool)
-    for kind, host in dev.host_ranges.items():
-        np.save(folder / f"ranges_{kind}.npy", host)
-    tree_state = {k: v for k, v in prepared.tree.__dict__.items() if k != "volume"}
-    meta = {"format": FORMAT, "field": prepared.field, "color_field": prepared.color_field,
-            "volume": _volume_state(vol), "tree": tree_state, "pools": len(pools),
-            "bricks": [(p[0], p[1], int(p[3])) for p in parts]}
-    # meta.pkl last: an entry is complete when it has one.
-    with open(folder / _META, "wb") as f:
-        pickle.dump(meta, f, protocol=pickle.HIGHEST_PROTOCOL)
+    fields = [[rawarrays.encode(levels.level_values(vol, lv, name), f"field{lv}_{i}", put)
+               for lv in range(vol.num_levels)] for i, name in enumerate(vol.field_names)]
+    tree_state = prepared.tree.arrays()         # (KDTree.STATE: what from_arrays takes)
+    body = {"field": prepared.field, "color_field": prepared.color_field,
+            "volume": rawarrays.encode(_volume_state(vol), "volume", put),
+            "tree": rawarrays.encode(tree_state, "tree", put), "fields": fields,
+            "bricks": [{"lo": [int(v) for v in p[0]], "dims": [int(v) for v in p[1]],
+                        "count": int(p[3]), "table": rawarrays.encode(p[2], f"table{lv}", put)}
+                       for lv, p in enumerate(parts)],
+            "pools": [rawarrays.encode(np.asarray(pool), f"pool{i}", put)
+                      for i, pool in enumerate(pools)],
+            "ranges": {kind: rawarrays.encode(host, f"ranges_{kind}", put)
+                       for kind, host in dev.host_ranges.items()},
+            "arrays": records}
+    _write_meta(fd, key, body, META)
+
+
+def _write_meta(fd: int, key: str, body: dict, name: str) -> None:
+    """``meta.json``: a header line (what it is, its format, the entry's key, the CRC-32 of
+    the rest) and the JSON ``body``; written as the new file ``name`` in the folder ``fd``."""
+    text = json.dumps(body, separators=(",", ":"), allow_nan=True).encode()
+    head = json.dumps({"kind": _META_KIND, "format": FORMAT, "key": key,
+                       "crc32": zlib.crc32(text)}).encode()
+    out = os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC,
+                  0o666, dir_fd=fd)
+    with os.fdopen(out, "wb") as f:
+        f.write(head + b"\n" + text)
 
 
 def _volume_state(vol) -> dict:
     return {"level": vol.levels, "origin": vol.grid_boxes()[0],
             "spacing": vol.spacings(), "shape": vol.shapes(),
-            "fields": list(vol.field_names), "allow_nonfinite": vol.allow_nonfinite,
-            "source": vol.source, "index_lo": vol.index_boxes()[0], "ratios": vol.ratios,
-            "anchor": vol.anchor}
+            "fields": list(vol.field_names), "allow_nonfinite": bool(vol.allow_nonfinite),
+            "source": None if vol.source is None else str(vol.source),
+            "index_lo": vol.index_boxes()[0], "ratios": [int(r) for r in vol.ratios],
+            "anchor": np.asarray(vol.anchor, dtype=np.float64)}
 
 
-def save_ranges(key: str, kind: str, host: np.ndarray) -> None:
-    """Add leaf value ranges (``kind`` ``basis`` or ``finest``) to entry ``key`` if it exists
-    (best effort: a failure only costs recomputing them next time)."""
-    root = cache_root()
-    if root is None or not (root / key / _META).is_file():
-        return
+def _add_ranges(fd: int, key: str, kind: str, host: np.ndarray) -> None:
+    """Write ``host`` as the ranges of ``kind`` in the entry open as ``fd`` and replace its
+    ``meta.json`` by one that lists them (each file new, then renamed over the old one)."""
+    body = _read_meta(fd, key)
+    token = secrets.token_hex(4)
+    name = f"ranges_{kind}.{token}"
     try:
-        with tempfile.NamedTemporaryFile(dir=root / key, suffix=".npy", delete=False) as f:
-            np.save(f, host)
-        os.replace(f.name, root / key / f"ranges_{kind}.npy")
-    except OSError:
-        pass
-
-
-def evict(root: Path, limit: int, keep: str | None = None) -> None:
-    """Remove the least recently used entries of ``root`` until it holds at most ``limit``
-    bytes (never ``keep``), and temporary folders a crash left behind."""
-    now = time.time()
-    entries = []
-    for entry in root.iterdir():
-        if entry.name.startswith(".tmp-"):
-            if now - entry.stat().st_mtime > _STALE_TMP_S:
-                shutil.rmtree(entry, ignore_errors=True)
-            continue
-        if not entry.is_dir():
-            continue
-        size = sum(f.stat().st_size for f in entry.iterdir())
-        meta = entry / _META
-        used = meta.stat().st_mtime if meta.is_file() else 0.0
-        entries.append((used, size, entry))
-    total = sum(size for _, size, _ in entries)
-    for used, size, entry in sorted(entries, key=lambda e: e[0]):
-        if total <= limit:
-            break
-        if entry.name != keep:
-            shutil.rmtree(entry, ignore_errors=True)
-            total -= size
+        record = rawarrays.write_array(fd, name + ".arr", np.asarray(host, dtype=np.float32))
+        body["arrays"][name] = record
+        old = body["ranges"].get(kind)
+        old = None if old is None else body["arrays"].pop(old["$array"])
+        body["ranges"][kind] = {"$array": name}
+        _write_meta(fd, key, body, f"{META}.{token}")
+        os.replace(f"{META}.{token}", META, src_dir_fd=fd, dst_dir_fd=fd)
+    except BaseException:           # interrupted, or a full disk: leave the entry as it was
+        for leftover in (name + ".arr", f"{META}.{token}"):
+            with contextlib.suppress(OSError):
+                os.unlink(leftover, dir_fd=fd)
+        raise
+    if old is not None:
+        with contextlib.suppress(OSError):
+            os.unlink(old["file"], dir_fd=fd)

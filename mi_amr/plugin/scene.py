@@ -49,6 +49,8 @@ def load_scene(path, *, integrator=None, pixel_format=None, film_size=None,
         else:
             scene = mi.load_file(str(path), **values)
     except RuntimeError as e:
+        if _interrupted(e):
+            raise KeyboardInterrupt from None
         raise _unwrap(e, path) from None
     _check_sensors(scene, path)
     _opaque_cameras(scene)
@@ -183,6 +185,13 @@ def _fresh(value):
     if dr.depth_v(value) > 1:
         return type(value)(*(device_array(mi.Float, c.numpy(), np.float32) for c in value))
     return device_array(type(value), value.numpy(), np.float32)
+
+
+def _interrupted(error: RuntimeError) -> bool:
+    """Ctrl-C while a plugin was being built: Mitsuba wraps the KeyboardInterrupt raised in
+    amr_iso's constructor (its snapshot write cleaned up after itself) in a RuntimeError."""
+    lines = [l.strip() for l in str(error).strip().splitlines() if l.strip()]
+    return bool(lines) and lines[-1].split(":")[0] == "KeyboardInterrupt"
 
 
 def _unwrap(error: RuntimeError, path) -> AMRError:
