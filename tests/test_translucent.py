@@ -50,12 +50,14 @@ def random_rays(integ, n=20000, seed=1):
 
 def layers(integ, o, d, resume):
     """``(t, k)`` of the first 8 layers along the rays (inf / -1 past the last)."""
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import crossings
 
     m = integ.m
     O, D = m.Array3f(*o.T), m.Array3f(*d.T)
-    state, after = crossings(integ.dev, integ.config(), O, D, m.Float(0.0), m.Float(dr.inf),
-                             m.Float(0.5), m.Bool(True), resume=resume)
+    ray = RayContext(integ.dev, integ.config(), O, D, m.Float(0.0), m.Float(dr.inf),
+                     m.Bool(True))
+    state, after = crossings(ray, m.Float(0.5), resume=resume)
     alive = m.Bool(True)
     ts, ks = [], []
     for _ in range(8):
@@ -199,6 +201,7 @@ def test07_sampled_layers_take_every_isovalue_two_samples_straddle(method):
     from mi_amr.kernels.config import MarchConfig
     from mi_amr.kernels.device import opaque_floats
     from mi_amr.kernels.prepared import PreparedVolume
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import crossings
 
     m = dr.llvm.ad
@@ -213,8 +216,8 @@ def test07_sampled_layers_take_every_isovalue_two_samples_straddle(method):
     y, z = (0.1 + 0.3 * rng.random(n) for _ in range(2))
     o = m.Array3f(m.Float(np.zeros(n)), m.Float(y), m.Float(z))
     d = m.Array3f(m.Float(np.ones(n)), m.Float(np.zeros(n)), m.Float(np.zeros(n)))
-    state, after = crossings(dev, cfg, o, d, m.Float(0.0), m.Float(dr.inf),
-                             m.Float(rng.random(n)), m.Bool(True), resume=False)
+    ray = RayContext(dev, cfg, o, d, m.Float(0.0), m.Float(dr.inf), m.Bool(True))
+    state, after = crossings(ray, m.Float(rng.random(n)), resume=False)
     alive = m.Bool(True)
     found = []
     for _ in range(4):

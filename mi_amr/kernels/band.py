@@ -176,6 +176,12 @@ def alpha(m, band: BandInputs, k, v, centre):
     return dr.select((x > band.get(m, "lo", k)) & (x < band.get(m, "hi", k)), a, 0.0)
 
 
+def optical_depth(a):
+    """The optical depth of opacity ``a`` (capped at :data:`~mi_amr.tolerances.OPACITY_CAP`,
+    whose depth is finite)."""
+    return -dr.log(1.0 - dr.minimum(a, tol.OPACITY_CAP))
+
+
 def corrected(band: BandInputs, a, dx):
     """Opacity correction of ``a`` for a step of length ``dx`` (world units)."""
     return 1.0 - dr.power(dr.maximum(1.0 - dr.minimum(a, tol.OPACITY_CAP), 0.0), dx / band.dx0)
@@ -199,14 +205,24 @@ def cut_point(m, band: BandInputs, k, x):
     return integral(m, band, k, x), _shape_tau(m, band, k, clipped)
 
 
-def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre, ends=None):
+@dataclass
+class Ramp:
+    """A step of length ``dx`` (world) along which the value goes linearly from ``a`` to
+    ``b``."""
+
+    a: Any
+    b: Any
+    dx: Any
+
+
+def _ramp_depth(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):
     """Band ``k``'s optical depth over a step of length ``dx`` (world) along which the value
     goes linearly from ``a`` to ``b``; with the integral at both ends and whether the ramp is
     short (it holds less than :data:`~mi_amr.tolerances.SHORT_RAMP_DEPTH` of the band's
     integral). A short ramp's depth is Simpson's rule of the extinction over its part inside
     the support (the difference of two float32 integrals would lose its digits). ``ends``:
     :func:`cut_point` of both ends where the caller has them."""
-    xa, xb = a - centre, b - centre
+    xa, xb, dx = ramp.a - centre, ramp.b - centre, ramp.dx
     (Ta, ta), (Tb, tb) = ends if ends is not None else \
         (cut_point(m, band, k, xa), cut_point(m, band, k, xb))
     total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
@@ -223,11 +239,10 @@ def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre, ends=None):
     return dr.maximum(tau_mean, 0.0) * dx, Ta, Tb, short
 
 
-def segment_alpha(m, band: BandInputs, k, a, b, dx, centre, ends=None):
-    """Pre-integrated opacity of band ``k`` for a step of length ``dx`` (world) along which the
-    value goes linearly from ``a`` to ``b`` (``ends``: :func:`cut_point` of ``a`` and ``b``,
-    if known)."""
-    return 1.0 - dr.exp(-_ramp_depth(m, band, k, a, b, dx, centre, ends)[0])
+def segment_alpha(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):
+    """Pre-integrated opacity of band ``k`` for the step ``ramp`` (``ends``: :func:`cut_point`
+    of its ends' values, if known)."""
+    return 1.0 - dr.exp(-_ramp_depth(m, band, k, ramp, centre, ends)[0])
 
 
 def _inverse(m, band: BandInputs, k, T):
@@ -270,7 +285,7 @@ def _shape_tau(m, band, k, x):
     """The extinction (per ``dx0``) of band ``k``'s shape at offset ``x``, support ignored."""
     a = dr.minimum(1.0, band.get(m, "peak", k) *
                    dr.exp(-0.5 * dr.square(x / band.get(m, "width", k))))
-    return -dr.log(1.0 - dr.minimum(a, tol.OPACITY_CAP))
+    return optical_depth(a)
 
 
 def _place(m, band: BandInputs, k, ramp, r):
@@ -282,25 +297,25 @@ def _place(m, band: BandInputs, k, ramp, r):
     return dr.select(short, _short_ramp_u(m, band, k, xa, xb, g), u_long)
 
 
-def _ramp(m, band: BandInputs, k, a, b, dx, centre):
-    tau, Ta, Tb, short = _ramp_depth(m, band, k, a, b, dx, centre)
-    return a - centre, b - centre, Ta, Tb, tau, short
+def _ramp(m, band: BandInputs, k, ramp: Ramp, centre):
+    tau, Ta, Tb, short = _ramp_depth(m, band, k, ramp, centre)
+    return ramp.a - centre, ramp.b - centre, Ta, Tb, tau, short
 
 
-def segment_alpha_and_point(m, band: BandInputs, k, a, b, dx, centre, r=0.5):
+def segment_alpha_and_point(m, band: BandInputs, k, ramp: Ramp, centre, r=0.5):
     """:func:`segment_alpha`, and where along the step band ``k`` has made a fraction ``r`` of
     the step's opacity (a fraction of the step, 0 at ``a``). With ``r = 1/2`` (the median of
     its light) that is where a step is lit: for light arriving from the viewer's side it gives
     the shadow of the band in front exactly. A thin step gives the point where half its
     optical depth lies, an opaque one a point near its front."""
-    ramp = _ramp(m, band, k, a, b, dx, centre)
-    return 1.0 - dr.exp(-ramp[4]), dr.clip(_place(m, band, k, ramp, r), 0.0, 1.0)
+    ramped = _ramp(m, band, k, ramp, centre)
+    return 1.0 - dr.exp(-ramped[4]), dr.clip(_place(m, band, k, ramped, r), 0.0, 1.0)
 
 
 def _stretch(m, band: BandInputs, k, xa, xb, dx):
     """A ramp of value offsets ``xa`` to ``xb`` over length ``dx`` (world) as :func:`_ramp`
     gives it."""
-    tau, Ta, Tb, short = _ramp_depth(m, band, k, xa, xb, dx, 0.0)
+    tau, Ta, Tb, short = _ramp_depth(m, band, k, Ramp(xa, xb, dx), 0.0)
     return xa, xb, Ta, Tb, tau, short
 
 
@@ -320,7 +335,7 @@ def flat_centroid(tau):
     return dr.select(tau > tol.THIN_DEPTH, closed, 0.5 - tau / 12.0)
 
 
-def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
+def segment_alpha_and_centroid(m, band: BandInputs, k, ramp: Ramp, centre):
     """Pre-integrated opacity of band ``k`` over a step of length ``dx`` (world) along which
     the value goes linearly from ``a`` to ``b``, and the step's centroid ``u_bar`` (a fraction
     of the step, 0 at ``a``; see the module docstring): the light of the step is
@@ -329,6 +344,7 @@ def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
     (where the opacity is capped): there the extinction is constant and the centroid has a
     closed form; on the flanks it is smooth, and its kink at the cap would spoil the
     quadrature."""
+    a, b, dx = ramp.a, ramp.b, ramp.dx
     xa, xb = a - centre, b - centre
     cap = band.get(m, "cap", k)
     p0, p1 = _within(xa, xb, -cap, cap)
@@ -337,9 +353,9 @@ def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
     moment = m.Float(0.0)      # int u dF, F the opacity made from the front
     for j in range(3):
         u0, u1 = ends[j], ends[j + 1]
-        ramp = _stretch(m, band, k, dr.lerp(xa, xb, u0), dr.lerp(xa, xb, u1), dx * (u1 - u0))
-        a_j = 1.0 - dr.exp(-ramp[4])
-        c_j = flat_centroid(ramp[4]) if j == 1 else _flank_centroid(m, band, k, ramp)
+        part = _stretch(m, band, k, dr.lerp(xa, xb, u0), dr.lerp(xa, xb, u1), dx * (u1 - u0))
+        a_j = 1.0 - dr.exp(-part[4])
+        c_j = flat_centroid(part[4]) if j == 1 else _flank_centroid(m, band, k, part)
         moment += (1.0 - alpha) * a_j * dr.lerp(u0, u1, c_j)
         alpha += (1.0 - alpha) * a_j
     u_bar = dr.select(alpha > 0.0, moment / dr.maximum(alpha, tol.NO_WEIGHT), 0.5)
@@ -382,7 +398,7 @@ def combine(alphas):
     optical depth over the total; 0 where all are 0)."""
     if len(alphas) == 1:
         return alphas[0], [1.0]
-    taus = [-dr.log(1.0 - dr.minimum(a, tol.OPACITY_CAP)) for a in alphas]
+    taus = [optical_depth(a) for a in alphas]
     total = taus[0]
     for t in taus[1:]:
         total = total + t

@@ -14,6 +14,7 @@ from typing import Any
 
 import drjit as dr
 
+from mi_amr import tolerances as tol
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.params import METHODS, RECONSTRUCTIONS  # noqa: F401  (re-exported)
 
@@ -112,3 +113,9 @@ def first_between(dev, cfg: MarchConfig, a, b):
         out = dr.select(near, m.UInt32(k), out)
         best = dr.select(near, dr.abs(iso - a), best)
     return out
+
+
+def bisect_depth(cfg: MarchConfig):
+    """How many halvings take a bracket of one step (``cfg.step_scale`` finest cells) down to
+    :data:`~mi_amr.tolerances.BISECT_TARGET` cells (at least one)."""
+    return dr.maximum(dr.ceil(dr.log2(cfg.step_scale / tol.BISECT_TARGET)), 1.0)

@@ -15,6 +15,7 @@ from typing import Any
 import drjit as dr
 
 from mi_amr import tolerances as tol
+from mi_amr.kernels.band import optical_depth
 from mi_amr.kernels.device import opaque_floats
 
 # Entries of :attr:`Transfer2DInputs.header`.
@@ -88,8 +89,7 @@ def segment_alpha(m, tf: Transfer2DInputs, a, b, dx, gmag):
     over the value change; a ramp shorter than a column takes the opacity at its middle."""
     cols = tf.get(m, COLS)
     short = dr.abs(b - a) * (cols - 1.0) < tf.get(m, V1) - tf.get(m, V0)
-    mid = -dr.log(1.0 - dr.minimum(alpha(m, tf, 0.5 * (a + b), gmag), tol.OPACITY_CAP)) / \
-        tf.dx0
+    mid = optical_depth(alpha(m, tf, 0.5 * (a + b), gmag)) / tf.dx0
     active = m.Bool(True)
     Ta = _bilinear(m, tf, tf.integral, a, gmag, active)
     Tb = _bilinear(m, tf, tf.integral, b, gmag, active)

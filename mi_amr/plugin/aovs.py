@@ -25,6 +25,7 @@ import mitsuba as mi
 
 from mi_amr.kernels.device import NO_GRID
 from mi_amr.kernels.reconstruct import locate, reconstruct
+from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.surface import first_crossing
 from mi_amr.plugin import bridge, shading
 
@@ -40,8 +41,8 @@ def iso_aovs(integ, ray, o, d, t_mesh, jitter, active) -> list:
     if cfg.band is not None:
         cfg = type(cfg)(method=cfg.method, basis=cfg.basis, isovalues=cfg.isovalues,
                         step_scale=cfg.step_scale, num_iso=cfg.num_iso)
-    c = first_crossing(dev, cfg, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh), jitter,
-                       m.Bool(active))
+    c = first_crossing(RayContext(dev, cfg, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh),
+                                  m.Bool(active)), jitter)
     hit = c.hit
     p = dr.fma(d, c.t, o)
     vals, grad = reconstruct(dev, cfg.basis, p, dev.arrays(cfg.basis, color=True), hit)

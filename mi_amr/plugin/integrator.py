@@ -30,11 +30,12 @@ import mitsuba as mi
 
 from mi_amr import params
 from mi_amr.errors import AMRError
-from mi_amr.kernels.composite import composite
+from mi_amr.kernels.composite import Shading, composite
 from mi_amr.kernels.config import MarchConfig, clips
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import prepare_file
+from mi_amr.kernels.ray import RayContext
 from mi_amr.plugin import bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.aovs import NAMES as AOV_NAMES
 from mi_amr.plugin.aovs import iso_aovs
@@ -215,8 +216,8 @@ class _AMRIso:
         t0 = self.dev.layer_offset / dr.norm(d) if from_iso else m.Float(0.0)
         t1 = bridge.to_kernel(m, ray.maxt)
         if self.opt.mode == "volume":
-            res = composite(self.dev, self.config(), o, d, t0, t1, m.Float(0.5), None, None,
-                            m.Bool(active))
+            res = composite(RayContext(self.dev, self.config(), o, d, t0, t1, m.Bool(active)),
+                            m.Float(0.5))
             return bridge.to_mi(res.T, mi.Float)
         # Where the frame picks by packet: Russian roulette, a number per packet deciding where
         # the walks stop (the packet's lanes together); else None, the exact transmittance.
@@ -226,7 +227,8 @@ class _AMRIso:
     def _volume(self, scene, light_u, ray, o, d, t_mesh, jitter, active):
         """Front-to-back compositing of the opacity band up to the mesh hit."""
         m = self.m
-        res = composite(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh), jitter,
-                        self.shader.band_colors(), self.shader.lighting(scene, light_u, ray, o, d),
-                        m.Bool(active))
+        ray_v = RayContext(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh),
+                           m.Bool(active))
+        res = composite(ray_v, jitter, Shading(self.shader.band_colors(),
+                                               self.shader.lighting(scene, light_u, ray, o, d)))
         return mi.Spectrum(res.C.x, res.C.y, res.C.z), mi.Float(res.T)
