@@ -119,7 +119,8 @@ def test06_band_alpha_and_preintegration_match_numpy():
     xs = np.linspace(a, b, 20001)
     tau = -np.log1p(-np.minimum(shape.alpha_numpy(xs, 0.0), tolerances.OPACITY_CAP)) / 0.5
     want = 1.0 - math.exp(-np.trapezoid(tau, xs) / (b - a) * dx)
-    got = band.segment_alpha(m, inputs, 0, band.Ramp(Float(a), Float(b), Float(dx)), Float(0.0)).numpy()[0]
+    ramp = band.Ramp(Float(a), Float(b), Float(dx))
+    got = band.segment_alpha(m, inputs, 0, ramp, Float(0.0)).numpy()[0]
     assert got == pytest.approx(want, abs=2e-4)
     # Opacity correction: two half steps compose to one full step.
     half = band.corrected(inputs, Float(0.6), Float(0.25)).numpy()[0]

@@ -5,7 +5,7 @@ Around the isovalue ``c`` (field units), with ``x = v - c``:
 from the centre), zero outside. ``alpha`` is the opacity of a step of length ``dx0`` (world
 units; the finest cell width). A step of length ``dx`` has the corrected opacity
 ``1 - (1 - alpha)^(dx / dx0)``. Pre-integrated: along a step where the value runs linearly from
-``a`` to ``b`` the optical depth is ``dx * (T(b) - T(a)) / (b - a)``, with ``T`` the integral of
+``a`` to ``b`` the optical depth is ``dx * (I(b) - I(a)) / (b - a)``, with ``I`` the integral of
 the extinction ``tau(x) = -ln(1 - alpha) / dx0`` over value offsets, tabulated once per band
 shape (:data:`TABLE_SIZE` + 1 points over the support), with its inverse.
 
@@ -114,10 +114,10 @@ class OpacityBand:
         its inverse at :data:`INVERSE_SIZE` + 1 equally spaced integrals."""
         x = np.linspace(self.lo, self.hi, TABLE_SIZE * TABLE_SUB + 1)
         tau = self.extinction_numpy(x)
-        T = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(x))])
-        # tau > 0 over the support, so T rises strictly and has an inverse
-        inverse = np.interp(np.linspace(0.0, T[-1], INVERSE_SIZE + 1), T, x)
-        return x[::TABLE_SUB], T[::TABLE_SUB], inverse
+        cum = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(x))])
+        # tau > 0 over the support, so the integral rises strictly and has an inverse
+        inverse = np.interp(np.linspace(0.0, cum[-1], INVERSE_SIZE + 1), cum, x)
+        return x[::TABLE_SUB], cum[::TABLE_SUB], inverse
 
     def cap_offset(self) -> float:
         """The offset from the centre within which the opacity is capped (the plateau; 0 if it
@@ -188,7 +188,7 @@ def corrected(band: BandInputs, a, dx):
 
 
 def integral(m, band: BandInputs, k, x):
-    """``T(x)`` of band ``k``: its extinction integrated from its support's low end to offset
+    """``I(x)`` of band ``k``: its extinction integrated from its support's low end to offset
     ``x``."""
     lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
     u = dr.clip((x - lo) / (hi - lo), 0.0, 1.0) * TABLE_SIZE
@@ -223,10 +223,10 @@ def _ramp_depth(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):
     the support (the difference of two float32 integrals would lose its digits). ``ends``:
     :func:`cut_point` of both ends where the caller has them."""
     xa, xb, dx = ramp.a - centre, ramp.b - centre, ramp.dx
-    (Ta, ta), (Tb, tb) = ends if ends is not None else \
+    (Ia, ta), (Ib, tb) = ends if ends is not None else \
         (cut_point(m, band, k, xa), cut_point(m, band, k, xb))
     total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
-    short = dr.abs(Tb - Ta) < tol.SHORT_RAMP_DEPTH * total
+    short = dr.abs(Ib - Ia) < tol.SHORT_RAMP_DEPTH * total
     lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
     ca, cb = dr.clip(xa, lo, hi), dr.clip(xb, lo, hi)
     moving = xb != xa
@@ -235,8 +235,8 @@ def _ramp_depth(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):
                        dr.select((xa > lo) & (xa < hi), 1.0, 0.0))
     tm = _shape_tau(m, band, k, 0.5 * (ca + cb))
     simpson = inside * (ta + 4.0 * tm + tb) / (6.0 * band.dx0)
-    tau_mean = dr.select(short, simpson, (Tb - Ta) / dr.select(short, 1.0, xb - xa))
-    return dr.maximum(tau_mean, 0.0) * dx, Ta, Tb, short
+    tau_mean = dr.select(short, simpson, (Ib - Ia) / dr.select(short, 1.0, xb - xa))
+    return dr.maximum(tau_mean, 0.0) * dx, Ia, Ib, short
 
 
 def segment_alpha(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):
@@ -245,12 +245,12 @@ def segment_alpha(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):
     return 1.0 - dr.exp(-_ramp_depth(m, band, k, ramp, centre, ends)[0])
 
 
-def _inverse(m, band: BandInputs, k, T):
-    """The offset at which band ``k``'s integral reaches ``T`` (the inverse of
+def _inverse(m, band: BandInputs, k, reached):
+    """The offset at which band ``k``'s integral reaches ``reached`` (the inverse of
     :func:`integral`)."""
     total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
     base = k * (INVERSE_SIZE + 1)
-    u = dr.clip(T / total, 0.0, 1.0) * INVERSE_SIZE
+    u = dr.clip(reached / total, 0.0, 1.0) * INVERSE_SIZE
     i = dr.minimum(m.UInt32(dr.floor(u)), INVERSE_SIZE - 1)
     f = u - m.Float(i)
     return dr.lerp(dr.gather(m.Float, band.inverse, i + base),
@@ -291,15 +291,15 @@ def _shape_tau(m, band, k, x):
 def _place(m, band: BandInputs, k, ramp, r):
     """Where along a step (``ramp``: its value offsets, integrals, depth and shortness from
     :func:`_ramp`) a fraction ``r`` of its opacity is made (a fraction of the step)."""
-    xa, xb, Ta, Tb, tau, short = ramp
+    xa, xb, Ia, Ib, tau, short = ramp
     g = depth_fraction(r, tau)
-    u_long = (_inverse(m, band, k, dr.lerp(Ta, Tb, g)) - xa) / (xb - xa)
+    u_long = (_inverse(m, band, k, dr.lerp(Ia, Ib, g)) - xa) / (xb - xa)
     return dr.select(short, _short_ramp_u(m, band, k, xa, xb, g), u_long)
 
 
 def _ramp(m, band: BandInputs, k, ramp: Ramp, centre):
-    tau, Ta, Tb, short = _ramp_depth(m, band, k, ramp, centre)
-    return ramp.a - centre, ramp.b - centre, Ta, Tb, tau, short
+    tau, Ia, Ib, short = _ramp_depth(m, band, k, ramp, centre)
+    return ramp.a - centre, ramp.b - centre, Ia, Ib, tau, short
 
 
 def segment_alpha_and_point(m, band: BandInputs, k, ramp: Ramp, centre, r=0.5):
@@ -315,8 +315,8 @@ def segment_alpha_and_point(m, band: BandInputs, k, ramp: Ramp, centre, r=0.5):
 def _stretch(m, band: BandInputs, k, xa, xb, dx):
     """A ramp of value offsets ``xa`` to ``xb`` over length ``dx`` (world) as :func:`_ramp`
     gives it."""
-    tau, Ta, Tb, short = _ramp_depth(m, band, k, Ramp(xa, xb, dx), 0.0)
-    return xa, xb, Ta, Tb, tau, short
+    tau, Ia, Ib, short = _ramp_depth(m, band, k, Ramp(xa, xb, dx), 0.0)
+    return xa, xb, Ia, Ib, tau, short
 
 
 def _flank_centroid(m, band: BandInputs, k, ramp):

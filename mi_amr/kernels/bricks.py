@@ -34,8 +34,8 @@ def build_pools(m, volume, arrays, parts, count):
     leaf = device_array(m.Bool, volume.leaf_mask_flat(), np.bool_)
     # Left unset: the levels' bricks are numbered 0..count-1 without a gap (brick_table) and
     # fill_level writes every slot of each, so no value is read before it is written, and
-    # new memory is touched once, by the fill (a NaN fill first took 1.2 s of a 27M-cell
-    # load, touching the pools before the fill touched them again).
+    # new memory is touched once, by the fill (a NaN fill first would touch the pools twice,
+    # and memory new to a process is slow to touch).
     if sum(int(n) for *_, n in parts) != count:
         raise ValueError(f"brick pools of {count} bricks for levels holding "
                          f"{sum(int(n) for *_, n in parts)}")

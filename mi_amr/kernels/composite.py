@@ -1,7 +1,13 @@
 """Volume mode: front-to-back compositing of the opacity band (:mod:`mi_amr.kernels.band`)
 around the isovalue, on the same kd-tree walk as the surfaces (:mod:`mi_amr.kernels.traverse`).
 
-Rays ``o + t d`` are in the volume's world space; colours are linear RGB, premultiplied.
+Shape: :func:`composite` takes a :class:`~mi_amr.kernels.ray.RayContext` and, for camera rays,
+a :class:`Shading`; both marches consume the one traversal
+(:class:`~mi_amr.kernels.traverse.March`): ``exact`` with whole leaf searches and
+:func:`~mi_amr.kernels.traverse.cubic_piece` pieces, split into sub-pieces where the value
+turns relative to a band; the sampling methods with sub-intervals of a
+:class:`~mi_amr.kernels.traverse.Lattice`. Rays ``o + t d`` are in the volume's world space;
+colours are linear RGB, premultiplied.
 """
 
 from __future__ import annotations
@@ -125,21 +131,21 @@ def _quadratic(q, x):
     return q0 + x * ((4.0 * qm - 3.0 * q0 - q1) + x * (2.0 * (q0 + q1) - 4.0 * qm))
 
 
-def _quadratic_extremum(q, L):
-    """Where in ``[0, L]`` the quadratic through ``q`` (at 0, L/2, L) turns; ``L`` if it does
-    not inside."""
+def _quadratic_extremum(q, length):
+    """Where in ``[0, length]`` the quadratic through ``q`` (at 0, the middle and the end)
+    turns; ``length`` if it does not inside."""
     q0, qm, q1 = q
     curv = 2.0 * (q0 + q1) - 4.0 * qm
     x = -(4.0 * qm - 3.0 * q0 - q1) / (2.0 * curv)
     inside = (dr.abs(curv) > tol.QUADRATIC_EPS) & (x > 0.0) & (x < 1.0)
-    return dr.select(inside, x, 1.0) * L
+    return dr.select(inside, x, 1.0) * length
 
 
 @dataclass
 class Piece:
-    """A cubic piece ``[0, L]`` split at ``s_pts`` (sorted, from 0 to ``L``) and the field's
-    values there; where it is shaded, the colour field's cubic numerator ``cnum``, the shared
-    denominator ``den`` and ``gradient(s)``, the gradient at piece parameter ``s``."""
+    """A cubic piece ``[0, length]`` split at ``s_pts`` (sorted, from 0 to ``length``) and the
+    field's values there; where it is shaded, the colour field's cubic numerator ``cnum``, the
+    shared denominator ``den`` and ``gradient(s)``, the gradient at piece parameter ``s``."""
 
     s_pts: list
     values: list
@@ -386,7 +392,9 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
         work = m.Bool(active)
         cp = cubic_piece(ray, march.walk, arrays, work)
         samples += dr.select(work, 1, 0)
-        have = work & (roots.cubic(cp.den, 0.5 * cp.length) > tol.NO_WEIGHT)
+        # (The middle's weight alone: a piece that ends at missing data still has its band's
+        # opacity up to there.)
+        have = cp.defined(work, cp.mid()[1], ends=False)
         piece = _piece(ray, cp, march.walk.leaf, marks, lighting, have)
         subs = _sub_pieces(ray, piece, have, centres)
 

@@ -9,14 +9,34 @@ opaque device value that may change between frames without compiling anything.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Optional
 
 import drjit as dr
 
 from mi_amr import tolerances as tol
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.params import METHODS, RECONSTRUCTIONS  # noqa: F401  (re-exported)
+
+
+# Steps of a leaf search per step of the march that waits for it: a SIMD packet runs a loop as
+# long as its slowest lane, so a whole search nested in the march made every lane wait for the
+# longest search in the packet. A few steps at a time let the lanes with a leaf work meanwhile.
+SEEK_STEPS = 6
+
+
+@dataclass
+class SearchPlan:
+    """How the traversal (:meth:`~mi_amr.kernels.traverse.March.next`) takes its leaf
+    searches: ``steps`` of a search per step of the march (None: each search whole), and
+    ``two_levels``: a turn of the search first goes down through a non-empty inner node
+    without its exit and rope work (its record holds its children's,
+    :meth:`~mi_amr.kernels.device.DeviceVolume.node_search`), then takes the full step on the
+    child. The crossings and the steps are the same, in the same order, for every plan (the
+    plans besides the default are the slow twins, for tests)."""
+
+    steps: Optional[int] = SEEK_STEPS
+    two_levels: bool = True
 
 
 @dataclass
@@ -28,7 +48,7 @@ class MarchConfig:
     :class:`~mi_amr.kernels.transfer2d.Transfer2DInputs`, which then replaces the bands
     (every method); ``active_box``: ``(lo, hi)`` opaque points (volume world) holding every
     leaf whose range holds an isovalue (:meth:`~mi_amr.kernels.device.DeviceVolume.active_box`),
-    or None; see :func:`clip_box`."""
+    or None; see :func:`clip_box`; ``search``: how leaf searches are taken (structure)."""
 
     method: str
     basis: bool
@@ -41,6 +61,7 @@ class MarchConfig:
     transfer2d: Any = None
     active_box: Any = None
     start_table: Any = None
+    search: SearchPlan = field(default_factory=SearchPlan)
 
     def iso(self, dev, k):
         """Isovalue ``k`` (a Python int, or a per-lane index array)."""

@@ -31,9 +31,8 @@ from mi_amr.kernels.arrays import device_table
 
 # Cells a chunk of grids holds at least (the last of a level may hold fewer): bounds the
 # kernels' outputs and temporaries (~30 bytes a cell), which the next chunk reuses. Smaller
-# chunks touch less new memory, the slow part on this project's machines: 2^20 against 2^22,
-# the default file's derivation 0.35-0.65 s against 0.46-0.86 s, 27M cells 2.1-2.4 s against
-# 2.4-3.2 s, and 360 MB less at its peak.
+# chunks touch less new memory, the slow part on this project's machines (2^20 was faster than
+# 2^22 and needs less memory at its peak; the bench outputs keep the measurements).
 CHUNK_CELLS = 1 << 20
 LEVEL_CELLS_MAX = 1 << 31   # cells a level may hold: flat positions are 32-bit on the device
 PROBES = 64                 # positions of a field's host buffer checked after the kernels wrote it
@@ -359,8 +358,8 @@ def _one_sided(lv, cells, line, sign, other, use):
 
 def _chunk_fields(tables, level, grids, wanted, out, base):
     """Fields ``wanted`` (by name: the dtype of each) of the cells of grids ``start:stop``
-    (``grids``) of ``level``, in the order of :func:`levels.level_values`, scattered into ``out[name]`` from
-    position ``base`` on. The cells inside their grid (most of them) are computed by a kernel
+    (``grids``) of ``level``, in the order of :func:`levels.level_values`, scattered into
+    ``out[name]`` from position ``base`` on. The cells inside their grid (most of them) are computed by a kernel
     without ghost lookups, those on a face by one with them; both are :func:`_fields`, the
     same arithmetic."""
     lv, m = tables[level], tables[level].m

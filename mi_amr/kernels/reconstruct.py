@@ -19,8 +19,8 @@ each cell centre are fixed, every ``H_C`` is a product of three linear functions
 both sums are cubics in ``s``: :func:`segment_cubic` returns their coefficients (Marchesin et
 al. 2009 for one trilinear cell; the same holds for the blend).
 
-The Dr.Jit functions are generic over the backend module ``dev.m``. Their float64 twins (the
-vectorised model and the brute-force sums) are in :mod:`mi_amr.core.field64`.
+The Dr.Jit functions are generic over the backend module ``dev.m``. Their float64 references
+(the vectorised model and the brute-force sums) are in :mod:`mi_amr.core.field64`.
 """
 
 from __future__ import annotations

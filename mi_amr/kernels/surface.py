@@ -25,7 +25,15 @@ previous one, as without skipping); when the next sample after a skipped node ch
 last position before it is evaluated. Uniform sampling is thereby unchanged; the adaptive methods
 may place that last sample at the node's end instead of a sub-interval's middle.
 
-Rays ``o + t d`` are in the volume's world space; ``t`` is the caller's parameter.
+Shape: :func:`first_crossing` and :func:`crossings` take a
+:class:`~mi_amr.kernels.ray.RayContext`. Every method consumes the one traversal
+(:class:`~mi_amr.kernels.traverse.March`; :meth:`~mi_amr.kernels.traverse.March.next` per step
+of its loop): ``exact`` takes :func:`~mi_amr.kernels.traverse.cubic_piece` pieces and keeps
+the one holding the crossing (:class:`PieceHit`), refined once at the end; the sampling
+methods take sub-intervals of a :class:`~mi_amr.kernels.traverse.Lattice`
+(:func:`~mi_amr.kernels.traverse.sub_interval`) and keep the :class:`Bracket` of samples that
+straddles an isovalue. Rays ``o + t d`` are in the volume's world space; ``t`` is the caller's
+parameter.
 """
 
 from __future__ import annotations

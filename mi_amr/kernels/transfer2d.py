@@ -91,7 +91,7 @@ def segment_alpha(m, tf: Transfer2DInputs, a, b, dx, gmag):
     short = dr.abs(b - a) * (cols - 1.0) < tf.get(m, V1) - tf.get(m, V0)
     mid = optical_depth(alpha(m, tf, 0.5 * (a + b), gmag)) / tf.dx0
     active = m.Bool(True)
-    Ta = _bilinear(m, tf, tf.integral, a, gmag, active)
-    Tb = _bilinear(m, tf, tf.integral, b, gmag, active)
-    tau = dr.select(short, mid, (Tb - Ta) / dr.select(short, 1.0, b - a))
+    Ia = _bilinear(m, tf, tf.integral, a, gmag, active)
+    Ib = _bilinear(m, tf, tf.integral, b, gmag, active)
+    tau = dr.select(short, mid, (Ib - Ia) / dr.select(short, 1.0, b - a))
     return 1.0 - dr.exp(-dr.maximum(tau, 0.0) * dx)

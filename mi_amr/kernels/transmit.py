@@ -21,7 +21,12 @@ back, two there unless closer than ``dev.layer_offset``), and where ``max_layers
 a piece with crossings of several isovalues (taken in isovalue order here, in ray order
 there).
 
-Rays ``o + t d`` are in the volume's world space; ``t`` is the caller's parameter.
+Shape: :func:`transmittance_exact` takes a :class:`~mi_amr.kernels.ray.RayContext` and consumes
+the one traversal (:class:`~mi_amr.kernels.traverse.March`): per step of its loop,
+:meth:`~mi_amr.kernels.traverse.March.next` moves the walk on and reports the skipped nodes'
+sides, :func:`~mi_amr.kernels.traverse.cubic_piece` gives the piece to count crossings on, and
+:class:`Shadow` (transmittance and layers) takes in the counts. Rays ``o + t d`` are in the
+volume's world space; ``t`` is the caller's parameter.
 """
 
 from __future__ import annotations

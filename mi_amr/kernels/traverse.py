@@ -108,12 +108,6 @@ class Leg:
     steps: UInt32
 
 
-# Steps of a leaf search per step of the march that waits for it: a SIMD packet runs a loop as
-# long as its slowest lane, so a whole search nested in the march made every lane wait for the
-# longest search in the packet. A few steps at a time let the lanes with a leaf work meanwhile.
-SEEK_STEPS = 6
-
-
 @dataclass
 class March:
     """The one traversal of a ray: its :class:`Walk` and the leaf search under way
@@ -125,7 +119,7 @@ class March:
     @staticmethod
     def start(ray: RayContext, t=None, whole=False, walk=None) -> "March":
         """A walk from ``t`` (default ``ray.t0``), or going on with ``walk``. ``whole``: each
-        leaf search is taken at once instead of :data:`SEEK_STEPS` steps per call of
+        leaf search is taken at once instead of ``ray.cfg.search.steps`` steps per call of
         :meth:`next`; a consumer whose step costs far more than a search step (volume mode's
         exact pieces, each lit with its own shadow rays) is faster so, as the search's state
         then is no loop state."""
@@ -147,7 +141,7 @@ class March:
             begin = needs & lnot(self.search.searching)
             sk = dr.select(begin, seek_start(ray, self.walk, side, begin, start_table(ray.cfg)),
                            self.search)
-            sk, steps = seek_steps(ray, sk, SEEK_STEPS)
+            sk, steps = seek_steps(ray, sk, ray.cfg.search.steps)
             new = needs & lnot(sk.searching)
         st = sk.stretch
         walk = dr.select(new, st.walk, self.walk)
@@ -240,13 +234,6 @@ def seek_start(ray: RayContext, walk: Walk, side, active, table=None) -> Seeking
                    searching=m.Bool(active))
 
 
-# A turn of the search loop first goes down through a non-empty inner node without its exit
-# and rope work (its record holds its children's, :meth:`DeviceVolume.node_search`), then takes
-# the full step on the child: a camera ray's search is mostly such descents. The steps taken
-# and their order are the same as one level per turn (False: the slow twin, for tests).
-TWO_LEVELS = True
-
-
 @dr.syntax
 def seek_steps(ray: RayContext, sk: Seeking, max_steps):
     """Up to ``max_steps`` steps of the search ``sk`` (all of them for None): ``(sk, steps)``,
@@ -260,7 +247,9 @@ def seek_steps(ray: RayContext, sk: Seeking, max_steps):
     going = sk.searching & (steps < limit)
     while dr.hint(going, label="seek"):
         cs = dr.gather(m.Array4u, records, NODE_RECORDS * sk.stretch.walk.node, going)
-        if dr.hint(TWO_LEVELS, mode="scalar"):
+        # A camera ray's search is mostly descents through non-empty inner nodes: two levels
+        # a turn (:class:`~mi_amr.kernels.config.SearchPlan`).
+        if dr.hint(ray.cfg.search.two_levels, mode="scalar"):
             sk, cs, steps = _through(ray, records, sk, cs, going & (steps + 1 < limit), steps)
         sk = _seek_step(ray, sk, cs, going)
         steps += 1
@@ -440,12 +429,15 @@ class CubicPiece:
         half = 0.5 * self.length
         return roots.cubic(self.num, half), roots.cubic(self.den, half)
 
-    def defined(self, active, d_mid):
-        """Is the field defined on the piece: some cell has weight at its start, middle
-        (``d_mid``: ``D`` there) and end. Next to missing values the weights can sum to much
-        less than 1 and the field is still defined."""
-        return active & (self.den[0] > tol.NO_WEIGHT) & \
-            (roots.cubic(self.den, self.length) > tol.NO_WEIGHT) & (d_mid > tol.NO_WEIGHT)
+    def defined(self, active, d_mid, ends=True):
+        """Is the field defined on the piece: some cell has weight at its middle (``d_mid``:
+        ``D`` there) and, with ``ends``, at its start and end. Next to missing values the
+        weights can sum to much less than 1 and the field is still defined."""
+        out = active & (d_mid > tol.NO_WEIGHT)
+        if ends:
+            out &= (self.den[0] > tol.NO_WEIGHT) & \
+                (roots.cubic(self.den, self.length) > tol.NO_WEIGHT)
+        return out
 
     def value_at_end(self):
         """The field's value ``N / D`` at the piece's end."""

@@ -15,11 +15,10 @@ Russian roulette below :data:`~mi_amr.tolerances.ROULETTE_T`
 With stochastic layers and 2 or more samples per pixel in a frame, the number that picks, and
 the shadow rays' roulette, are shared by the lanes of a SIMD packet (:func:`mi_amr.plugin.wavefront.packet_u`: 16 pixels, one sample index,
 the numbers stratified over a pixel's samples). A packet runs its loops until its last lane
-is done, so with a number per lane nearly every packet had a lane walking past every layer
-(three translucent isovalues, 256^2, 4 spp: frame 0.49 -> 0.42 s with the roulette; squared
-error per pixel 1.45e-3 -> 1.26e-3, the stratification's gain; ``integrator.packet_picks =
-False`` is the per-lane twin). The noise of neighbouring pixels is then correlated, by the
-pixels of a packet; their expectations are what compositing gives. At 1 spp, where a pixel's
+is done, so with a number per lane nearly every packet had a lane walking past every layer;
+stratifying the numbers over a pixel's samples also lowers the noise
+(``integrator.packet_picks = False`` is the per-lane twin). The noise of neighbouring pixels
+is then correlated, by the pixels of a packet; their expectations are what compositing gives. At 1 spp, where a pixel's
 one number would be its 4 x 4 tile's too (blocks of noise), lanes keep their own numbers.
 
 Rays are in the volume's world space (``o + t d``); scene rays come in as Mitsuba types.
