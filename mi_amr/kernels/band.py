@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
 
 import drjit as dr
 import numpy as np
@@ -38,6 +37,10 @@ import numpy as np
 from mi_amr import tolerances as tol
 from mi_amr.errors import AMRError
 from mi_amr.kernels.device import opaque_floats
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Float
 
 TABLE_SIZE = 8192     # cells of each band's integral table over its support
 TABLE_SUB = 4         # quadrature steps per table cell when the integral table is built
@@ -55,14 +58,14 @@ class BandInputs:
     inverses (``INVERSE_SIZE + 1`` each: the offset at which the integral reaches
     ``j / INVERSE_SIZE`` of its total)."""
 
-    width: Any
-    lo: Any
-    hi: Any
-    peak: Any
-    cap: Any
-    dx0: Any
-    table: Any
-    inverse: Any
+    width: Float
+    lo: Float
+    hi: Float
+    peak: Float
+    cap: Float
+    dx0: Float
+    table: Float
+    inverse: Float
     count: int = 1
 
     def get(self, m, name, k):
@@ -210,9 +213,9 @@ class Ramp:
     """A step of length ``dx`` (world) along which the value goes linearly from ``a`` to
     ``b``."""
 
-    a: Any
-    b: Any
-    dx: Any
+    a: Float
+    b: Float
+    dx: Float
 
 
 def _ramp_depth(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):

@@ -13,7 +13,7 @@ colours are linear RGB, premultiplied.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Callable, Optional, Protocol
 
 import drjit as dr
 
@@ -45,13 +45,23 @@ class Composite:
     samples: UInt32
 
 
+class Lighting(Protocol):
+    """What volume mode lights with (see :func:`composite`; the plugin's lighting)."""
+
+    def sample(self, p, lit, visible: bool) -> Any: ...
+
+    def terms(self, ctx, gradient, lit) -> tuple: ...
+
+    def lambert(self, ctx, gradient) -> Float: ...
+
+
 @dataclass
 class Shading:
     """How volume mode colours its light (see :func:`composite`): ``color_of(shares, value)``
     and the ``lighting``."""
 
     color_of: Callable
-    lighting: Any
+    lighting: Lighting
 
 
 def composite(ray: RayContext, jitter, shading: Optional[Shading] = None) -> Composite:
@@ -149,9 +159,9 @@ class Piece:
 
     s_pts: list
     values: list
-    cnum: Any = None
-    den: Any = None
-    gradient: Any = None
+    cnum: Optional[list] = None
+    den: Optional[list] = None
+    gradient: Optional[Callable] = None
 
     def shading_inputs(self, s):
         """The colour-field value and the gradient at piece parameter ``s``."""
@@ -175,9 +185,9 @@ class SubPiece:
     ``centre``."""
 
     alphas: list
-    alpha: Any
-    k: Any
-    centre: Any
+    alpha: Float
+    k: UInt32
+    centre: Float
 
 
 def _sub_pieces(ray: RayContext, piece: Piece, have, centres):

@@ -10,13 +10,19 @@ opaque device value that may change between frames without compiling anything.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Optional
+from typing import Optional
 
 import drjit as dr
 
 from mi_amr import tolerances as tol
-from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
+from mi_amr.kernels.band import BandInputs
+from mi_amr.kernels.starts import StartTable
+from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO, Transfer2DInputs
 from mi_amr.params import METHODS, RECONSTRUCTIONS  # noqa: F401  (re-exported)
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Float
 
 
 # Steps of a leaf search per step of the march that waits for it: a SIMD packet runs a loop as
@@ -52,15 +58,15 @@ class MarchConfig:
 
     method: str
     basis: bool
-    isovalues: Any
-    step_scale: Any
+    isovalues: Float
+    step_scale: Float
     num_iso: int
-    band: Any = None
+    band: Optional[BandInputs] = None
     preintegrated: bool = False
     shading_extrema: bool = True
-    transfer2d: Any = None
-    active_box: Any = None
-    start_table: Any = None
+    transfer2d: Optional[Transfer2DInputs] = None
+    active_box: Optional[tuple] = None
+    start_table: Optional[StartTable] = None
     search: SearchPlan = field(default_factory=SearchPlan)
 
     def iso(self, dev, k):

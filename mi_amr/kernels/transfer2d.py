@@ -10,13 +10,17 @@ so a new table (of any shape) or new ranges compile no kernel. Opacities are per
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Optional
 
 import drjit as dr
 
 from mi_amr import tolerances as tol
 from mi_amr.kernels.band import optical_depth
 from mi_amr.kernels.device import opaque_floats
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Float
 
 # Entries of :attr:`Transfer2DInputs.header`.
 V0, V1, G0, G1, ROWS, COLS, SUPPORT_LO, SUPPORT_HI = range(8)
@@ -31,10 +35,10 @@ class Transfer2DInputs:
     :meth:`~mi_amr.core.transfer2d.Transfer2D.value_support`); ``dx0``: the step length the
     opacities are for (world). All opaque."""
 
-    table: Any
-    header: Any
-    dx0: Any
-    integral: Any = None
+    table: Float
+    header: Float
+    dx0: Float
+    integral: Optional[Float] = None
 
     def get(self, m, k: int):
         return dr.gather(m.Float, self.header, m.UInt32(k))
