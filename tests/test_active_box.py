@@ -79,14 +79,16 @@ def sample_rays(integ, n=20000, seed=3):
 
 
 def first_crossings(integ, o, d, box):
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import first_crossing
 
     m = integ.m
     cfg = integ.config()
     if not box:          # the whole volume, each search from the root
         cfg = dataclasses.replace(cfg, active_box=None, start_table=None)
-    c = first_crossing(integ.dev, cfg, m.Array3f(*o.T), m.Array3f(*d.T), m.Float(0.0),
-                       m.Float(dr.inf), m.Float(0.5), m.Bool(True))
+    ray = RayContext(integ.dev, cfg, m.Array3f(*o.T), m.Array3f(*d.T), m.Float(0.0),
+                     m.Float(dr.inf), m.Bool(True))
+    c = first_crossing(ray, m.Float(0.5))
     dr.eval(c.t, c.hit, c.k)
     hit = c.hit.numpy().astype(bool)
     return np.where(hit, c.t.numpy(), np.inf), np.where(hit, c.k.numpy().astype(int), -1)

@@ -119,7 +119,8 @@ def test06_band_alpha_and_preintegration_match_numpy():
     xs = np.linspace(a, b, 20001)
     tau = -np.log1p(-np.minimum(shape.alpha_numpy(xs, 0.0), tolerances.OPACITY_CAP)) / 0.5
     want = 1.0 - math.exp(-np.trapezoid(tau, xs) / (b - a) * dx)
-    got = band.segment_alpha(m, inputs, 0, Float(a), Float(b), Float(dx), Float(0.0)).numpy()[0]
+    ramp = band.Ramp(Float(a), Float(b), Float(dx))
+    got = band.segment_alpha(m, inputs, 0, ramp, Float(0.0)).numpy()[0]
     assert got == pytest.approx(want, abs=2e-4)
     # Opacity correction: two half steps compose to one full step.
     half = band.corrected(inputs, Float(0.6), Float(0.25)).numpy()[0]
@@ -136,10 +137,9 @@ def test06b_several_bands_keep_their_own_shapes_and_add_optical_depths():
     for k, shape in enumerate((b0, b1)):
         np.testing.assert_allclose(band.alpha(m, inputs, k, f(v), Float(0.0)).numpy(),
                                    shape.alpha_numpy(v, 0.0), atol=1e-6)
-        one = band.segment_alpha(m, shape.inputs(m), 0, Float(-0.01), Float(0.02), Float(0.3),
-                                 Float(0.0)).numpy()
-        two = band.segment_alpha(m, inputs, k, Float(-0.01), Float(0.02), Float(0.3),
-                                 Float(0.0)).numpy()
+        ramp = band.Ramp(Float(-0.01), Float(0.02), Float(0.3))
+        one = band.segment_alpha(m, shape.inputs(m), 0, ramp, Float(0.0)).numpy()
+        two = band.segment_alpha(m, inputs, k, ramp, Float(0.0)).numpy()
         np.testing.assert_allclose(one, two, rtol=1e-6)
     a, shares = band.combine([Float(0.5), Float(0.75)])
     assert a.numpy()[0] == pytest.approx(1 - 0.5 * 0.25, abs=1e-6)
@@ -158,7 +158,7 @@ def test06c_a_steps_centroid_matches_quadrature(a, b, dx):
     against float64 quadrature of the same band; the opacity is segment_alpha's."""
     shape = band.OpacityBand(width=0.01, support=(-0.02, 0.03), peak=1.2, dx0=0.5)
     inputs = shape.inputs(m)
-    args = (m, inputs, 0, Float(a), Float(b), Float(dx), Float(0.0))
+    args = (m, inputs, 0, band.Ramp(Float(a), Float(b), Float(dx)), Float(0.0))
     alpha, u = band.segment_alpha_and_centroid(*args)
     ref_alpha, ref_u = shape.centroid_numpy(a, b, dx)
     assert alpha.numpy()[0] == pytest.approx(band.segment_alpha(*args).numpy()[0], abs=1e-7)
@@ -172,7 +172,7 @@ def test06c_a_steps_centroid_matches_quadrature(a, b, dx):
 def test06d_where_a_step_makes_half_its_opacity_matches_quadrature(a, b, dx):
     """The place a piece is lit (where half its opacity is made) against its float64 twin."""
     shape = band.OpacityBand(width=0.01, support=(-0.02, 0.03), peak=1.2, dx0=0.5)
-    args = (m, shape.inputs(m), 0, Float(a), Float(b), Float(dx), Float(0.0))
+    args = (m, shape.inputs(m), 0, band.Ramp(Float(a), Float(b), Float(dx)), Float(0.0))
     _, u = band.segment_alpha_and_point(*args)
     assert u.numpy()[0] == pytest.approx(shape.point_numpy(a, b, dx), abs=5e-4)
 

@@ -189,3 +189,24 @@ def test06_no_function_is_longer_than_80_lines(limit):
 def test07_the_integrator_module_is_thin():
     lines = len((PACKAGE / "plugin" / "integrator.py").read_text().splitlines())
     assert lines < 250, f"plugin/integrator.py has {lines} lines"
+
+
+@pytest.mark.parametrize("limit", [6])
+def test08_no_kernel_function_takes_more_than_6_parameters(limit):
+    """Kernel functions (every function in a module of ``mi_amr.kernels``, as
+    ``../shared/tools/layout_figures.py`` counts them: positional and keyword-only parameters,
+    ``self`` and ``cls`` aside) take a ray context or a small record instead of long argument
+    lists."""
+    wide = []
+    for path in SOURCES:
+        if not module_name(path).startswith("mi_amr.kernels."):
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                n = len([x for x in a.posonlyargs + a.args + a.kwonlyargs
+                         if x.arg not in ("self", "cls")])
+                if n > limit:
+                    wide.append(f"{path.relative_to(PACKAGE.parent)}:{node.lineno} "
+                                f"{node.name} ({n} parameters)")
+    assert not wide, "kernel functions over 6 parameters:\n" + "\n".join(wide)

@@ -18,10 +18,11 @@ import pytest
 from mi_amr import AMRVolume
 from mi_amr import tolerances as tol
 from mi_amr.kernels import band
-from mi_amr.kernels.composite import composite
+from mi_amr.kernels.composite import Shading, composite
 from mi_amr.kernels.config import MarchConfig
 from mi_amr.kernels.device import opaque_floats
 from mi_amr.kernels.prepared import PreparedVolume
+from mi_amr.kernels.ray import RayContext
 
 M = dr.llvm.ad
 # the three bands: (isovalue, width, peak); supports +- 2 widths, disjoint
@@ -106,8 +107,8 @@ def test01_a_ray_through_three_bands_matches_float64_quadrature(setup, direction
     t1 = 0.96 / 0.9
     o_k, d_k = M.Array3f(*map(float, o)), M.Array3f(*map(float, d))
     dr.make_opaque(o_k, d_k)     # (one kernel for both directions)
-    res = composite(dev, cfg, o_k, d_k, M.Float(0.0), M.Float(t1), M.Float(0.5), color_of,
-                    FlatLight(), M.Bool(True))
+    res = composite(RayContext(dev, cfg, o_k, d_k, M.Float(0.0), M.Float(t1), M.Bool(True)),
+                    M.Float(0.5), Shading(color_of, FlatLight()))
     C_ref, T_ref = quadrature(shapes, o, d, t1)
     C = np.array([res.C.x.numpy()[0], res.C.y.numpy()[0], res.C.z.numpy()[0]])
     assert T_ref > tol.T_MIN * 3     # no early termination: the whole ray counts
@@ -129,8 +130,8 @@ def test02_a_steps_opacity_and_centroid_match_quadrature():
         b = np.where(rng.random(n) < 0.3, a + rng.normal(0.0, 0.1 * shape.width, n),
                      rng.uniform(shape.lo * 1.3, shape.hi * 1.3, n))
         dx = shape.dx0 * np.exp(rng.uniform(np.log(0.01), np.log(5.0), n))
-        alpha, u = band.segment_alpha_and_centroid(M, shape.inputs(M), 0, M.Float(a),
-                                                   M.Float(b), M.Float(dx), M.Float(0.0))
+        ramp = band.Ramp(M.Float(a), M.Float(b), M.Float(dx))
+        alpha, u = band.segment_alpha_and_centroid(M, shape.inputs(M), 0, ramp, M.Float(0.0))
         ref = np.array([shape.centroid_numpy(*q, n=100001) for q in zip(a, b, dx)])
         np.testing.assert_allclose(alpha.numpy(), ref[:, 0], atol=5e-5)
         err = np.abs(u.numpy() - ref[:, 1]) * ref[:, 0]

@@ -306,8 +306,9 @@ def test07_segment_cubic_equals_the_point_reconstruction_inside_one_piece(hierar
     active = dr.full(M.Bool, True, len(p0))
     leaf = rec.locate(dev, array3(mids), active)
     arrays = dev.arrays(basis)
-    nums, den = rec.segment_cubic(dev, basis, leaf, array3(p0), array3(dirs),
-                                  M.Float(0.5 * length.astype(np.float32)), arrays, active)
+    seg = rec.Segment(leaf=leaf, p0=array3(p0), d=array3(dirs),
+                      s_mid=M.Float(0.5 * length.astype(np.float32)))
+    nums, den = rec.segment_cubic(dev, basis, seg, arrays, active)
     dr.eval(nums, den)
     n = [c.numpy().astype(np.float64) for c in nums[0]]
     d = [c.numpy().astype(np.float64) for c in den]

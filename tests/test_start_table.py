@@ -72,14 +72,16 @@ def test02_no_active_leaf_gives_an_empty_table(opaque):
 
 
 def crossings(integ, o, d, table):
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import first_crossing
 
     m = integ.m
     cfg = integ.config()
     if not table:
         cfg = dataclasses.replace(cfg, start_table=None)
-    c = first_crossing(integ.dev, cfg, m.Array3f(*o.T), m.Array3f(*d.T), m.Float(0.0),
-                       m.Float(dr.inf), m.Float(0.5), m.Bool(True))
+    ray = RayContext(integ.dev, cfg, m.Array3f(*o.T), m.Array3f(*d.T), m.Float(0.0),
+                     m.Float(dr.inf), m.Bool(True))
+    c = first_crossing(ray, m.Float(0.5))
     dr.eval(c.t, c.hit, c.k, c.samples)
     hit = c.hit.numpy().astype(bool)
     return (np.where(hit, c.t.numpy(), np.inf), np.where(hit, c.k.numpy().astype(int), -1),

@@ -49,14 +49,17 @@ def random_rays(integ, n=20000, seed=1):
     return o, d
 
 
-def layers(integ, o, d, resume):
-    """``(t, k)`` of the first 8 layers along the rays (inf / -1 past the last)."""
+def layers(integ, o, d, resume, cfg=None):
+    """``(t, k)`` of the first 8 layers along the rays (inf / -1 past the last), marching for
+    ``cfg`` (default: the integrator's)."""
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import crossings
 
     m = integ.m
     O, D = m.Array3f(*o.T), m.Array3f(*d.T)
-    state, after = crossings(integ.dev, integ.config(), O, D, m.Float(0.0), m.Float(dr.inf),
-                             m.Float(0.5), m.Bool(True), resume=resume)
+    ray = RayContext(integ.dev, cfg or integ.config(), O, D, m.Float(0.0), m.Float(dr.inf),
+                     m.Bool(True))
+    state, after = crossings(ray, m.Float(0.5), resume=resume)
     alive = m.Bool(True)
     ts, ks = [], []
     for _ in range(8):
@@ -145,16 +148,41 @@ def test04_a_jump_across_isovalues_is_a_layer_for_each(scenes):
             assert abs(a - before) < abs(b - before)
 
 
+def shadows(integ, o, d, cfg):
+    """The shadow rays' one-walk transmittance (:mod:`mi_amr.kernels.transmit`) up to
+    ``t = 50``, marching for ``cfg``."""
+    from mi_amr.kernels.ray import RayContext
+    from mi_amr.kernels.transmit import transmittance_exact
+
+    m = integ.m
+    ray = RayContext(integ.dev, cfg, m.Array3f(*o.T), m.Array3f(*d.T), m.Float(0.0),
+                     m.Float(50.0), m.Bool(True))
+    T = transmittance_exact(ray, integ.inputs["iso_opacity"], integ.opt.max_layers)
+    dr.eval(T)
+    return T.numpy()
+
+
+def searching(integ, **plan):
+    """The integrator's march configuration with the leaf searches taken as ``plan`` says
+    (:class:`~mi_amr.kernels.config.SearchPlan`)."""
+    import dataclasses
+
+    from mi_amr.kernels.config import SearchPlan
+
+    return dataclasses.replace(integ.config(), search=SearchPlan(**plan))
+
+
 @pytest.mark.parametrize("rec", ["basis", "finest"])
 def test05_leaf_searches_in_parts_find_what_whole_searches_find(scenes, rec):
-    """The march takes a few steps of a leaf search per piece (``Twins.seek_steps``); one
+    """The march takes a few steps of a leaf search per piece (``SearchPlan.steps``); one
     step at a time and the whole search at once (None) give the same layers, bit for bit, and
     the same shadow-ray transmittance."""
-    o, d = random_rays(scenes[rec].integrator(), n=3000, seed=2)
+    integ = scenes[rec].integrator()
+    o, d = random_rays(integ, n=3000, seed=2)
     results = []
     for steps in (1, None):
-        integ = with_twins(scenes[rec].integrator(), Twins(seek_steps=steps))
-        results.append((*layers(integ, o, d, resume=True), transmittance(integ, o, d, True)))
+        cfg = searching(integ, steps=steps)
+        results.append((*layers(integ, o, d, True, cfg), shadows(integ, o, d, cfg)))
     for a, b in zip(*results):
         np.testing.assert_array_equal(a, b)
 
@@ -162,17 +190,18 @@ def test05_leaf_searches_in_parts_find_what_whole_searches_find(scenes, rec):
 @pytest.mark.parametrize("rec", ["basis", "finest"])
 def test06_two_levels_a_turn_take_the_steps_of_one_level_a_turn(scenes, rec):
     """A turn of the leaf search goes down through a non-empty inner node before its full step
-    (``Twins.two_levels``); one level a turn, the slow twin, gives the same layers, bit for
-    bit, and the same shadow-ray transmittance, with the march's searches in parts as they are
-    and whole."""
+    (``SearchPlan.two_levels``); one level a turn, the slow twin, gives the same layers, bit
+    for bit, and the same shadow-ray transmittance, with the march's searches in parts as they
+    are and whole."""
     from mi_amr.kernels.config import SEEK_STEPS
 
-    o, d = random_rays(scenes[rec].integrator(), n=3000, seed=3)
+    integ = scenes[rec].integrator()
+    o, d = random_rays(integ, n=3000, seed=3)
     for steps in (SEEK_STEPS, None):
         results = []
         for two in (True, False):
-            integ = with_twins(scenes[rec].integrator(), Twins(two_levels=two, seek_steps=steps))
-            results.append((*layers(integ, o, d, resume=True), transmittance(integ, o, d, True)))
+            cfg = searching(integ, steps=steps, two_levels=two)
+            results.append((*layers(integ, o, d, True, cfg), shadows(integ, o, d, cfg)))
         for a, b in zip(*results):
             np.testing.assert_array_equal(a, b)
         assert np.isfinite(results[0][0]).any()          # the rays meet layers
@@ -191,6 +220,7 @@ def test07_sampled_layers_take_every_isovalue_two_samples_straddle(method):
     from mi_amr.kernels.config import MarchConfig
     from mi_amr.kernels.device import opaque_floats
     from mi_amr.kernels.prepared import PreparedVolume
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import crossings
 
     m = dr.llvm.ad
@@ -205,8 +235,8 @@ def test07_sampled_layers_take_every_isovalue_two_samples_straddle(method):
     y, z = (0.1 + 0.3 * rng.random(n) for _ in range(2))
     o = m.Array3f(m.Float(np.zeros(n)), m.Float(y), m.Float(z))
     d = m.Array3f(m.Float(np.ones(n)), m.Float(np.zeros(n)), m.Float(np.zeros(n)))
-    state, after = crossings(dev, cfg, o, d, m.Float(0.0), m.Float(dr.inf),
-                             m.Float(rng.random(n)), m.Bool(True), resume=False)
+    ray = RayContext(dev, cfg, o, d, m.Float(0.0), m.Float(dr.inf), m.Bool(True))
+    state, after = crossings(ray, m.Float(rng.random(n)), resume=False)
     alive = m.Bool(True)
     found = []
     for _ in range(4):

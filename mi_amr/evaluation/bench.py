@@ -297,6 +297,7 @@ def _samples_per_ray(scene) -> float:
     import drjit as dr
     import mitsuba as mi
 
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import first_crossing
 
     from mi_amr.evaluation.references import pixel_rays
@@ -305,8 +306,8 @@ def _samples_per_ray(scene) -> float:
     ray = pixel_rays(scene.sensors()[0])
     m = integ.m
     o, d = integ.frame.ray_to_volume(integ.m, ray.o, ray.d)
-    c = first_crossing(integ.dev, integ.config(), o, d, m.Float(0.0), m.Float(dr.inf),
-                       m.Float(0.5), m.Bool(True))
+    c = first_crossing(RayContext(integ.dev, integ.config(), o, d, m.Float(0.0),
+                                  m.Float(dr.inf), m.Bool(True)), m.Float(0.5))
     return float(np.mean(c.samples.numpy()))
 
 

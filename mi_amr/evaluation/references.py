@@ -79,6 +79,7 @@ def hit_buffers(scene) -> HitBuffers:
     import mitsuba as mi
 
     from mi_amr.kernels.jitter import stable_jitter
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import first_crossing
     from mi_amr.kernels.reconstruct import reconstruct
 
@@ -95,7 +96,8 @@ def hit_buffers(scene) -> HitBuffers:
     o, d = integ.frame.ray_to_volume(integ.m, ray.o, ray.d)
     jitter = stable_jitter(m, m.UInt32(idx))
     cfg = integ.config()
-    c = first_crossing(integ.dev, cfg, o, d, m.Float(0.0), m.Float(t_mesh), jitter, m.Bool(True))
+    c = first_crossing(RayContext(integ.dev, cfg, o, d, m.Float(0.0), m.Float(t_mesh),
+                                  m.Bool(True)), jitter)
     _, grad = reconstruct(integ.dev, cfg.basis, dr.fma(d, c.t, o), integ.dev.arrays(cfg.basis),
                           c.hit)
     n = dr.normalize(integ.frame.to_scene @ mi.Normal3f(grad.x, grad.y, grad.z))

@@ -5,7 +5,7 @@ Around the isovalue ``c`` (field units), with ``x = v - c``:
 from the centre), zero outside. ``alpha`` is the opacity of a step of length ``dx0`` (world
 units; the finest cell width). A step of length ``dx`` has the corrected opacity
 ``1 - (1 - alpha)^(dx / dx0)``. Pre-integrated: along a step where the value runs linearly from
-``a`` to ``b`` the optical depth is ``dx * (T(b) - T(a)) / (b - a)``, with ``T`` the integral of
+``a`` to ``b`` the optical depth is ``dx * (I(b) - I(a)) / (b - a)``, with ``I`` the integral of
 the extinction ``tau(x) = -ln(1 - alpha) / dx0`` over value offsets, tabulated once per band
 shape (:data:`TABLE_SIZE` + 1 points over the support), with its inverse.
 
@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
-from typing import Any
 
 import drjit as dr
 import numpy as np
@@ -38,6 +37,10 @@ import numpy as np
 from mi_amr import tolerances as tol
 from mi_amr.errors import AMRError
 from mi_amr.kernels.device import opaque_floats
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Float
 
 TABLE_SIZE = 8192     # cells of each band's integral table over its support
 TABLE_SUB = 4         # quadrature steps per table cell when the integral table is built
@@ -55,14 +58,14 @@ class BandInputs:
     inverses (``INVERSE_SIZE + 1`` each: the offset at which the integral reaches
     ``j / INVERSE_SIZE`` of its total)."""
 
-    width: Any
-    lo: Any
-    hi: Any
-    peak: Any
-    cap: Any
-    dx0: Any
-    table: Any
-    inverse: Any
+    width: Float
+    lo: Float
+    hi: Float
+    peak: Float
+    cap: Float
+    dx0: Float
+    table: Float
+    inverse: Float
     count: int = 1
 
     def get(self, m, name, k):
@@ -114,10 +117,10 @@ class OpacityBand:
         its inverse at :data:`INVERSE_SIZE` + 1 equally spaced integrals."""
         x = np.linspace(self.lo, self.hi, TABLE_SIZE * TABLE_SUB + 1)
         tau = self.extinction_numpy(x)
-        T = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(x))])
-        # tau > 0 over the support, so T rises strictly and has an inverse
-        inverse = np.interp(np.linspace(0.0, T[-1], INVERSE_SIZE + 1), T, x)
-        return x[::TABLE_SUB], T[::TABLE_SUB], inverse
+        cum = np.concatenate([[0.0], np.cumsum(0.5 * (tau[1:] + tau[:-1]) * np.diff(x))])
+        # tau > 0 over the support, so the integral rises strictly and has an inverse
+        inverse = np.interp(np.linspace(0.0, cum[-1], INVERSE_SIZE + 1), cum, x)
+        return x[::TABLE_SUB], cum[::TABLE_SUB], inverse
 
     def cap_offset(self) -> float:
         """The offset from the centre within which the opacity is capped (the plateau; 0 if it
@@ -194,13 +197,19 @@ def alpha(m, band: BandInputs, k, v, centre):
     return dr.select((x > band.get(m, "lo", k)) & (x < band.get(m, "hi", k)), a, 0.0)
 
 
+def optical_depth(a):
+    """The optical depth of opacity ``a`` (capped at :data:`~mi_amr.tolerances.OPACITY_CAP`,
+    whose depth is finite)."""
+    return -dr.log(1.0 - dr.minimum(a, tol.OPACITY_CAP))
+
+
 def corrected(band: BandInputs, a, dx):
     """Opacity correction of ``a`` for a step of length ``dx`` (world units)."""
     return 1.0 - dr.power(dr.maximum(1.0 - dr.minimum(a, tol.OPACITY_CAP), 0.0), dx / band.dx0)
 
 
 def integral(m, band: BandInputs, k, x):
-    """``T(x)`` of band ``k``: its extinction integrated from its support's low end to offset
+    """``I(x)`` of band ``k``: its extinction integrated from its support's low end to offset
     ``x``."""
     lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
     u = dr.clip((x - lo) / (hi - lo), 0.0, 1.0) * TABLE_SIZE
@@ -217,18 +226,28 @@ def cut_point(m, band: BandInputs, k, x):
     return integral(m, band, k, x), _shape_tau(m, band, k, clipped)
 
 
-def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre, ends=None):
+@dataclass
+class Ramp:
+    """A step of length ``dx`` (world) along which the value goes linearly from ``a`` to
+    ``b``."""
+
+    a: Float
+    b: Float
+    dx: Float
+
+
+def _ramp_depth(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):
     """Band ``k``'s optical depth over a step of length ``dx`` (world) along which the value
     goes linearly from ``a`` to ``b``; with the integral at both ends and whether the ramp is
     short (it holds less than :data:`~mi_amr.tolerances.SHORT_RAMP_DEPTH` of the band's
     integral). A short ramp's depth is Simpson's rule of the extinction over its part inside
     the support (the difference of two float32 integrals would lose its digits). ``ends``:
     :func:`cut_point` of both ends where the caller has them."""
-    xa, xb = a - centre, b - centre
-    (Ta, ta), (Tb, tb) = ends if ends is not None else \
+    xa, xb, dx = ramp.a - centre, ramp.b - centre, ramp.dx
+    (Ia, ta), (Ib, tb) = ends if ends is not None else \
         (cut_point(m, band, k, xa), cut_point(m, band, k, xb))
     total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
-    short = dr.abs(Tb - Ta) < tol.SHORT_RAMP_DEPTH * total
+    short = dr.abs(Ib - Ia) < tol.SHORT_RAMP_DEPTH * total
     lo, hi = band.get(m, "lo", k), band.get(m, "hi", k)
     ca, cb = dr.clip(xa, lo, hi), dr.clip(xb, lo, hi)
     moving = xb != xa
@@ -237,23 +256,22 @@ def _ramp_depth(m, band: BandInputs, k, a, b, dx, centre, ends=None):
                        dr.select((xa > lo) & (xa < hi), 1.0, 0.0))
     tm = _shape_tau(m, band, k, 0.5 * (ca + cb))
     simpson = inside * (ta + 4.0 * tm + tb) / (6.0 * band.dx0)
-    tau_mean = dr.select(short, simpson, (Tb - Ta) / dr.select(short, 1.0, xb - xa))
-    return dr.maximum(tau_mean, 0.0) * dx, Ta, Tb, short
+    tau_mean = dr.select(short, simpson, (Ib - Ia) / dr.select(short, 1.0, xb - xa))
+    return dr.maximum(tau_mean, 0.0) * dx, Ia, Ib, short
 
 
-def segment_alpha(m, band: BandInputs, k, a, b, dx, centre, ends=None):
-    """Pre-integrated opacity of band ``k`` for a step of length ``dx`` (world) along which the
-    value goes linearly from ``a`` to ``b`` (``ends``: :func:`cut_point` of ``a`` and ``b``,
-    if known)."""
-    return 1.0 - dr.exp(-_ramp_depth(m, band, k, a, b, dx, centre, ends)[0])
+def segment_alpha(m, band: BandInputs, k, ramp: Ramp, centre, ends=None):
+    """Pre-integrated opacity of band ``k`` for the step ``ramp`` (``ends``: :func:`cut_point`
+    of its ends' values, if known)."""
+    return 1.0 - dr.exp(-_ramp_depth(m, band, k, ramp, centre, ends)[0])
 
 
-def integral_inverse(m, band: BandInputs, k, T):
-    """The offset at which band ``k``'s integral reaches ``T`` (the inverse of
+def integral_inverse(m, band: BandInputs, k, reached):
+    """The offset at which band ``k``'s integral reaches ``reached`` (the inverse of
     :func:`integral`)."""
     total = dr.gather(m.Float, band.table, m.UInt32(k * (TABLE_SIZE + 1) + TABLE_SIZE))
     base = k * (INVERSE_SIZE + 1)
-    u = dr.clip(T / total, 0.0, 1.0) * INVERSE_SIZE
+    u = dr.clip(reached / total, 0.0, 1.0) * INVERSE_SIZE
     i = dr.minimum(m.UInt32(dr.floor(u)), INVERSE_SIZE - 1)
     f = u - m.Float(i)
     return dr.lerp(dr.gather(m.Float, band.inverse, i + base),
@@ -288,38 +306,38 @@ def _shape_tau(m, band, k, x):
     """The extinction (per ``dx0``) of band ``k``'s shape at offset ``x``, support ignored."""
     a = dr.minimum(1.0, band.get(m, "peak", k) *
                    dr.exp(-0.5 * dr.square(x / band.get(m, "width", k))))
-    return -dr.log(1.0 - dr.minimum(a, tol.OPACITY_CAP))
+    return optical_depth(a)
 
 
 def _place(m, band: BandInputs, k, ramp, r):
     """Where along a step (``ramp``: its value offsets, integrals, depth and shortness from
     :func:`_ramp`) a fraction ``r`` of its opacity is made (a fraction of the step)."""
-    xa, xb, Ta, Tb, tau, short = ramp
+    xa, xb, Ia, Ib, tau, short = ramp
     g = depth_fraction(r, tau)
-    u_long = (integral_inverse(m, band, k, dr.lerp(Ta, Tb, g)) - xa) / (xb - xa)
+    u_long = (integral_inverse(m, band, k, dr.lerp(Ia, Ib, g)) - xa) / (xb - xa)
     return dr.select(short, _short_ramp_u(m, band, k, xa, xb, g), u_long)
 
 
-def _ramp(m, band: BandInputs, k, a, b, dx, centre):
-    tau, Ta, Tb, short = _ramp_depth(m, band, k, a, b, dx, centre)
-    return a - centre, b - centre, Ta, Tb, tau, short
+def _ramp(m, band: BandInputs, k, ramp: Ramp, centre):
+    tau, Ia, Ib, short = _ramp_depth(m, band, k, ramp, centre)
+    return ramp.a - centre, ramp.b - centre, Ia, Ib, tau, short
 
 
-def segment_alpha_and_point(m, band: BandInputs, k, a, b, dx, centre, r=0.5):
+def segment_alpha_and_point(m, band: BandInputs, k, ramp: Ramp, centre, r=0.5):
     """:func:`segment_alpha`, and where along the step band ``k`` has made a fraction ``r`` of
     the step's opacity (a fraction of the step, 0 at ``a``). With ``r = 1/2`` (the median of
     its light) that is where a step is lit: for light arriving from the viewer's side it gives
     the shadow of the band in front exactly. A thin step gives the point where half its
     optical depth lies, an opaque one a point near its front."""
-    ramp = _ramp(m, band, k, a, b, dx, centre)
-    return 1.0 - dr.exp(-ramp[4]), dr.clip(_place(m, band, k, ramp, r), 0.0, 1.0)
+    ramped = _ramp(m, band, k, ramp, centre)
+    return 1.0 - dr.exp(-ramped[4]), dr.clip(_place(m, band, k, ramped, r), 0.0, 1.0)
 
 
 def _stretch(m, band: BandInputs, k, xa, xb, dx):
     """A ramp of value offsets ``xa`` to ``xb`` over length ``dx`` (world) as :func:`_ramp`
     gives it."""
-    tau, Ta, Tb, short = _ramp_depth(m, band, k, xa, xb, dx, 0.0)
-    return xa, xb, Ta, Tb, tau, short
+    tau, Ia, Ib, short = _ramp_depth(m, band, k, Ramp(xa, xb, dx), 0.0)
+    return xa, xb, Ia, Ib, tau, short
 
 
 def _flank_centroid(m, band: BandInputs, k, ramp):
@@ -338,7 +356,7 @@ def flat_centroid(tau):
     return dr.select(tau > tol.THIN_DEPTH, closed, 0.5 - tau / 12.0)
 
 
-def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
+def segment_alpha_and_centroid(m, band: BandInputs, k, ramp: Ramp, centre):
     """Pre-integrated opacity of band ``k`` over a step of length ``dx`` (world) along which
     the value goes linearly from ``a`` to ``b``, and the step's centroid ``u_bar`` (a fraction
     of the step, 0 at ``a``; see the module docstring): the light of the step is
@@ -347,6 +365,7 @@ def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
     (where the opacity is capped): there the extinction is constant and the centroid has a
     closed form; on the flanks it is smooth, and its kink at the cap would spoil the
     quadrature."""
+    a, b, dx = ramp.a, ramp.b, ramp.dx
     xa, xb = a - centre, b - centre
     cap = band.get(m, "cap", k)
     p0, p1 = _within(xa, xb, -cap, cap)
@@ -355,9 +374,9 @@ def segment_alpha_and_centroid(m, band: BandInputs, k, a, b, dx, centre):
     moment = m.Float(0.0)      # int u dF, F the opacity made from the front
     for j in range(3):
         u0, u1 = ends[j], ends[j + 1]
-        ramp = _stretch(m, band, k, dr.lerp(xa, xb, u0), dr.lerp(xa, xb, u1), dx * (u1 - u0))
-        a_j = 1.0 - dr.exp(-ramp[4])
-        c_j = flat_centroid(ramp[4]) if j == 1 else _flank_centroid(m, band, k, ramp)
+        part = _stretch(m, band, k, dr.lerp(xa, xb, u0), dr.lerp(xa, xb, u1), dx * (u1 - u0))
+        a_j = 1.0 - dr.exp(-part[4])
+        c_j = flat_centroid(part[4]) if j == 1 else _flank_centroid(m, band, k, part)
         moment += (1.0 - alpha) * a_j * dr.lerp(u0, u1, c_j)
         alpha += (1.0 - alpha) * a_j
     u_bar = dr.select(alpha > 0.0, moment / dr.maximum(alpha, tol.NO_WEIGHT), 0.5)
@@ -400,7 +419,7 @@ def combine(alphas):
     optical depth over the total; 0 where all are 0)."""
     if len(alphas) == 1:
         return alphas[0], [1.0]
-    taus = [-dr.log(1.0 - dr.minimum(a, tol.OPACITY_CAP)) for a in alphas]
+    taus = [optical_depth(a) for a in alphas]
     total = taus[0]
     for t in taus[1:]:
         total = total + t

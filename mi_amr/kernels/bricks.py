@@ -34,23 +34,26 @@ def build_pools(m, volume, arrays, parts, count):
     leaf = device_array(m.Bool, volume.leaf_mask_flat(), np.bool_)
     # Left unset: the levels' bricks are numbered 0..count-1 without a gap (brick_table) and
     # fill_level writes every slot of each, so no value is read before it is written, and
-    # new memory is touched once, by the fill (a NaN fill first took 1.2 s of a 27M-cell
-    # load, touching the pools before the fill touched them again).
+    # new memory is touched once, by the fill (a NaN fill first would touch the pools twice,
+    # and memory new to a process is slow to touch).
     if sum(int(n) for *_, n in parts) != count:
         raise ValueError(f"brick pools of {count} bricks for levels holding "
                          f"{sum(int(n) for *_, n in parts)}")
     pools = [dr.empty(m.Float, count * BRICK_N ** 3) for _ in arrays]
     for level, (lo, dims, table, _) in enumerate(parts):
-        fill_level(m, volume, level, arrays, lo, dims, table, 0, pools, leaf)
+        fill_level(m, volume, level, (lo, dims, table, 0), (arrays, leaf), pools)
     return pools
 
 
-def fill_level(m, volume, level, arrays, lo, dims, table, base, pools, leaf) -> None:
+def fill_level(m, volume, level, bricks, sources, pools) -> None:
     """Write the level's bricks into ``pools`` (one ``m.Float`` per array of ``arrays``, see
     :func:`build_pools`; brick number ``base`` at slot 0, ``BRICK_N^3`` slots a brick) for its
-    brick table: ``lo`` (the level-index cell of the table's first corner), ``dims`` and
-    ``table`` (brick numbers, ``NO_BRICK`` where unused) as :func:`brick_table` gives them.
-    ``leaf``: :meth:`AMRVolume.leaf_mask_flat` on the device."""
+    brick table ``bricks``, ``(lo, dims, table, base)``: ``lo`` (the level-index cell of the
+    table's first corner), ``dims`` and ``table`` (brick numbers, ``NO_BRICK`` where unused) as
+    :func:`brick_table` gives them. ``sources``: ``(arrays, leaf)``, the grids' values and
+    :meth:`AMRVolume.leaf_mask_flat` on the device."""
+    lo, dims, table, base = bricks
+    arrays, leaf = sources
     used = np.flatnonzero(table != NO_BRICK)
     if len(used) == 0:
         return
@@ -133,8 +136,8 @@ def level_bricks(volume, level, names, first, m=None):
                                                    for g in volume.grids]), np.float32)
               for name in names]
     pools = [dr.full(m.Float, dr.nan, n * BRICK_N ** 3) for _ in names]
-    fill_level(m, volume, level, arrays, lo, dims, table, first, pools,
-               device_array(m.Bool, volume.leaf_mask_flat(), np.bool_))
+    fill_level(m, volume, level, (lo, dims, table, first),
+               (arrays, device_array(m.Bool, volume.leaf_mask_flat(), np.bool_)), pools)
     return lo, dims, table, [p.numpy() for p in pools]
 
 

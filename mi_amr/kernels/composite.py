@@ -1,50 +1,79 @@
 """Volume mode: front-to-back compositing of the opacity band (:mod:`mi_amr.kernels.band`)
 around the isovalue, on the same kd-tree walk as the surfaces (:mod:`mi_amr.kernels.traverse`).
 
-Rays ``o + t d`` are in the volume's world space; colours are linear RGB, premultiplied.
+Shape: :func:`composite` takes a :class:`~mi_amr.kernels.ray.RayContext` and, for camera rays,
+a :class:`Shading`; both marches consume the one traversal
+(:class:`~mi_amr.kernels.traverse.March`): ``exact`` with whole leaf searches and
+:func:`~mi_amr.kernels.traverse.cubic_piece` pieces, split into sub-pieces where the value
+turns relative to a band; the sampling methods with sub-intervals of a
+:class:`~mi_amr.kernels.traverse.Lattice`. Rays ``o + t d`` are in the volume's world space;
+colours are linear RGB, premultiplied.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Callable, Optional, Protocol
 
 import drjit as dr
 
 from mi_amr import tolerances as tol
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels import roots
-from mi_amr.kernels.band import (alpha, combine, corrected, cut_point, depth_fraction,
-                                 flat_centroid, in_order, segment_alpha,
+from mi_amr.kernels.band import (Ramp, alpha, combine, corrected, cut_point, depth_fraction,
+                                 flat_centroid, in_order, optical_depth, segment_alpha,
                                  segment_alpha_and_centroid, segment_alpha_and_point)
-from mi_amr.kernels.config import MarchConfig
+from mi_amr.kernels.config import bisect_depth
 from mi_amr.kernels.device import lnot
+from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.kernels.transfer2d import alpha as alpha2d
 from mi_amr.kernels.transfer2d import segment_alpha as segment_alpha2d
-from mi_amr.kernels.traverse import (Walk, clip_to_volume, epsilon, next_dual_plane, seek,
-                                     seek_part, seek_start)
+from mi_amr.kernels.traverse import CubicPiece, Lattice, March, Walk, cubic_piece, sub_interval
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Array3f, Bool, Float, UInt32
 
 
 @dataclass
 class Composite:
     """Result of :func:`composite`: premultiplied colour ``C`` and the transmittance ``T`` left."""
 
-    C: Any
-    T: Any
-    samples: Any
+    C: Array3f
+    T: Float
+    samples: UInt32
 
 
-def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lighting,
-              active) -> Composite:
+class Lighting(Protocol):
+    """What volume mode lights with (see :func:`composite`; the plugin's lighting)."""
+
+    def sample(self, p, lit, visible: bool) -> Any: ...
+
+    def terms(self, ctx, gradient, lit) -> tuple: ...
+
+    def lambert(self, ctx, gradient) -> Float: ...
+
+
+@dataclass
+class Shading:
+    """How volume mode colours its light (see :func:`composite`): ``color_of(shares, value)``
+    and the ``lighting``."""
+
+    color_of: Callable
+    lighting: Lighting
+
+
+def composite(ray: RayContext, jitter, shading: Optional[Shading] = None) -> Composite:
     """Front-to-back compositing of the opacity bands ``cfg.band`` (one around each isovalue)
     or of the 2D transfer function ``cfg.transfer2d`` along the ray, with early termination when less than :data:`~mi_amr.tolerances.T_MIN` of
     the light gets through.
 
-    ``color_of(shares, value)`` gives the colour (``m.Array3f``) of a stretch where the bands
+    ``shading`` (None for shadow rays: only the transmittance is computed):
+    ``shading.color_of(shares, value)`` gives the colour (``m.Array3f``) of a stretch where the bands
     hold ``shares`` of the optical depth (a list, one per band) and the colour field is
     ``value``; an attribute ``same_for_all_bands`` says it ignores ``shares``.
-    ``lighting`` (None for shadow rays: only the transmittance is computed) has
+    ``shading.lighting`` has
     ``sample(p, lit, visible)``, the light samples at volume point ``p`` (with shadow rays
     where ``visible``), ``terms(ctx, gradient, lit)``, ``(A, S)`` such that the shaded colour
     of a point of colour ``c`` and gradient ``gradient`` lit by those samples is ``c * A + S``
@@ -65,11 +94,10 @@ def composite(dev, cfg: MarchConfig, o, d, t_start, t_end, jitter, color_of, lig
     step with opacity correction (or pre-integration between consecutive samples); ``bisect``
     moves a sample into the band when two samples straddle it (the course report's method).
     """
-    m = dev.m
-    o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active)
-    if cfg.method == "exact":
-        return _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active)
-    return _composite_sampled(dev, cfg, o, d, t0, t1, m.Float(jitter), color_of, lighting, active)
+    ray = ray.clipped()
+    if ray.cfg.method == "exact":
+        return _composite_exact(ray, shading)
+    return _composite_sampled(ray, ray.m.Float(jitter), shading)
 
 
 def _sort(values):
@@ -113,40 +141,41 @@ def _quadratic(q, x):
     return q0 + x * ((4.0 * qm - 3.0 * q0 - q1) + x * (2.0 * (q0 + q1) - 4.0 * qm))
 
 
-def _quadratic_extremum(q, L):
-    """Where in ``[0, L]`` the quadratic through ``q`` (at 0, L/2, L) turns; ``L`` if it does
-    not inside."""
+def _quadratic_extremum(q, length):
+    """Where in ``[0, length]`` the quadratic through ``q`` (at 0, the middle and the end)
+    turns; ``length`` if it does not inside."""
     q0, qm, q1 = q
     curv = 2.0 * (q0 + q1) - 4.0 * qm
     x = -(4.0 * qm - 3.0 * q0 - q1) / (2.0 * curv)
     inside = (dr.abs(curv) > tol.QUADRATIC_EPS) & (x > 0.0) & (x < 1.0)
-    return dr.select(inside, x, 1.0) * L
+    return dr.select(inside, x, 1.0) * length
 
 
 @dataclass
 class Piece:
-    """A cubic piece ``[0, L]`` split at ``s_pts`` (sorted, from 0 to ``L``) and the field's
-    values there; where it is shaded, the colour field's cubic numerator ``cnum``, the shared
-    denominator ``den`` and ``gradient(s)``, the gradient at piece parameter ``s``."""
+    """A cubic piece ``[0, length]`` split at ``s_pts`` (sorted, from 0 to ``length``) and the
+    field's values there; where it is shaded, the colour field's cubic numerator ``cnum``, the
+    shared denominator ``den`` and ``gradient(s)``, the gradient at piece parameter ``s``."""
 
     s_pts: list
     values: list
-    cnum: Any = None
-    den: Any = None
-    gradient: Any = None
+    cnum: Optional[list] = None
+    den: Optional[list] = None
+    gradient: Optional[Callable] = None
 
     def shading_inputs(self, s):
         """The colour-field value and the gradient at piece parameter ``s``."""
         return roots.cubic(self.cnum, s) / roots.cubic(self.den, s), self.gradient(s)
 
 
-def _split(dev, cfg, num, den, L, marks, extra):
+def _split(cp: CubicPiece, marks, extra):
     """Cut a cubic piece where the value can turn relative to a band (the extrema of
     ``N - v D`` for each of ``marks``) and at ``extra``."""
+    num, den, length = cp.num, cp.den, cp.length
     cuts = list(extra)
     for v in marks:
-        cuts += list(roots.extrema([num[i] - v * den[i] for i in range(4)], L))
-    return [0.0 * L] + _sort(cuts) + [L]
+        cuts += list(roots.extrema([num[i] - v * den[i] for i in range(4)], length))
+    return [0.0 * length] + _sort(cuts) + [length]
 
 
 @dataclass
@@ -156,23 +185,22 @@ class SubPiece:
     ``centre``."""
 
     alphas: list
-    alpha: Any
-    k: Any
-    centre: Any
+    alpha: Float
+    k: UInt32
+    centre: Float
 
 
-def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
+def _sub_pieces(ray: RayContext, piece: Piece, have, centres):
     """Per sub-piece its :class:`SubPiece`."""
-    m = dev.m
+    m, cfg = ray.m, ray.cfg
     out = []
     # what each band needs of each cut, shared by the sub-pieces on either side
     ints = [] if cfg.transfer2d is not None else \
         [[cut_point(m, cfg.band, k, v - c) for v in piece.values] for k, c in enumerate(centres)]
     for i in range(len(piece.s_pts) - 1):
-        dx = (piece.s_pts[i + 1] - piece.s_pts[i]) * dnorm
-        a_i, b_i = piece.values[i], piece.values[i + 1]
+        dx = (piece.s_pts[i + 1] - piece.s_pts[i]) * ray.dnorm
         alphas = [dr.select(have & (dx > 0.0), a, 0.0)
-                  for a in _opacities(m, cfg, piece, i, a_i, b_i, dx, centres, ints)]
+                  for a in _opacities(ray, piece, i, dx, centres, ints)]
         k_best, c_best, best = m.UInt32(0), centres[0], alphas[0]
         trans = 1.0 - alphas[0]
         for k in range(1, len(alphas)):
@@ -185,13 +213,15 @@ def _sub_pieces(dev, cfg, piece: Piece, dnorm, have, centres):
     return out
 
 
-def _opacities(m, cfg, piece: Piece, i, a, b, dx, centres, ints):
-    """Each band's pre-integrated opacity on sub-piece ``i`` (value ``a`` to ``b``, length
-    ``dx``, world; ``ints[k][j]``: band ``k``'s :func:`~mi_amr.kernels.band.cut_point` at cut
-    ``j``); with a 2D transfer
-    function its one band, at the gradient magnitude of the sub-piece's middle."""
+def _opacities(ray: RayContext, piece: Piece, i, dx, centres, ints):
+    """Each band's pre-integrated opacity on sub-piece ``i`` (its values run from
+    ``piece.values[i]`` to the next, over length ``dx``, world; ``ints[k][j]``: band ``k``'s
+    :func:`~mi_amr.kernels.band.cut_point` at cut ``j``); with a 2D transfer function its one
+    band, at the gradient magnitude of the sub-piece's middle."""
+    m, cfg = ray.m, ray.cfg
+    a, b = piece.values[i], piece.values[i + 1]
     if cfg.transfer2d is None:
-        return [segment_alpha(m, cfg.band, k, a, b, dx, c, (ints[k][i], ints[k][i + 1]))
+        return [segment_alpha(m, cfg.band, k, Ramp(a, b, dx), c, (ints[k][i], ints[k][i + 1]))
                 for k, c in enumerate(centres)]
     mid = 0.5 * (piece.s_pts[i] + piece.s_pts[i + 1])
     return [segment_alpha2d(m, cfg.transfer2d, a, b, dx, dr.norm(piece.gradient(mid)))]
@@ -224,17 +254,24 @@ def _pick(piece: Piece, subs, dnorm, i):
     return out
 
 
-def _depth(alpha):
-    """The optical depth of opacity ``alpha``."""
-    return -dr.log(1.0 - dr.minimum(alpha, tol.OPACITY_CAP))
+@dataclass
+class Lit:
+    """How a piece is lit: the ``shading``, the light samples ``ctx`` (with their shadow
+    rays) where ``lit``, and the bands' centres."""
+
+    shading: Shading
+    ctx: Any
+    lit: Bool
+    centres: list
 
 
-def _light_place(m, cfg, piece: Piece, subs, dnorm, centres):
+def _light_place(ray: RayContext, piece: Piece, subs, centres):
     """Where the piece is lit (a piece parameter): where it has made half its opacity (the
     median of its light), found on the sub-piece where that happens, in its most opaque band
     (:func:`~mi_amr.kernels.band.segment_alpha_and_point`). A shadow ray from there gets the
     band's shadow on itself right for light from the viewer's side; from the band's middle,
     or anywhere in a cell, the band would shadow itself at random. Also the piece's opacity."""
+    m, cfg = ray.m, ray.cfg
     trans = [m.Float(1.0)]
     for sub in subs:
         trans.append(trans[-1] * (1.0 - sub.alpha))
@@ -247,41 +284,41 @@ def _light_place(m, cfg, piece: Piece, subs, dnorm, centres):
         i_half = dr.select(here, i, i_half)
         r = dr.select(here, (target - made_before) /
                       dr.maximum(made_after - made_before, tol.NO_WEIGHT), r)
-    a, b, dx, k, c, s0, s1, alpha = _pick(piece, subs, dnorm, i_half)
+    a, b, dx, k, c, s0, s1, alpha_i = _pick(piece, subs, ray.dnorm, i_half)
     if cfg.transfer2d is None:
-        _, u = segment_alpha_and_point(m, cfg.band, k, a, b, dx, c, r)
+        _, u = segment_alpha_and_point(m, cfg.band, k, Ramp(a, b, dx), c, r)
     else:   # (its extinction taken as even along the sub-piece)
-        u = depth_fraction(r, _depth(alpha))
+        u = depth_fraction(r, optical_depth(alpha_i))
     return dr.lerp(s0, s1, u), 1.0 - trans[-1]
 
 
-def _shaded_colors(m, cfg, piece: Piece, subs, dnorm, i, ctx, lighting, lit, centres,
-                   color_of):
+def _shaded_colors(ray: RayContext, piece: Piece, subs, i, lit: Lit):
     """Each band's shaded colour ``c * A + S`` at the centroid of sub-piece ``i``'s most opaque
     band (the one-point rule of the sub-piece's light: exact where the shaded colour runs
     linearly along it, and close where it curves, as a highlight does)."""
-    nb = len(centres)
+    m, cfg = ray.m, ray.cfg
+    color_of = lit.shading.color_of
+    nb = len(lit.centres)
     same = getattr(color_of, "same_for_all_bands", nb == 1)
-    a, b, dx, k, c, s0, s1, alpha = _pick(piece, subs, dnorm, i)
+    a, b, dx, k, c, s0, s1, alpha_i = _pick(piece, subs, ray.dnorm, i)
     if cfg.transfer2d is None:
-        _, u = segment_alpha_and_centroid(m, cfg.band, k, a, b, dx, c)
+        _, u = segment_alpha_and_centroid(m, cfg.band, k, Ramp(a, b, dx), c)
     else:   # (its extinction taken as even along the sub-piece)
-        u = flat_centroid(_depth(alpha))
+        u = flat_centroid(optical_depth(alpha_i))
     cval, grad = piece.shading_inputs(dr.lerp(s0, s1, u))
-    A, S = lighting.terms(ctx, grad, lit)
+    A, S = lit.shading.lighting.terms(lit.ctx, grad, lit.lit)
     return [color_of(_one_hot(nb, 0 if same else j), cval) * A + S for j in range(nb)]
 
 
-def _piece_light(m, cfg, piece: Piece, subs, dnorm, ctx, lighting, lit, centres, color_of):
-    """The light and transmittance of a piece, lit by the light samples ``ctx``: the two most
-    opaque sub-pieces are each shaded at their centroid (:func:`_shaded_colors`), the others
-    (a band seldom reaches more than two) take the most opaque one's colours; on each the
-    bands are met in the order of the value ramp."""
+def _piece_light(ray: RayContext, piece: Piece, subs, lit: Lit):
+    """The light and transmittance of a piece, lit by ``lit``: the two most opaque
+    sub-pieces are each shaded at their centroid (:func:`_shaded_colors`), the others (a band
+    seldom reaches more than two) take the most opaque one's colours; on each the bands are
+    met in the order of the value ramp."""
+    m = ray.m
     i1, i2 = _two_most_opaque(m, subs)
-    first = _shaded_colors(m, cfg, piece, subs, dnorm, i1, ctx, lighting, lit, centres,
-                           color_of)
-    second = _shaded_colors(m, cfg, piece, subs, dnorm, i2, ctx, lighting, lit, centres,
-                            color_of)
+    first = _shaded_colors(ray, piece, subs, i1, lit)
+    second = _shaded_colors(ray, piece, subs, i2, lit)
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     for i, sub in enumerate(subs):
@@ -289,7 +326,7 @@ def _piece_light(m, cfg, piece: Piece, subs, dnorm, ctx, lighting, lit, centres,
         # (no light where a band is not met: the colour of a piece without weight is NaN)
         lights = [dr.select(a > 0.0, a * e, 0.0) for a, e in zip(sub.alphas, colors)]
         rising = piece.values[i + 1] > piece.values[i]
-        light, trans = in_order(m, sub.alphas, lights, centres, rising)
+        light, trans = in_order(m, sub.alphas, lights, lit.centres, rising)
         C += T * light
         T *= trans
     return C, T
@@ -299,44 +336,37 @@ def _one_hot(n, k):
     return [1.0 if j == k else 0.0 for j in range(n)]
 
 
-def _piece(dev, cfg, o, d, w: Walk, L, nums, den, marks, lighting, arrays, have):
-    """The cubic piece ``[w.t, w.t + L]`` split for compositing: where the value can turn
-    relative to a band and, where it is shaded with ``cfg.shading_extrema``, where the first
-    light's diffuse term turns (Marchesin et al. 2009, section 3.2; that term is a quadratic
-    in ``t`` inside a trilinear cell, and so is the gradient, which is then taken at the
-    piece's front, middle and back and interpolated, as it is for a 2D transfer function;
+def _piece(ray: RayContext, cp: CubicPiece, leaf, marks, lighting, have):
+    """The cubic piece ``cp`` (in kd leaf ``leaf``) split for compositing: where the value can
+    turn relative to a band and, where it is shaded with ``cfg.shading_extrema``, where the
+    first light's diffuse term turns (Marchesin et al. 2009, section 3.2; that term is a
+    quadratic in ``t`` inside a trilinear cell, and so is the gradient, which is then taken at
+    the piece's front, middle and back and interpolated, as it is for a 2D transfer function;
     otherwise it is reconstructed where it is needed)."""
+    cfg, length = ray.cfg, cp.length
+    arrays = ray.dev.arrays(cfg.basis, color=True)
+
     def reconstructed(s):
-        return rec.reconstruct(dev, cfg.basis, dr.fma(d, w.t + s, o), arrays[:1], have,
-                               leaf=w.leaf)[1]
+        return rec.reconstruct(ray.dev, cfg.basis, ray.at(cp.t + s), arrays[:1], have,
+                               leaf=leaf)[1]
 
     extra, gradient = [], reconstructed
     shade_cut = lighting is not None and cfg.shading_extrema
     if shade_cut or cfg.transfer2d is not None:
-        grads_q = [reconstructed(f * L) for f in (0.0, 0.5, 1.0)]
+        grads_q = [reconstructed(f * length) for f in (0.0, 0.5, 1.0)]
 
         def gradient(s):
-            return _quadratic(grads_q, s / L)
+            return _quadratic(grads_q, s / length)
 
     if shade_cut:
-        ctx = lighting.sample(dr.fma(d, w.t + 0.5 * L, o), have, False)
-        extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], L)]
+        ctx = lighting.sample(ray.at(cp.t + 0.5 * length), have, False)
+        extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], length)]
 
-    s_pts = _split(dev, cfg, nums[0], den, L, marks, extra)
-    values = [roots.cubic(nums[0], s) / roots.cubic(den, s) for s in s_pts]
+    s_pts = _split(cp, marks, extra)
+    values = [roots.cubic(cp.num, s) / roots.cubic(cp.den, s) for s in s_pts]
     if lighting is None:
         return Piece(s_pts=s_pts, values=values, gradient=gradient)
-    return Piece(s_pts=s_pts, values=values, cnum=nums[1], den=den, gradient=gradient)
-
-
-def _leaf_piece_end(dev, o, d, inv_d, w: Walk, t1, dnorm, level_masks, work):
-    """The end of the cubic piece from ``w.t``: the next dual-cell plane, the leaf's end or
-    ``t1``."""
-    eps = epsilon(dev, w.t, dnorm)
-    mask = dr.gather(dev.m.UInt32, level_masks, w.leaf, work)
-    t_b = dr.minimum(dr.minimum(next_dual_plane(dev, mask, o, d, inv_d, w.t + eps), w.t_exit),
-                     t1)
-    return dr.maximum(t_b, w.t + eps)
+    return Piece(s_pts=s_pts, values=values, cnum=cp.nums[1], den=cp.den, gradient=gradient)
 
 
 def _exact_marks(dev, cfg):
@@ -351,45 +381,39 @@ def _exact_marks(dev, cfg):
 
 
 @dr.syntax
-def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
-    m = dev.m
-    dnorm = dr.norm(d)
-    inv_d = dr.select(d != 0.0, dr.rcp(d), dr.inf)
-    shade = lighting is not None
-    arrays = dev.arrays(cfg.basis, color=True)
-    level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
-    centres, marks = _exact_marks(dev, cfg)
+def _composite_exact(ray: RayContext, shading: Optional[Shading]):
+    m, cfg = ray.m, ray.cfg
+    shade = shading is not None
+    lighting = shading.lighting if shade else None
+    arrays = ray.dev.arrays(cfg.basis, color=True)
+    centres, marks = _exact_marks(ray.dev, cfg)
     C = m.Array3f(0.0)
     T = m.Float(1.0)
-    w = Walk.start(m, t0)
+    # Each leaf search whole: this march's pieces cost far more than search steps.
+    march = March.start(ray, whole=True)
     samples = m.UInt32(0)
-    while active:
-        # --- The next leaf with opacity: the whole search at once. (A few steps at a time,
-        # traverse.seek_part, made this march slower: 1.15 against 0.89 s on
-        # sphere_wake_volume at 256^2, as its pieces cost far more than search steps.)
-        new = w.needs_leaf()
-        st = seek(dev, cfg, o, d, w.t, t1, w.node, w.face, m.Float(dr.nan), active & new)
-        w = w.adopt(new, st)
-        active &= lnot(new) | st.found
+    active = m.Bool(ray.active)
+    while dr.hint(active, label="composite"):
+        # --- The next leaf with opacity.
+        march, leg = march.next(ray, m.Float(dr.nan), active)
+        active &= leg.onward
 
         # --- The cubic piece [t, t_b] up to the next dual-cell plane (or the leaf's end).
         work = m.Bool(active)
-        t_b = _leaf_piece_end(dev, o, d, inv_d, w, t1, dnorm, level_masks, work)
-        L = t_b - w.t
-        nums, den = rec.segment_cubic(dev, cfg.basis, w.leaf, dr.fma(d, w.t, o), d, 0.5 * L,
-                                      arrays, work)
+        cp = cubic_piece(ray, march.walk, arrays, work)
         samples += dr.select(work, 1, 0)
-        have = work & (roots.cubic(den, 0.5 * L) > tol.NO_WEIGHT)
-        piece = _piece(dev, cfg, o, d, w, L, nums, den, marks, lighting, arrays, have)
-        subs = _sub_pieces(dev, cfg, piece, dnorm, have, centres)
+        # (The middle's weight alone: a piece that ends at missing data still has its band's
+        # opacity up to there.)
+        have = cp.defined(work, cp.mid()[1], ends=False)
+        piece = _piece(ray, cp, march.walk.leaf, marks, lighting, have)
+        subs = _sub_pieces(ray, piece, have, centres)
 
         # --- Light once per piece of the ray, where it is most opaque; shade at every cut.
         if dr.hint(shade, mode="scalar"):
-            s_best, best_alpha = _light_place(m, cfg, piece, subs, dnorm, centres)
+            s_best, best_alpha = _light_place(ray, piece, subs, centres)
             lit = have & (best_alpha > tol.ALPHA_LIT)
-            ctx = lighting.sample(dr.fma(d, w.t + s_best, o), lit, True)
-            C_p, T_p = _piece_light(m, cfg, piece, subs, dnorm, ctx, lighting, lit, centres,
-                                    color_of)
+            ctx = lighting.sample(ray.at(cp.t + s_best), lit, True)
+            C_p, T_p = _piece_light(ray, piece, subs, Lit(shading, ctx, lit, centres))
             C += dr.select(work, T * C_p, 0.0)
             T = dr.select(work, T * T_p, T)
         else:
@@ -397,8 +421,8 @@ def _composite_exact(dev, cfg, o, d, t0, t1, color_of, lighting, active):
                 for a in sub.alphas:
                     T = dr.select(work, T * (1.0 - a), T)
 
-        w.t = dr.select(work, t_b, w.t)
-        active &= (w.t < t1) & (T > tol.T_MIN)
+        march.walk.t = dr.select(work, cp.end, march.walk.t)
+        active &= (march.walk.t < ray.t1) & (T > tol.T_MIN)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
     return Composite(C=C, T=T, samples=samples)
 
@@ -409,66 +433,73 @@ class Sample:
     ``b``), taken where ``take``; the field value ``v``, the colour-field value ``cval`` and
     the gradient ``grad`` there."""
 
-    b: Any
-    t_s: Any
-    take: Any
-    v: Any
-    cval: Any
-    grad: Any
+    b: Float
+    t_s: Float
+    take: Bool
+    v: Float
+    cval: Float
+    grad: Array3f
 
 
-def _volume_sample(dev, cfg, o, d, dnorm, w: Walk, t1, t_anchor, rho, dt, arrays, active):
+@dataclass
+class Previous:
+    """The sample before: its place ``t`` and value ``v`` (NaN: none that borders the next
+    step)."""
+
+    t: Float
+    v: Float
+
+
+def _volume_sample(ray: RayContext, walk: Walk, lattice: Lattice, arrays, active) -> Sample:
     """The next sub-interval (to a step position or the leaf's end) and its sample."""
-    m = dev.m
-    uniform = cfg.method == "uniform"
-    eps = epsilon(dev, w.t, dnorm)
-    step = dr.floor((w.t - t_anchor) / dt - rho + tol.LATTICE_SNAP) + 1.0
-    b_lattice = t_anchor + (rho + step) * dt
-    b = dr.maximum(dr.minimum(dr.minimum(b_lattice, w.t_exit), t1), w.t + eps)
-    if uniform:
+    b, b_lattice, on_lattice = sub_interval(ray, walk, lattice)
+    if ray.cfg.method == "uniform":
         t_s = b_lattice
-        take = active & (b_lattice <= dr.minimum(w.t_exit, t1))
+        take = active & on_lattice
     else:
-        t_s = 0.5 * (w.t + b)
-        take = m.Bool(active)
-    vals, grad = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_s, o), arrays, take, leaf=w.leaf)
+        t_s = 0.5 * (walk.t + b)
+        take = ray.m.Bool(active)
+    vals, grad = rec.reconstruct(ray.dev, ray.cfg.basis, ray.at(t_s), arrays, take,
+                                 leaf=walk.leaf)
     return Sample(b=b, t_s=t_s, take=take, v=vals[0], cval=vals[1], grad=grad)
 
 
-def _into_band(dev, cfg, o, d, smp: Sample, t_prev, v_prev, bands, arrays):
+def _into_band(ray: RayContext, smp: Sample, prev: Previous, bands, arrays) -> Sample:
     """``bisect``: two samples on either side of a band (``bands``: ``(lo, hi)`` value ranges;
     the first listed that is straddled); move this sample into it if a point in between lies in
     it (course report, section 3.6.2)."""
-    m = dev.m
+    m = ray.m
     moved = m.Bool(False)
     t_m = m.Float(smp.t_s)
-    for band_lo, band_hi in bands:
-        straddle = smp.take & lnot(moved) & (((v_prev < band_lo) & (smp.v > band_hi)) |
-                                             ((v_prev > band_hi) & (smp.v < band_lo)))
-        t_k, found = _bisect_band(dev, cfg, o, d, t_prev, smp.t_s, v_prev, band_lo, band_hi,
-                                  straddle)
+    for band in bands:
+        band_lo, band_hi = band
+        straddle = smp.take & lnot(moved) & (((prev.v < band_lo) & (smp.v > band_hi)) |
+                                             ((prev.v > band_hi) & (smp.v < band_lo)))
+        t_k, found = _bisect_band(ray, prev, smp.t_s, band, straddle)
         t_m = dr.select(straddle & found, t_k, t_m)
         moved |= straddle & found
-    vals_m, grad_m = rec.reconstruct(dev, cfg.basis, dr.fma(d, t_m, o), arrays, moved)
+    vals_m, grad_m = rec.reconstruct(ray.dev, ray.cfg.basis, ray.at(t_m), arrays, moved)
     return Sample(b=smp.b, t_s=dr.select(moved, t_m, smp.t_s), take=smp.take,
                   v=dr.select(moved, vals_m[0], smp.v), cval=dr.select(moved, vals_m[1], smp.cval),
                   grad=dr.select(moved, grad_m, smp.grad))
 
 
-def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centres):
-    """The opacity of a sample's step. Opacity-correction weight: the step (uniform), the
-    sub-interval (adaptive, ExaBricks) or the distance from the previous sample (bisect, course
-    report). Pre-integrated: the value runs from the previous sample to this one, integrated
-    over that distance (steps tile the ray from one sample to the next; the first, from where
-    the ray or the leaf starts, at the first sample's value). Returns the opacity, the
-    bands' shares of it and where the step is lit (:func:`_light_point`)."""
+def _sample_alpha(ray: RayContext, smp: Sample, t, prev: Previous, dt, centres):
+    """The opacity of a sample's step (from ``t``, the step ``dt``). Opacity-correction
+    weight: the step (uniform), the sub-interval (adaptive, ExaBricks) or the distance from
+    the previous sample (bisect, course report). Pre-integrated: the value runs from the
+    previous sample to this one, integrated over that distance (steps tile the ray from one
+    sample to the next; the first, from where the ray or the leaf starts, at the first
+    sample's value). Returns the opacity, the bands' shares of it and where the step is lit
+    (:func:`_light_point`)."""
+    m, cfg, dnorm = ray.m, ray.cfg, ray.dnorm
     band = cfg.band
     if cfg.method == "uniform":
         dx = dt * dnorm
     elif cfg.method == "adaptive":
         dx = (smp.b - t) * dnorm
     else:
-        dx = (smp.t_s - t_prev) * dnorm
+        dx = (smp.t_s - prev.t) * dnorm
     if cfg.transfer2d is not None:
         # The 2D transfer function is the one band: opacity by value and |grad f|.
         a = corrected(cfg.transfer2d, alpha2d(m, cfg.transfer2d, smp.v, dr.norm(smp.grad)), dx)
@@ -476,26 +507,27 @@ def _sample_alpha(m, cfg, smp: Sample, t, t_prev, v_prev, dt, dnorm, centres):
     alphas, points = [], []
     for k, centre in enumerate(centres):
         if cfg.preintegrated:
-            span = (smp.t_s - t_prev) * dnorm
-            a_ramp, u = segment_alpha_and_point(m, band, k, v_prev, smp.v, span, centre)
-            a = dr.select(dr.isfinite(v_prev), a_ramp,
+            span = (smp.t_s - prev.t) * dnorm
+            a_ramp, u = segment_alpha_and_point(m, band, k, Ramp(prev.v, smp.v, span),
+                                                      centre)
+            a = dr.select(dr.isfinite(prev.v), a_ramp,
                           corrected(band, alpha(m, band, k, smp.v, centre), span))
             points.append(u)
         else:
             a = corrected(band, alpha(m, band, k, smp.v, centre), dx)
         alphas.append(dr.select(smp.take & dr.isfinite(smp.v), a, 0.0))
     a, shares = combine(alphas)
-    return a, shares, _light_point(cfg, smp, t_prev, v_prev, points, shares)
+    return a, shares, _light_point(cfg, smp, prev, points, shares)
 
 
-def _light_point(cfg, smp: Sample, t_prev, v_prev, points, shares):
+def _light_point(cfg, smp: Sample, prev: Previous, points, shares):
     """Where a sample is lit: the sample, or for a pre-integrated step from the previous sample
     where the band holding most of its opacity has made half of it (``points``: that place per
     band, a fraction of the step)."""
     if not cfg.preintegrated:
         return smp.t_s
-    t = dr.lerp(t_prev, smp.t_s, _dominant(points, shares))
-    return dr.select(dr.isfinite(v_prev) & dr.isfinite(t), t, smp.t_s)
+    t = dr.lerp(prev.t, smp.t_s, _dominant(points, shares))
+    return dr.select(dr.isfinite(prev.v) & dr.isfinite(t), t, smp.t_s)
 
 
 def _sampled_bands(dev, cfg):
@@ -508,76 +540,72 @@ def _sampled_bands(dev, cfg):
 
 
 @dr.syntax
-def _composite_sampled(dev, cfg, o, d, t0, t1, jitter, color_of, lighting, active):
-    m = dev.m
-    dnorm = dr.norm(d)
-    shade = lighting is not None
+def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
+    m, cfg = ray.m, ray.cfg
+    shade = shading is not None
     uniform = cfg.method == "uniform"
-    arrays = dev.arrays(cfg.basis, color=True)
-    centres, bands = _sampled_bands(dev, cfg)
+    arrays = ray.dev.arrays(cfg.basis, color=True)
+    centres, bands = _sampled_bands(ray.dev, cfg)
     # A shadow ray starts inside the band: uniform steps then sample the middle of each step,
     # so its first half step (the most opaque stretch) is not stepped over.
     rho = m.Float(-0.5 if not shade else 0.0) if uniform else jitter
-    t_anchor = m.Float(t0)
-    w = Walk.start(m, t0)
-    dt = m.Float(cfg.step_scale * dev.min_h / dnorm)
-    t_prev = m.Float(t0)
-    v_prev = m.Float(dr.nan)
+    t_anchor = m.Float(ray.t0)
+    march = March.start(ray)
+    dt = m.Float(cfg.step_scale * ray.dev.min_h / ray.dnorm)
+    prev = Previous(t=m.Float(ray.t0), v=m.Float(dr.nan))
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     samples = m.UInt32(0)
-    no_side = m.Float(dr.nan)
-    sk = seek_start(dev, o, d, w.t, w.node, w.face, no_side, m.Bool(False))
-    while active:
+    active = m.Bool(ray.active)
+    while dr.hint(active, label="composite_sampled"):
         # Skipped nodes have no opacity; the sample before them no longer borders the next one:
         # the next step's stretch starts where the leaf does.
-        sk, new = seek_part(dev, cfg, o, d, t1, w, sk, no_side, active)
-        st = sk.stretch()
-        skipped = new & (st.t > w.t)
-        v_prev = dr.select(skipped, dr.nan, v_prev)
-        t_prev = dr.select(skipped, st.t, t_prev)
-        w = w.adopt(new, st)
-        active &= lnot(new) | st.found
-        work = active & lnot(sk.searching)
+        t_before = march.walk.t
+        march, leg = march.next(ray, m.Float(dr.nan), active)
+        skipped = leg.new & (leg.stretch.walk.t > t_before)
+        prev = dr.select(skipped, Previous(t=leg.stretch.walk.t, v=m.Float(dr.nan)), prev)
+        active &= leg.onward
+        work = active & lnot(leg.searching)
         if dr.hint(not uniform, mode="scalar"):
-            leaf_h = dr.gather(m.Float, dev.leaf_min_h, w.leaf, active & new)
-            dt = dr.select(new, cfg.step_scale * leaf_h / dnorm, dt)
+            leaf_h = dr.gather(m.Float, ray.dev.leaf_min_h, march.walk.leaf, active & leg.new)
+            dt = dr.select(leg.new, cfg.step_scale * leaf_h / ray.dnorm, dt)
 
-        smp = _volume_sample(dev, cfg, o, d, dnorm, w, t1, t_anchor, rho, dt, arrays, work)
+        smp = _volume_sample(ray, march.walk, Lattice(t_anchor, rho, dt), arrays, work)
         samples += dr.select(smp.take, 1, 0)
         if dr.hint(cfg.method == "bisect", mode="scalar"):
-            smp = _into_band(dev, cfg, o, d, smp, t_prev, v_prev, bands, arrays)
-        a, shares, t_light = _sample_alpha(m, cfg, smp, w.t, t_prev, v_prev, dt, dnorm,
-                                           centres)
+            smp = _into_band(ray, smp, prev, bands, arrays)
+        a, shares, t_light = _sample_alpha(ray, smp, march.walk.t, prev, dt, centres)
         if dr.hint(shade, mode="scalar"):
+            lighting = shading.lighting
             lit = smp.take & (a > tol.ALPHA_LIT)
-            ctx = lighting.sample(dr.fma(d, t_light, o), lit, True)
+            ctx = lighting.sample(ray.at(t_light), lit, True)
             A, S = lighting.terms(ctx, smp.grad, lit)
-            C += dr.select(lit, T * a * (color_of(shares, smp.cval) * A + S), 0.0)
+            C += dr.select(lit, T * a * (shading.color_of(shares, smp.cval) * A + S), 0.0)
         T = dr.select(work, T * (1.0 - a), T)
-        t_prev = dr.select(smp.take, smp.t_s, t_prev)
-        v_prev = dr.select(smp.take, smp.v, v_prev)
+        prev = dr.select(smp.take, Previous(t=smp.t_s, v=smp.v), prev)
 
-        w.t = dr.select(work, smp.b, w.t)
-        active &= (w.t < t1) & (T > tol.T_MIN)
+        march.walk.t = dr.select(work, smp.b, march.walk.t)
+        active &= (march.walk.t < ray.t1) & (T > tol.T_MIN)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
     return Composite(C=C, T=T, samples=samples)
 
 
 @dr.syntax
-def _bisect_band(dev, cfg, o, d, t_a, t_b, v_a, band_lo, band_hi, active):
-    """A point of ``[t_a, t_b]`` whose value lies in ``(band_lo, band_hi)``, by bisection on the
-    side of the band that ``v_a`` is on; returns ``(t, found)``."""
-    m = dev.m
-    values = dev.arrays(cfg.basis)
-    below = v_a < band_lo
-    depth = dr.maximum(dr.ceil(dr.log2(cfg.step_scale / tol.BISECT_TARGET)), 1.0)
+def _bisect_band(ray: RayContext, prev: Previous, t_b, band, active):
+    """A point of ``[prev.t, t_b]`` whose value lies in the band's value range ``(lo, hi)``,
+    by bisection on the side of the band that ``prev.v`` is on; returns ``(t, found)``."""
+    m, cfg = ray.m, ray.cfg
+    band_lo, band_hi = band
+    values = ray.dev.arrays(cfg.basis)
+    t_a = prev.t
+    below = prev.v < band_lo
+    depth = bisect_depth(cfg)
     i = m.Float(0.0)
     found = m.Bool(False)
     t_found = m.Float(0.0)
-    while active & lnot(found) & (i < depth):
+    while dr.hint(active & lnot(found) & (i < depth), label="bisect_band"):
         mid = 0.5 * (t_a + t_b)
-        vals, _ = rec.reconstruct(dev, cfg.basis, dr.fma(d, mid, o), values, active & lnot(found))
+        vals, _ = rec.reconstruct(ray.dev, cfg.basis, ray.at(mid), values, active & lnot(found))
         v = vals[0]
         inside = (v > band_lo) & (v < band_hi)
         found |= inside

@@ -9,20 +9,40 @@ opaque device value that may change between frames without compiling anything.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Optional
 
 import drjit as dr
 
-from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
+from mi_amr import tolerances as tol
+from mi_amr.kernels.band import BandInputs
+from mi_amr.kernels.starts import StartTable
+from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO, Transfer2DInputs
 from mi_amr.params import METHODS, RECONSTRUCTIONS  # noqa: F401  (re-exported)
 
-# Steps of a leaf search per step of the march that waits for it
-# (:func:`~mi_amr.kernels.traverse.seek_part`): a SIMD packet runs a loop as long as its slowest
-# lane, so a whole search nested in the march makes every lane wait for the longest search in
-# the packet (a camera ray of sphere_wake takes 8 cubic pieces but 70 search steps); a few steps
-# a turn spread the search over the march's steps, too many bring the wait back.
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Float
+
+
+# Steps of a leaf search per step of the march that waits for it: a SIMD packet runs a loop as
+# long as its slowest lane, so a whole search nested in the march made every lane wait for the
+# longest search in the packet. A few steps at a time let the lanes with a leaf work meanwhile.
 SEEK_STEPS = 6
+
+
+@dataclass
+class SearchPlan:
+    """How the traversal (:meth:`~mi_amr.kernels.traverse.March.next`) takes its leaf
+    searches: ``steps`` of a search per step of the march (None: each search whole), and
+    ``two_levels``: a turn of the search first goes down through a non-empty inner node
+    without its exit and rope work (its record holds its children's,
+    :meth:`~mi_amr.kernels.device.DeviceVolume.node_search`), then takes the full step on the
+    child. The crossings and the steps are the same, in the same order, for every plan (the
+    plans besides the default are the slow twins, for tests)."""
+
+    steps: Optional[int] = SEEK_STEPS
+    two_levels: bool = True
 
 
 @dataclass
@@ -34,27 +54,20 @@ class MarchConfig:
     :class:`~mi_amr.kernels.transfer2d.Transfer2DInputs`, which then replaces the bands
     (every method); ``active_box``: ``(lo, hi)`` opaque points (volume world) holding every
     leaf whose range holds an isovalue (:meth:`~mi_amr.kernels.device.DeviceVolume.active_box`),
-    or None; see :func:`clip_box`; ``start_table``: the active box's
-    :class:`~mi_amr.kernels.starts.StartTable`, or None (see :func:`start_table`);
-    ``two_levels``: a turn of the leaf search goes down through a non-empty inner node before
-    its full step (:func:`~mi_amr.kernels.traverse.seek_steps`; False: one level a turn, the
-    slow twin, the same steps in the same order); ``seek_steps``: steps of a leaf search per
-    step of the march that waits for it (:data:`SEEK_STEPS`; None: the whole search at once,
-    a twin)."""
+    or None; see :func:`clip_box`; ``search``: how leaf searches are taken (structure)."""
 
     method: str
     basis: bool
-    isovalues: Any
-    step_scale: Any
+    isovalues: Float
+    step_scale: Float
     num_iso: int
-    band: Any = None
+    band: Optional[BandInputs] = None
     preintegrated: bool = False
     shading_extrema: bool = True
-    transfer2d: Any = None
-    active_box: Any = None
-    start_table: Any = None
-    two_levels: bool = True
-    seek_steps: Any = SEEK_STEPS
+    transfer2d: Optional[Transfer2DInputs] = None
+    active_box: Optional[tuple] = None
+    start_table: Optional[StartTable] = None
+    search: SearchPlan = field(default_factory=SearchPlan)
 
     def iso(self, dev, k):
         """Isovalue ``k`` (a Python int, or a per-lane index array)."""
@@ -127,3 +140,9 @@ def first_between(dev, cfg: MarchConfig, a, b):
         out = dr.select(near, m.UInt32(k), out)
         best = dr.select(near, dr.abs(iso - a), best)
     return out
+
+
+def bisect_depth(cfg: MarchConfig):
+    """How many halvings take a bracket of one step (``cfg.step_scale`` finest cells) down to
+    :data:`~mi_amr.tolerances.BISECT_TARGET` cells (at least one)."""
+    return dr.maximum(dr.ceil(dr.log2(cfg.step_scale / tol.BISECT_TARGET)), 1.0)

@@ -31,9 +31,8 @@ from mi_amr.kernels.arrays import device_table
 
 # Cells a chunk of grids holds at least (the last of a level may hold fewer): bounds the
 # kernels' outputs and temporaries (~30 bytes a cell), which the next chunk reuses. Smaller
-# chunks touch less new memory, the slow part on this project's machines: 2^20 against 2^22,
-# the default file's derivation 0.35-0.65 s against 0.46-0.86 s, 27M cells 2.1-2.4 s against
-# 2.4-3.2 s, and 360 MB less at its peak.
+# chunks touch less new memory, the slow part on this project's machines (2^20 was faster than
+# 2^22 and needs less memory at its peak; the bench outputs keep the measurements).
 CHUNK_CELLS = 1 << 20
 LEVEL_CELLS_MAX = 1 << 31   # cells a level may hold: flat positions are 32-bit on the device
 PROBES = 64                 # positions of a field's host buffer checked after the kernels wrote it
@@ -66,7 +65,7 @@ def _fill(volume, comps, wanted, flat, m):
         for level, lv in enumerate(tables):
             dtypes = {name: flat[name][level].dtype for name in wanted}
             for start, stop in levels.grid_chunks(lv.host, CHUNK_CELLS):
-                _chunk_fields(tables, level, start, stop, dtypes, out,
+                _chunk_fields(tables, level, (start, stop), dtypes, out,
                               level_start + int(lv.host.offsets[start]))
             level_start += len(flat[wanted[0]][level])
         for target, record in targets.values():
@@ -316,7 +315,7 @@ def _fields(lv, cells, ghost_of, wanted):
                               lv.own(cells.c - s, comp, ~faces[0]))
             above = dr.select(faces[1], ghosts[1][comp],
                               lv.own(cells.c + s, comp, ~faces[1]))
-            grad[comp][axis] = _difference(lv, cells, axis, comp, own[comp], below, above,
+            grad[comp][axis] = _difference(lv, cells, (axis, comp, own[comp]), below, above,
                                            faces)
     out = {}
     if "q_criterion" in wanted:
@@ -330,19 +329,23 @@ def _fields(lv, cells, ghost_of, wanted):
     return out
 
 
-def _difference(lv, cells, axis, comp, f0, below, above, faces):
-    """d v / d x along ``axis``: central, one-sided on a face whose ghost is missing (the
-    lower face first, then the upper, as :func:`gradient._axis_difference`)."""
+def _difference(lv, cells, line, below, above, faces):
+    """d v / d x of component ``comp`` along ``axis`` (``line``: ``(axis, comp, f0)``, ``f0``
+    the cells' own values): central, one-sided on a face whose ghost is missing (the lower
+    face first, then the upper, as :func:`gradient._axis_difference`)."""
+    axis = line[0]
     d = (above - below) / (2.0 * cells.h[axis])
     for sign, face, ghost, other in ((1, faces[0], below, above), (-1, faces[1], above, below)):
         use = face & ~dr.isfinite(ghost)
-        d = dr.select(use, _one_sided(lv, cells, axis, comp, f0, sign, other, use), d)
+        d = dr.select(use, _one_sided(lv, cells, line, sign, other, use), d)
     return d
 
 
-def _one_sided(lv, cells, axis, comp, f0, sign, other, use):
-    """:func:`gradient._one_sided` at the lanes ``use``: second order from 3 cells thick,
-    first order at 2, at 1 the difference to the ``other`` ghost (0 where that is missing)."""
+def _one_sided(lv, cells, line, sign, other, use):
+    """:func:`gradient._one_sided` at the lanes ``use`` (``line``: as :func:`_difference`):
+    second order from 3 cells thick, first order at 2, at 1 the difference to the ``other``
+    ghost (0 where that is missing)."""
+    axis, comp, f0 = line
     thick, s, h, c = cells.n[axis], cells.stride[axis], cells.h[axis], cells.c
     one, two = (c + s, c + 2 * s) if sign > 0 else (c - s, c - 2 * s)
     f1 = lv.own(dr.select(thick >= 2, one, c), comp, use)
@@ -353,13 +356,14 @@ def _one_sided(lv, cells, axis, comp, f0, sign, other, use):
     return dr.select(thick >= 3, second, dr.select(thick == 2, first, lone))
 
 
-def _chunk_fields(tables, level, start, stop, wanted, out, base):
-    """Fields ``wanted`` (by name: the dtype of each) of the cells of grids ``start:stop`` of
-    ``level``, in the order of :func:`levels.level_values`, scattered into ``out[name]`` from
-    position ``base`` on. The cells inside their grid (most of them) are computed by a kernel
+def _chunk_fields(tables, level, grids, wanted, out, base):
+    """Fields ``wanted`` (by name: the dtype of each) of the cells of grids ``start:stop``
+    (``grids``) of ``level``, in the order of :func:`levels.level_values`, scattered into
+    ``out[name]`` from position ``base`` on. The cells inside their grid (most of them) are computed by a kernel
     without ghost lookups, those on a face by one with them; both are :func:`_fields`, the
     same arithmetic."""
     lv, m = tables[level], tables[level].m
+    start, stop = grids
     counts = lv.counts[start:stop]
     first, n = int(lv.host.offsets[start]), int(counts.sum())
     p = _grid_of_cells(m, np.concatenate([[0], np.cumsum(counts)]), start)
@@ -375,8 +379,8 @@ def _chunk_fields(tables, level, start, stop, wanted, out, base):
             dr.scatter(out[k], _as(m, v, wanted[k]), at + inner)
     need = m.Bool(False)
     if dr.width(outer):
-        need = _face_cells(tables, level, first, outer, dr.gather(m.UInt32, p, outer), wanted,
-                           out, at)
+        need = _face_cells(tables, level, (first, outer, dr.gather(m.UInt32, p, outer)),
+                           wanted, out, at)
     dr.eval(out, need)
     redo = dr.gather(m.UInt32, outer, dr.compress(need)) if level > 0 and dr.width(outer) \
         else None
@@ -388,11 +392,13 @@ def _chunk_fields(tables, level, start, stop, wanted, out, base):
         dr.eval(out)
 
 
-def _face_cells(tables, level, first, at, p, wanted, out, base):
-    """Write :func:`_fields` of the chunk's face cells ``at`` (positions from the chunk's
-    ``first`` cell; grids ``p``) into ``out`` (from ``base`` on), with the ghosts their own
-    level holds; the cells that lack one (on levels above 0) are marked in what it returns."""
+def _face_cells(tables, level, chunk, wanted, out, base):
+    """Write :func:`_fields` of the chunk's face cells (``chunk``: ``(first, at, p)``, their
+    positions ``at`` from the chunk's ``first`` cell, their grids ``p``) into ``out`` (from
+    ``base`` on), with the ghosts their own level holds; the cells that lack one (on levels
+    above 0) are marked in what it returns."""
     lv, m = tables[level], tables[level].m
+    first, at, p = chunk
     cells = _Cells(lv, dr.opaque(m.UInt32, first) + at, p)
     lack = [m.Bool(False)]
 

@@ -276,7 +276,7 @@ class DeviceVolume:
         bits, and the lo and hi of its value range for one reconstruction as float32 bits; see
         :meth:`node_ranges`), then its lower and upper child's (zeros for a leaf), so a search
         can go down through a node to its child with the loads it started (see
-        :attr:`~mi_amr.kernels.config.MarchConfig.two_levels`)."""
+        :class:`~mi_amr.kernels.config.SearchPlan`)."""
         key = "basis" if basis else "finest"
         if key not in self._search:
             own = np.empty((len(self._host_code_split), 4), dtype=np.uint32)

@@ -22,8 +22,7 @@ from mi_amr.kernels.arrays import device_array
 
 # Pairs per kernel launch: bounds the host's per-pair temporaries (about 100 bytes a pair) and
 # their device copies, whatever the number of pairs (10^8 cells have about 10^7). Smaller
-# launches reuse their memory: 2^19 against 2^21, 0.8-1.1 s against 1.3-1.8 s for the 3.9M
-# pairs of 27M cells, measured side by side in fresh processes.
+# launches reuse their memory (2^19 was faster than 2^21 on 27M cells).
 CHUNK_PAIRS = 1 << 19
 
 
@@ -46,7 +45,7 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None):
         shape = vol.shapes()[pg[lanes]]
         top = block_tops(lo[lanes], hi[lanes], shape)
         start = vol.cell_offsets()[pg[lanes]]
-        lo_part, hi_part = _window_extremes(m, values, leaf, start, shape, lo[lanes], top)
+        lo_part, hi_part = _window_extremes(m, values, leaf, (start, shape), (lo[lanes], top))
         dr.eval(lo_part, hi_part)
         vmin[part], vmax[part] = lo_part.numpy()[:len(part)], hi_part.numpy()[:len(part)]
     # Per leaf, the extremes over its pairs (listed leaf after leaf), on the host: a scatter
@@ -72,10 +71,11 @@ def block_tops(lo, hi, shape):
 
 
 @dr.syntax
-def _window_extremes(m, values, leaf, start, shape, lo, top):
+def _window_extremes(m, values, leaf, grid, box):
     """Per window (a lane each) the min and max of the finite ``values`` (of leaf cells where
-    ``leaf`` is given) in the box ``[lo, top)`` of the grid whose cells start at ``start``
-    (its ``shape``); ``(+inf, -inf)`` where there are none."""
+    ``leaf`` is given) in the box ``[lo, top)`` (``box``) of the grid whose cells start at
+    ``start`` (``grid``: ``(start, shape)``); ``(+inf, -inf)`` where there are none."""
+    (start, shape), (lo, top) = grid, box
     def ints(a):
         return device_array(m.Int32, a, np.int32)
 
@@ -87,7 +87,7 @@ def _window_extremes(m, values, leaf, start, shape, lo, top):
     vmin = dr.full(m.Float, dr.inf, len(start))
     vmax = dr.full(m.Float, -dr.inf, len(start))
     active = dr.all(b_lo < b_top)
-    while active:
+    while dr.hint(active, label="window"):
         at = base + m.UInt32((x * ny + y) * nz + z)
         v = dr.gather(m.Float, values, at, active)
         take = active & dr.isfinite(v)

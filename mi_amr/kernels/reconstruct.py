@@ -19,15 +19,21 @@ each cell centre are fixed, every ``H_C`` is a product of three linear functions
 both sums are cubics in ``s``: :func:`segment_cubic` returns their coefficients (Marchesin et
 al. 2009 for one trilinear cell; the same holds for the blend).
 
-The Dr.Jit functions are generic over the backend module ``dev.m``. Their float64 twins (the
-vectorised model and the brute-force sums) are in :mod:`mi_amr.core.field64`.
+The Dr.Jit functions are generic over the backend module ``dev.m``. Their float64 references
+(the vectorised model and the brute-force sums) are in :mod:`mi_amr.core.field64`.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import drjit as dr
 
 from mi_amr.kernels.device import BRICK, BRICK_N, NO_BRICK, NO_GRID
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Array3f, Float, UInt32
 
 
 # ---------------------------------------------------------------------- kd-tree point location
@@ -39,7 +45,7 @@ def locate(dev, p, active, start=None):
     m = dev.m
     node = m.UInt32(0) if start is None else m.UInt32(start)
     cs = dr.gather(m.Array2u, dev.node_code_split, node, active)
-    while active & ((cs.x & 3) != 3):
+    while dr.hint(active & ((cs.x & 3) != 3), label="locate"):
         axis = cs.x & 3
         split = dr.reinterpret_array(m.Float, cs.y)
         coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
@@ -156,7 +162,7 @@ def basis_point(dev, leaf, p, arrays, active):
     second = arrays[1] if len(arrays) > 1 else arrays[0]
     num0, num1, den = m.Float(0.0), m.Float(0.0), m.Float(0.0)
     dnum, dden = m.Array3f(0.0), m.Array3f(0.0)
-    while active & (levels != 0):
+    while dr.hint(active & (levels != 0), label="levels"):
         level = dr.tzcnt(levels)
         levels &= levels - 1
         u, ih = _level_frame(dev, level, p, active)
@@ -246,11 +252,23 @@ def _cubics(m, fx, fy, fz, fetch, count):
     return num, den
 
 
-def finest_cubic(dev, g, p0, d, s_mid, arrays, active):
-    """Cubic coefficients (in ``s``, along ``p0 + s d``) of the finest-level reconstruction in
-    grid ``g`` for the piece whose middle is at ``s_mid``: ``num[a]`` per value array and
+@dataclass
+class Segment:
+    """A segment ``p0 + s d`` of a ray (volume world space) inside kd leaf ``leaf``, whose
+    middle is at ``s = s_mid``: what :func:`segment_cubic` takes."""
+
+    leaf: UInt32
+    p0: Array3f
+    d: Array3f
+    s_mid: Float
+
+
+def finest_cubic(dev, g, seg: Segment, arrays, active):
+    """Cubic coefficients (in ``s``, along ``seg.p0 + s seg.d``) of the finest-level
+    reconstruction in grid ``g`` for the segment ``seg``: ``num[a]`` per value array and
     ``den`` (1 unless a value is missing)."""
     m = dev.m
+    p0, d, s_mid = seg.p0, seg.d, seg.s_mid
     o, ih, n, off = grid_frame(dev, g, active)
     ua = (p0 - o) * ih - 0.5
     du = d * ih
@@ -267,10 +285,11 @@ def finest_cubic(dev, g, p0, d, s_mid, arrays, active):
     return _cubics(m, fx, fy, fz, fetch, len(arrays))
 
 
-def level_cubic(dev, level, p0, d, s_mid, arrays, active):
-    """Cubic coefficients of the basis sums of one level's leaf cells along ``p0 + s d`` for
-    the piece whose middle is at ``s_mid`` (corners with no leaf cell get no weight)."""
+def level_cubic(dev, level, seg: Segment, arrays, active):
+    """Cubic coefficients of the basis sums of one level's leaf cells along the segment
+    ``seg`` (corners with no leaf cell get no weight)."""
     m = dev.m
+    p0, d, s_mid = seg.p0, seg.d, seg.s_mid
     ua, ih = _level_frame(dev, level, p0, active)
     du = d * ih
     base_f = dr.floor(ua + s_mid * du)
@@ -288,27 +307,27 @@ def level_cubic(dev, level, p0, d, s_mid, arrays, active):
     return _cubics(m, fx, fy, fz, fetch, len(arrays))
 
 
-def segment_cubic(dev, basis: bool, leaf, p0, d, s_mid, arrays, active):
-    """Cubics ``num[a](s)`` and ``den(s)`` of the reconstruction along ``p0 + s d`` for a
-    segment inside ``leaf`` whose middle is at ``s_mid`` (the field is ``num / den``)."""
+def segment_cubic(dev, basis: bool, seg: Segment, arrays, active):
+    """Cubics ``num[a](s)`` and ``den(s)`` of the reconstruction along the segment ``seg``
+    (the field is ``num / den``)."""
     if basis:
-        return _basis_segment_cubic(dev, leaf, p0, d, s_mid, arrays, active)
-    g = dr.gather(dev.m.UInt32, dev.leaf_owner, leaf, active)
-    return finest_cubic(dev, g, p0, d, s_mid, arrays, active & (g != NO_GRID))
+        return _basis_segment_cubic(dev, seg, arrays, active)
+    g = dr.gather(dev.m.UInt32, dev.leaf_owner, seg.leaf, active)
+    return finest_cubic(dev, g, seg, arrays, active & (g != NO_GRID))
 
 
 @dr.syntax
-def _basis_segment_cubic(dev, leaf, p0, d, s_mid, arrays, active):
+def _basis_segment_cubic(dev, seg: Segment, arrays, active):
     m = dev.m
-    levels = dr.gather(m.UInt32, dev.leaf_levels, leaf, active)
+    levels = dr.gather(m.UInt32, dev.leaf_levels, seg.leaf, active)
     n0, n1, n2, n3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     c0, c1, c2, c3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     d0, d1, d2, d3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     two = len(arrays) > 1
-    while active & (levels != 0):
+    while dr.hint(active & (levels != 0), label="level_cubics"):
         level = dr.tzcnt(levels)
         levels &= levels - 1
-        num, den = level_cubic(dev, level, p0, d, s_mid, arrays, active)
+        num, den = level_cubic(dev, level, seg, arrays, active)
         n0, n1, n2, n3 = n0 + num[0][0], n1 + num[0][1], n2 + num[0][2], n3 + num[0][3]
         if dr.hint(two, mode="scalar"):
             c0, c1, c2, c3 = c0 + num[1][0], c1 + num[1][1], c2 + num[1][2], c3 + num[1][3]

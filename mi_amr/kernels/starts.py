@@ -26,10 +26,13 @@ table.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import drjit as dr
 import numpy as np
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Array3f, UInt32
 
 # Cells of a start table at most (4 bytes each): a coarser cell (twice the size, a shallower
 # start node) where the smallest active leaves would need more.
@@ -43,10 +46,10 @@ class StartTable:
     corner ``lo`` and ``inv_cell`` (one over the cell's size) as opaque points (volume world),
     and ``dims``, the cells per axis, as an opaque point (0 for an empty table)."""
 
-    nodes: Any
-    lo: Any
-    inv_cell: Any
-    dims: Any
+    nodes: UInt32
+    lo: Array3f
+    inv_cell: Array3f
+    dims: Array3f
 
 
 def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_CELLS):

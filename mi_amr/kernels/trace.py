@@ -19,6 +19,7 @@ from mi_amr.kernels.device import device_array, lnot, opaque_floats
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import PreparedVolume
 from mi_amr.kernels.reconstruct import reconstruct
+from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.surface import first_crossing
 from mi_amr.params import METHODS, RECONSTRUCTIONS
 
@@ -37,13 +38,33 @@ class TraceResult:
     iso_index: np.ndarray
 
 
-def trace(volume, origins, directions, *, field: str, isovalue,
-          method: str = params.default("method"),
-          reconstruction: str = params.default("reconstruction"),
-          step_scale: float = params.default("step_scale"), jitter=None,
-          leaf_cells: int = params.default("leaf_cells"), t_max=np.inf,
-          backend=None, active_box: bool = True,
-          start_table: bool = True) -> TraceResult:
+@dataclass
+class TraceOptions:
+    """The keyword options of :func:`trace` besides ``field`` and ``isovalue``."""
+
+    method: str = params.default("method")
+    reconstruction: str = params.default("reconstruction")
+    step_scale: float = params.default("step_scale")
+    jitter: object = None
+    leaf_cells: int = params.default("leaf_cells")
+    t_max: object = np.inf
+    backend: object = None
+    active_box: bool = True
+    start_table: bool = True
+
+    @staticmethod
+    def of(options: dict) -> "TraceOptions":
+        """The options given by name, refused with one :class:`AMRError` naming an unknown
+        one."""
+        known = TraceOptions.__dataclass_fields__
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            raise AMRError(f"trace() has no option {unknown[0]!r}; expected field, isovalue "
+                           f"or one of {', '.join(known)}")
+        return TraceOptions(**options)
+
+
+def trace(volume, origins, directions, *, field: str, isovalue, **options) -> TraceResult:
     """First crossing of ``isovalue`` (a number or a list) by each ray, in the volume's world
     space. ``origins`` and ``directions`` are ``(N, 3)``; directions need not be unit length.
     ``jitter`` (``(N,)`` in [0, 1)) offsets the adaptive methods' steps; by default
@@ -55,7 +76,14 @@ def trace(volume, origins, directions, *, field: str, isovalue,
     them at the root and the ropes (the slow twin: the same crossings). Defaults come from
     :mod:`mi_amr.params`. Raises
     :class:`AMRError` for an isovalue that is not a finite number (in float32, the kernels'
-    precision) and for rays with a non-finite origin or a zero or non-finite direction."""
+    precision) and for rays with a non-finite origin or a zero or non-finite direction.
+    ``options``: those of :class:`TraceOptions` (``method``, ``reconstruction``,
+    ``step_scale``, ``jitter``, ``leaf_cells``, ``t_max``, ``backend``, ``active_box``,
+    ``start_table``)."""
+    opt = TraceOptions.of(options)
+    method, reconstruction, step_scale = opt.method, opt.reconstruction, opt.step_scale
+    jitter, leaf_cells, t_max, backend = opt.jitter, opt.leaf_cells, opt.t_max, opt.backend
+    active_box, start_table = opt.active_box, opt.start_table
     if method not in METHODS:
         raise AMRError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if reconstruction not in RECONSTRUCTIONS:
@@ -84,7 +112,7 @@ def trace(volume, origins, directions, *, field: str, isovalue,
         device_array(m.Float, jitter, np.float32)
     t_end = device_array(m.Float, np.broadcast_to(np.asarray(t_max, dtype=np.float32), (n,)),
                          np.float32)
-    c = first_crossing(dev, cfg, o, d, m.Float(0.0), t_end, rho, m.Bool(True))
+    c = first_crossing(RayContext(dev, cfg, o, d, m.Float(0.0), t_end, m.Bool(True)), rho)
     arrays = dev.arrays(cfg.basis)
     _, grad = reconstruct(dev, cfg.basis, dr.fma(d, c.t, o), arrays, c.hit)
     # Where the gradient vanishes (the walls that close finest's cracks are flat in the field)

@@ -10,12 +10,17 @@ so a new table (of any shape) or new ranges compile no kernel. Opacities are per
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Optional
 
 import drjit as dr
 
 from mi_amr import tolerances as tol
+from mi_amr.kernels.band import optical_depth
 from mi_amr.kernels.device import opaque_floats
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Float
 
 # Entries of :attr:`Transfer2DInputs.header`.
 V0, V1, G0, G1, ROWS, COLS, SUPPORT_LO, SUPPORT_HI = range(8)
@@ -30,10 +35,10 @@ class Transfer2DInputs:
     :meth:`~mi_amr.core.transfer2d.Transfer2D.value_support`); ``dx0``: the step length the
     opacities are for (world). All opaque."""
 
-    table: Any
-    header: Any
-    dx0: Any
-    integral: Any = None
+    table: Float
+    header: Float
+    dx0: Float
+    integral: Optional[Float] = None
 
     def get(self, m, k: int):
         return dr.gather(m.Float, self.header, m.UInt32(k))
@@ -88,10 +93,9 @@ def segment_alpha(m, tf: Transfer2DInputs, a, b, dx, gmag):
     over the value change; a ramp shorter than a column takes the opacity at its middle."""
     cols = tf.get(m, COLS)
     short = dr.abs(b - a) * (cols - 1.0) < tf.get(m, V1) - tf.get(m, V0)
-    mid = -dr.log(1.0 - dr.minimum(alpha(m, tf, 0.5 * (a + b), gmag), tol.OPACITY_CAP)) / \
-        tf.dx0
+    mid = optical_depth(alpha(m, tf, 0.5 * (a + b), gmag)) / tf.dx0
     active = m.Bool(True)
-    Ta = _bilinear(m, tf, tf.integral, a, gmag, active)
-    Tb = _bilinear(m, tf, tf.integral, b, gmag, active)
-    tau = dr.select(short, mid, (Tb - Ta) / dr.select(short, 1.0, b - a))
+    Ia = _bilinear(m, tf, tf.integral, a, gmag, active)
+    Ib = _bilinear(m, tf, tf.integral, b, gmag, active)
+    tau = dr.select(short, mid, (Ib - Ia) / dr.select(short, 1.0, b - a))
     return 1.0 - dr.exp(-dr.maximum(tau, 0.0) * dx)

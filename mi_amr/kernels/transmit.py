@@ -21,7 +21,12 @@ back, two there unless closer than ``dev.layer_offset``), and where ``max_layers
 a piece with crossings of several isovalues (taken in isovalue order here, in ray order
 there).
 
-Rays ``o + t d`` are in the volume's world space; ``t`` is the caller's parameter.
+Shape: :func:`transmittance_exact` takes a :class:`~mi_amr.kernels.ray.RayContext` and consumes
+the one traversal (:class:`~mi_amr.kernels.traverse.March`): per step of its loop,
+:meth:`~mi_amr.kernels.traverse.March.next` moves the walk on and reports the skipped nodes'
+sides, :func:`~mi_amr.kernels.traverse.cubic_piece` gives the piece to count crossings on, and
+:class:`Shadow` (transmittance and layers) takes in the counts. Rays ``o + t d`` are in the
+volume's world space; ``t`` is the caller's parameter.
 """
 
 from __future__ import annotations
@@ -34,8 +39,12 @@ from mi_amr import tolerances as tol
 from mi_amr.kernels import roots
 from mi_amr.kernels.config import clip_box
 from mi_amr.kernels.device import lnot
-from mi_amr.kernels.surface import cubic_piece
-from mi_amr.kernels.traverse import Walk, clip_to_volume, seek_part, seek_start
+from mi_amr.kernels.ray import RayContext
+from mi_amr.kernels.traverse import CubicPiece, March, cubic_piece
+
+# Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
+# (Dr.Jit reads a dataclass's annotations but converts nothing by them).
+from drjit.llvm.ad import Float, UInt32
 
 MAX_PER_PIECE = 4      # changes of side per isovalue in one piece: its start and 3 intervals
 
@@ -67,10 +76,31 @@ class Sides:
             self.known[k] &= lnot(active)
 
 
+@dataclass
+class Shadow:
+    """What a shadow ray has met: its transmittance ``T`` and the ``layers`` crossed."""
+
+    T: Float
+    layers: UInt32
+
+    def past(self, ray: RayContext, opacity, max_layers: int, counts) -> "Shadow":
+        """This shadow after ``counts[k]`` crossings of each isovalue ``k`` (at most
+        :data:`MAX_PER_PIECE`), up to ``max_layers`` layers in all (``opacity``: device
+        array, one per isovalue)."""
+        m = ray.m
+        T, layers = self.T, self.layers
+        for k in range(ray.cfg.num_iso):
+            n = dr.minimum(counts[k], max_layers - dr.minimum(layers, max_layers))
+            f = 1.0 - dr.gather(m.Float, opacity, m.UInt32(k))
+            for j in range(1, MAX_PER_PIECE + 1):
+                T = dr.select(n >= j, T * f, T)
+            layers += n
+        return Shadow(T=T, layers=layers)
+
+
 @dr.syntax
-def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int, active,
-                        u=None):
-    """Transmittance of the isosurfaces on ``(t_start, t_end)``: the product of ``1 -
+def transmittance_exact(ray: RayContext, opacity, max_layers: int, u=None):
+    """Transmittance of the isosurfaces on ``(ray.t0, ray.t1)``: the product of ``1 -
     opacity[k]`` over the crossings of isovalue ``k`` (``opacity``: device array, one per
     isovalue), at most ``max_layers`` of them; 0 once it falls to
     :data:`~mi_amr.tolerances.T_MIN` (as front-to-back compositing gives).
@@ -79,87 +109,69 @@ def transmittance_exact(dev, cfg, opacity, o, d, t_start, t_end, max_layers: int
     roulette below :data:`~mi_amr.tolerances.ROULETTE_T`, ``R``): the walk stops where the
     transmittance falls to ``R u`` (0); one that ends above it gives its transmittance, or
     ``R`` where that is below ``R`` (which it stays above with probability ``T / R``)."""
-    m = dev.m
-    o, t0, t1, active = clip_to_volume(dev, o, d, t_start, t_end, active,
-                                       clip_box(cfg))
-    dnorm = dr.norm(d)
-    inv_d = dr.select(d != 0.0, dr.rcp(d), dr.inf)
-    values = dev.arrays(cfg.basis)
-    level_masks = dev.leaf_levels if cfg.basis else dev.leaf_owner_levels
-    w = Walk.start(m, t0)
-    v_prev = m.Float(dr.nan)
-    sides = Sides.start(m, cfg.num_iso)
-    T = m.Float(1.0)
+    m, cfg = ray.m, ray.cfg
+    ray = ray.clipped(clip_box(cfg))
+    values = ray.dev.arrays(cfg.basis)
+    march = March.start(ray)
+    v_prev = m.Float(dr.nan)               # the field's value where the walk is (NaN: none)
+    sides = Sides.start(m, cfg.num_iso)    # per isovalue, the side of the last sure value
+    shadow = Shadow(T=m.Float(1.0), layers=m.UInt32(0))
     T_end = m.Float(tol.T_MIN if u is None else dr.maximum(tol.ROULETTE_T * u, tol.T_MIN))
-    layers = m.UInt32(0)
-    sk = seek_start(dev, o, d, w.t, w.node, w.face, v_prev, m.Bool(False))
-    while active:
+    active = m.Bool(ray.active)
+    while dr.hint(active, label="transmit"):
         # --- The next leaf that may hold a crossing (a few search steps at a time). Skipped
         # nodes tell their side; one across isovalues from the value before ends the search
         # (then it is skipped next).
-        sk, new = seek_part(dev, cfg, o, d, t1, w, sk, v_prev, active)
-        st = sk.stretch()
-        w = w.adopt(new, st)
-        skipped = new & dr.isfinite(st.side)
-        turned = new & st.turned
-        counts = [sides.see(k, st.side - cfg.iso(dev, k), skipped) +
-                  sides.see(k, st.turn_value - cfg.iso(dev, k), turned)
+        march, leg = march.next(ray, v_prev, active)
+        skips = leg.stretch.skips
+        skipped = leg.new & dr.isfinite(skips.side)
+        turned = leg.new & skips.turned
+        counts = [sides.see(k, skips.side - cfg.iso(ray.dev, k), skipped) +
+                  sides.see(k, skips.turn_value - cfg.iso(ray.dev, k), turned)
                   for k in range(cfg.num_iso)]
-        T, layers = _pass(dev, cfg, opacity, T, layers, max_layers, counts)
-        v_prev = dr.select(turned, st.turn_value, dr.select(skipped, st.side, v_prev))
-        searching = active & sk.searching
-        march = active & lnot(turned) & (lnot(new) | st.found) & lnot(searching)
+        shadow = shadow.past(ray, opacity, max_layers, counts)
+        v_prev = dr.select(turned, skips.turn_value, dr.select(skipped, skips.side, v_prev))
+        searching = active & leg.searching
+        work = active & lnot(turned) & leg.onward & lnot(searching)
 
         # --- The piece [t, t_b]: the sides along it.
-        t_b, L, nums, den = cubic_piece(dev, cfg, o, d, inv_d, dnorm, w, t1, level_masks,
-                                        values, march)
-        have, v_end, counts = _piece_counts(dev, cfg, sides, nums[0], den, L, march)
-        T, layers = _pass(dev, cfg, opacity, T, layers, max_layers, counts)
-        v_prev = dr.select(march, dr.select(have, v_end, dr.nan), v_prev)
-        w.t = dr.select(march, t_b, w.t)
-        active = (march | turned | searching) & (w.t < t1) & (T > T_end) & \
-            (layers < max_layers)
+        piece = cubic_piece(ray, march.walk, values, work)
+        have, v_end, counts = _piece_counts(ray, sides, piece, work)
+        shadow = shadow.past(ray, opacity, max_layers, counts)
+        v_prev = dr.select(work, dr.select(have, v_end, dr.nan), v_prev)
+        march.walk.t = dr.select(work, piece.end, march.walk.t)
+        active = (work | turned | searching) & (march.walk.t < ray.t1) & \
+            (shadow.T > T_end) & (shadow.layers < max_layers)
+    T = shadow.T
     return dr.select(T <= T_end, 0.0, T if u is None else dr.maximum(T, tol.ROULETTE_T))
 
 
-def _pass(dev, cfg, opacity, T, layers, max_layers: int, counts):
-    """``(T, layers)`` after ``counts[k]`` crossings of each isovalue ``k`` (at most
-    :data:`MAX_PER_PIECE`), up to ``max_layers`` layers in all."""
-    m = dev.m
-    for k in range(cfg.num_iso):
-        n = dr.minimum(counts[k], max_layers - dr.minimum(layers, max_layers))
-        f = 1.0 - dr.gather(m.Float, opacity, m.UInt32(k))
-        for j in range(1, MAX_PER_PIECE + 1):
-            T = dr.select(n >= j, T * f, T)
-        layers += n
-    return T, layers
-
-
-def _piece_counts(dev, cfg, sides: Sides, num, den, L, active):
-    """``(have, v_end, counts)`` of a piece of length ``L`` with cubics ``num``, ``den``:
-    whether the field is defined on it (as :mod:`mi_amr.kernels.surface` decides), its value
-    at the end, and per isovalue the crossings on it, a jump at its start included."""
-    d_mid = roots.cubic(den, 0.5 * L)
-    have = active & (den[0] > tol.NO_WEIGHT) & (roots.cubic(den, L) > tol.NO_WEIGHT) & \
-        (d_mid > tol.NO_WEIGHT)
+def _piece_counts(ray: RayContext, sides: Sides, piece: CubicPiece, active):
+    """``(have, v_end, counts)`` of a piece: whether the field is defined on it
+    (:meth:`~mi_amr.kernels.traverse.CubicPiece.defined`), its value at the end, and per
+    isovalue the crossings on it, a jump at its start included."""
+    mid = piece.mid()
+    have = piece.defined(active, mid[1])
     sides.forget(active & lnot(have))
-    v_end = roots.cubic(num, L) / roots.cubic(den, L)
-    n_mid = roots.cubic(num, 0.5 * L)
-    counts = [_count(sides, k, num, den, cfg.iso(dev, k), L, n_mid, d_mid, have)
-              for k in range(cfg.num_iso)]
+    v_end = piece.value_at_end()
+    counts = [_count(sides, k, piece, ray.cfg.iso(ray.dev, k), mid, have)
+              for k in range(ray.cfg.num_iso)]
     return have, v_end, counts
 
 
-def _count(sides: Sides, k: int, num, den, iso, L, n_mid, d_mid, active):
-    """Crossings of isovalue ``k`` (value ``iso``) on the piece ``[0, L]``: ``c = N - iso D``
-    seen at the start, at its extrema inside and at the end. An end whose weight is below
-    :data:`~mi_amr.tolerances.MIN_COVER` is moved :data:`~mi_amr.tolerances.COVER_NUDGE` of
-    the piece inside (missing data is no crossing); an extremum there is left out."""
+def _count(sides: Sides, k: int, piece: CubicPiece, iso, mid, active):
+    """Crossings of isovalue ``k`` (value ``iso``) on the piece: ``c = N - iso D`` seen at the
+    start, at its extrema inside and at the end (``mid``: ``(N, D)`` at the piece's middle).
+    An end whose weight is below :data:`~mi_amr.tolerances.MIN_COVER` is moved
+    :data:`~mi_amr.tolerances.COVER_NUDGE` of the piece inside (missing data is no crossing);
+    an extremum there is left out."""
+    num, den, length = piece.num, piece.den, piece.length
+    n_mid, d_mid = mid
     c = [num[i] - iso * den[i] for i in range(4)]
-    r1, r2 = roots.extrema(c, L)
-    nudge = tol.COVER_NUDGE * L
-    a = dr.select(roots.cubic(den, 0.0 * L) < tol.MIN_COVER, nudge, 0.0 * L)
-    b = dr.select(roots.cubic(den, L) < tol.MIN_COVER, L - nudge, L)
+    r1, r2 = roots.extrema(c, length)
+    nudge = tol.COVER_NUDGE * length
+    a = dr.select(roots.cubic(den, 0.0 * length) < tol.MIN_COVER, nudge, 0.0 * length)
+    b = dr.select(roots.cubic(den, length) < tol.MIN_COVER, length - nudge, length)
     sure_at = tol.SIGN_SURE_REL * (dr.abs(n_mid) + dr.abs(iso * d_mid))
     count = 0
     for s, inside in ((a, active), (r1, active & (r1 > a) & (r1 < b)),

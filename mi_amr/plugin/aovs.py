@@ -33,6 +33,7 @@ import mitsuba as mi
 
 from mi_amr.kernels.device import NO_GRID
 from mi_amr.kernels.reconstruct import locate, reconstruct
+from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.surface import first_crossing
 from mi_amr.plugin import bridge, shading
 
@@ -48,10 +49,9 @@ def iso_aovs(integ, ray, o, d, t_mesh, jitter, active, miss_depth=0.0) -> list:
     cfg = integ.config()
     if cfg.band is not None:
         cfg = type(cfg)(method=cfg.method, basis=cfg.basis, isovalues=cfg.isovalues,
-                        step_scale=cfg.step_scale, num_iso=cfg.num_iso,
-                        two_levels=cfg.two_levels, seek_steps=cfg.seek_steps)
-    c = first_crossing(dev, cfg, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh), jitter,
-                       m.Bool(active))
+                        step_scale=cfg.step_scale, num_iso=cfg.num_iso, search=cfg.search)
+    c = first_crossing(RayContext(dev, cfg, o, d, m.Float(0.0), bridge.to_kernel(m, t_mesh),
+                                  m.Bool(active)), jitter)
     hit = c.hit
     p = dr.fma(d, c.t, o)
     vals, grad = reconstruct(dev, cfg.basis, p, dev.arrays(cfg.basis, color=True), hit)

@@ -32,11 +32,12 @@ import mitsuba as mi
 
 from mi_amr import params
 from mi_amr.errors import AMRError
-from mi_amr.kernels.composite import composite
-from mi_amr.kernels.config import MarchConfig, clips
+from mi_amr.kernels.composite import Shading, composite
+from mi_amr.kernels.config import MarchConfig, SearchPlan, clips
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import Preparations
+from mi_amr.kernels.ray import RayContext
 from mi_amr.plugin import bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.aovs import NAMES as AOV_NAMES
 from mi_amr.plugin.aovs import centre_aovs, iso_aovs
@@ -140,8 +141,8 @@ class _AMRIso:
                           preintegrated=self.opt.preintegrated,
                           shading_extrema=self.opt.shading_extrema,
                           transfer2d=self.inputs.transfer2d,
-                          two_levels=self.twins.two_levels,
-                          seek_steps=self.twins.seek_steps)
+                          search=SearchPlan(steps=self.twins.seek_steps,
+                                            two_levels=self.twins.two_levels))
         if self.opt.mode == "surface" and self.twins.clip_to_active and clips(cfg):
             cfg.active_box = self.dev.active_box(self.inputs.host["isovalue"])
             if self.twins.start_tables:
@@ -242,8 +243,8 @@ class _AMRIso:
         t0 = self.dev.layer_offset / dr.norm(d) if from_iso else m.Float(0.0)
         t1 = bridge.to_kernel(m, ray.maxt)
         if self.opt.mode == "volume":
-            res = composite(self.dev, self.config(), o, d, t0, t1, m.Float(0.5), None, None,
-                            m.Bool(active))
+            res = composite(RayContext(self.dev, self.config(), o, d, t0, t1, m.Bool(active)),
+                            m.Float(0.5))
             return bridge.to_mi(res.T, mi.Float)
         # Where the frame picks by packet: Russian roulette, a number per packet deciding where
         # the walks stop (the packet's lanes together); else None, the exact transmittance.
@@ -253,7 +254,8 @@ class _AMRIso:
     def _volume(self, shader, scene, light_u, ray, o, d, t_mesh, jitter, active):
         """Front-to-back compositing of the opacity band up to the mesh hit."""
         m = self.m
-        res = composite(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh), jitter,
-                        shader.band_colors(), shader.lighting(scene, light_u, ray, o, d),
-                        m.Bool(active))
+        ray_v = RayContext(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh),
+                           m.Bool(active))
+        res = composite(ray_v, jitter, Shading(shader.band_colors(),
+                                               shader.lighting(scene, light_u, ray, o, d)))
         return mi.Spectrum(res.C.x, res.C.y, res.C.z), mi.Float(res.T)

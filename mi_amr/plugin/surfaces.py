@@ -31,6 +31,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_amr.kernels.surface import Crossing, crossings
+from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.transmit import transmittance_exact
 from mi_amr.plugin import bridge, shading
 from mi_amr.plugin.layers import front_to_back, one_shadow_ray, pick_one
@@ -47,8 +48,8 @@ def layer_crossing(integ, o, d, t_start, t_end, jitter):
     ``t_start``, ``t_end``). ``integ.twins.layer_fast_paths`` False restarts every layer's
     search (the slow twin, for tests)."""
     m = integ.m
-    state, after = crossings(integ.dev, integ.config(), o, d, t_start, t_end, jitter,
-                             m.Bool(True), resume=integ.twins.layer_fast_paths)
+    ray = RayContext(integ.dev, integ.config(), o, d, t_start, t_end, m.Bool(True))
+    state, after = crossings(ray, jitter, resume=integ.twins.layer_fast_paths)
 
     def crossing(state, alive):
         c, state = after(state, m.Bool(alive))
@@ -113,9 +114,10 @@ def transmittance(integ, cfg, o, d, t0, t1, active, u=None):
     roulette (:func:`~mi_amr.kernels.transmit.transmittance_exact`)."""
     m = integ.m
     if cfg.method == "exact" and integ.twins.layer_fast_paths:
+        ray = RayContext(integ.dev, cfg, o, d, t0, t1, m.Bool(active))
         return bridge.to_mi(transmittance_exact(
-            integ.dev, cfg, integ.inputs["iso_opacity"], o, d, t0, t1, integ.opt.max_layers,
-            m.Bool(active), None if u is None else bridge.to_kernel(m, u)), mi.Float)
+            ray, integ.inputs["iso_opacity"], integ.opt.max_layers,
+            None if u is None else bridge.to_kernel(m, u)), mi.Float)
     state, crossing = layer_crossing(integ, o, d, t0, t1, m.Float(0.5))
     _, T = front_to_back(state, crossing, lambda k: opacity(integ, k), None,
                          integ.opt.max_layers, active)

@@ -35,9 +35,9 @@ class Twins:
     as Mitsuba's own loop).
     ``two_levels``: a turn of the leaf search goes down through a non-empty inner node before
     its full step (False: one level a turn; reaches the kernels as
-    :attr:`~mi_amr.kernels.config.MarchConfig.two_levels`).
+    :attr:`~mi_amr.kernels.config.SearchPlan.two_levels`).
     ``seek_steps``: steps of a leaf search per step of the march that waits for it
-    (:data:`~mi_amr.kernels.config.SEEK_STEPS`; any number, or None for the whole search at
+    (:attr:`~mi_amr.kernels.config.SearchPlan.steps`, :data:`~mi_amr.kernels.config.SEEK_STEPS`; any number, or None for the whole search at
     once, finds the same)."""
 
     layer_fast_paths: bool = True

@@ -38,12 +38,8 @@ from mi_amr.plugin.layers import ONE_BELOW
 TILE = 4        # a 16-lane packet at 1 spp: 4 x 4 pixels
 PACKET = 16     # lanes of a SIMD packet (AVX-512; AVX2's 8 are half of one)
 SUPER = 32      # tiles in squares of 32 x 32 pixels: the lanes a thread takes in a row
-
-# Measured with camera rays of the report's scene at 1024^2 (`mi_amr.trace`, primary exact
-# march only): scanlines 0.55 s, 8 x 8 tiles 0.47 s, Morton order 0.43 s, 4 x 4 in 32 x 32
-# 0.42 s. Whole frames side by side in one process (1024^2 exact/basis with shadow rays;
-# three translucent isovalues at 256^2, 4 spp): 1.13 -> 0.88 s, 1.95 -> 1.79 s; 0.85 -> 0.72
-# s, 1.56 -> 1.41 s in a second run.
+# (Scanlines, 8 x 8 tiles and Morton order were tried against these; the bench outputs keep
+# the measurements.)
 
 
 def pixel_order(width: int, height: int) -> np.ndarray:

@@ -246,6 +246,7 @@ def _jittered_frames(mi, scene, ray, o, dv, frames, n, seed):
     ``(frames, n, 3)`` (linear RGB)."""
     import drjit as dr
 
+    from mi_amr.kernels.ray import RayContext
     from mi_amr.kernels.surface import first_crossing
 
     integ = scene.integrator()
@@ -254,8 +255,8 @@ def _jittered_frames(mi, scene, ray, o, dv, frames, n, seed):
     sampler = sensor.sampler().fork()
     sampler.seed(seed, frames * n)
     jitter = m.Float(sampler.next_1d())
-    c = first_crossing(integ.dev, integ.config(), o, dv, m.Float(0.0), m.Float(dr.inf),
-                       jitter, m.Bool(True))
+    c = first_crossing(RayContext(integ.dev, integ.config(), o, dv, m.Float(0.0),
+                                  m.Float(dr.inf), m.Bool(True)), jitter)
     sampler = sensor.sampler().fork()
     sampler.seed(seed, frames * n)
     L, _, _ = integ.sample(scene, sampler, ray)
