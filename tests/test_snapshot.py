@@ -33,7 +33,8 @@ def cache(tmp_path, monkeypatch):
 
 
 def prepare(path, cache=None):
-    return prepared.prepare_file(path, "q_criterion", "speed", m=M, cache=cache)
+    return prepared.prepare_file(path, "q_criterion", "speed", m=M,
+                                 by=prepared.Preparations(cache=cache))
 
 
 def host(prep):

@@ -142,12 +142,15 @@ class Preparations:
     last :attr:`SIZE` kept by file (and its modification time), fields, leaf size and backend,
     and given again. ``report``: a callable told each step of a preparation as it ends (one
     line of text; the command line prints them, so a load of several seconds shows what it
-    is doing), or None."""
+    is doing), or None. ``cache``: the :class:`~mi_amr.kernels.snapshot.SnapshotCache` its
+    preparations read and write, or None for the one ``$MI_AMR_CACHE`` describes at the time
+    of each preparation."""
 
     SIZE = 3
 
-    def __init__(self, report=None):
+    def __init__(self, report=None, cache: snapshot.SnapshotCache | None = None):
         self.report = report
+        self.cache = cache
         self._kept: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
 
     def clear(self) -> None:
@@ -171,7 +174,7 @@ class Preparations:
             self._kept.move_to_end(key)
             return self._kept[key]
         prepared = prepare_file(path, field, color_field, leaf_cells=leaf_cells, m=m,
-                                report=self.report)
+                                by=self)
         self._kept[key] = prepared
         while len(self._kept) > self.SIZE:
             self._kept.popitem(last=False)
@@ -180,17 +183,20 @@ class Preparations:
 
 def prepare_file(path, field: str, color_field: str | None = None, *,
                  leaf_cells: int = params.default("leaf_cells"), m=None,
-                 report=None, cache: snapshot.SnapshotCache | None = None) -> PreparedVolume:
-    """Load ``path`` (only what is needed) and prepare it, or read it back from its snapshot
-    in ``cache`` (by default the cache that ``$MI_AMR_CACHE`` describes, see
-    :meth:`SnapshotCache.from_env <mi_amr.kernels.snapshot.SnapshotCache.from_env>`);
-    ``report`` as :class:`PreparedVolume`'s. (A :class:`Preparations` keeps what it prepared
-    and gives it again.)"""
+                 by: "Preparations | None" = None) -> PreparedVolume:
+    """Load ``path`` (only what is needed) and prepare it, or read it back from its snapshot.
+    ``by``: the :class:`Preparations` it is made for, whose ``report`` hears each step and
+    whose ``cache`` holds the snapshots (without one: no report, and the cache that
+    ``$MI_AMR_CACHE`` describes, see :meth:`SnapshotCache.from_env
+    <mi_amr.kernels.snapshot.SnapshotCache.from_env>`). Keeps nothing: a
+    :class:`Preparations` keeps what it prepared and gives it again."""
     path = os.path.abspath(path)
     if not os.path.exists(path):
         raise AMRError(f"{path}: no such file or folder")
+    report = by.report if by is not None else None
     say = report or (lambda text: None)
-    cache = snapshot.SnapshotCache.from_env() if cache is None else cache
+    cache = by.cache if by is not None and by.cache is not None else \
+        snapshot.SnapshotCache.from_env()
     snap_key = snapshot.entry_key(path, field, color_field, leaf_cells) \
         if cache.enabled else None
     t0 = time.perf_counter()
