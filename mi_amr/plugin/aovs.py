@@ -74,6 +74,17 @@ def iso_aovs(integ, ray, o, d, t_mesh, jitter, active, miss_depth=0.0) -> list:
             dr.select(bridge.to_mi(owned, mi.Bool), bridge.to_mi(m.Float(grid), mi.Float), 0.0)]
 
 
+def unfiltered(integ, scene, sensor, image, evaluate: bool) -> None:
+    """After a frame of ``integ`` with ``aovs`` on a JIT variant: its AOV channels replaced by
+    :func:`centre_aovs` (the film's filter would blend labels), evaluated if ``evaluate``."""
+    if not integ.opt.aovs or image is None or not dr.is_jit_v(mi.Float):
+        return
+    centre_aovs(integ, scene, sensor, image)
+    if evaluate:
+        dr.eval(image)
+        dr.sync_thread()
+
+
 def centre_aovs(integ, scene, sensor, image):
     """Write :data:`NAMES` into the last channels of the developed film ``image`` (a
     ``TensorXf`` of shape ``(H, W, C)``, the film's crop) in place: the values of the ray

@@ -38,9 +38,7 @@ from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
 from mi_amr.kernels.prepared import Preparations
 from mi_amr.kernels.ray import RayContext
-from mi_amr.plugin import bridge, options, shading, surfaces, wavefront
-from mi_amr.plugin.aovs import NAMES as AOV_NAMES
-from mi_amr.plugin.aovs import centre_aovs, iso_aovs
+from mi_amr.plugin import aovs, bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.frame import VolumeFrame
 from mi_amr.plugin.inputs import FLAGS, PHONG, FrameInputs
 from mi_amr.plugin.scene import resolve_data_file
@@ -66,16 +64,6 @@ def register() -> Preparations:
     cls = _CLASSES[variant]
     mi.register_integrator("amr_iso", lambda props: cls(props))
     return cls.preparations
-
-
-def _warn_outside(prep, isovalues) -> None:
-    """A warning (Mitsuba's log) for isovalues outside the field's range: the image would show
-    no isosurface, and nothing else would say why."""
-    lo, hi = prep.volume.value_range(prep.field)
-    outside = [v for v in isovalues if not lo <= v <= hi]
-    if outside:
-        mi.Log(mi.LogLevel.Warn, f"amr_iso: isovalue(s) {', '.join(f'{v:g}' for v in outside)} "
-               f"outside the range [{lo:g}, {hi:g}] of field '{prep.field}': no isosurface")
 
 
 class _AMRIso:
@@ -105,7 +93,7 @@ class _AMRIso:
         data_range = self.prep.volume.value_range(self.prep.color_field)
         self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host,
                                   host_transfer2d(opt))
-        _warn_outside(self.prep, opt.isovalues)
+        options.warn_outside(self.prep, opt.isovalues)
 
     def _prepare(self, path):
         self.prep = self.preparations.prepare(path, self.opt.field, self.opt.color_field,
@@ -166,19 +154,12 @@ class _AMRIso:
         (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply (or
         the twins say so)."""
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-        if not (self.twins.wavefront_loop and wavefront.supported(sensor, spp)):
-            image = mi.SamplingIntegrator.render(self, scene, sensor, seed, spp, develop,
-                                                 evaluate)
-        else:
-            image = wavefront.render(self, scene, sensor, seed, spp, develop, evaluate,
-                                     tiled=self.twins.tile_order,
-                                     by_sample=self.picks_by_packet())
-        if self.opt.aovs and image is not None and dr.is_jit_v(mi.Float):
-            # The AOVs unfiltered: the film's filter blends labels (plugin.aovs).
-            centre_aovs(self, scene, sensor, image)
-            if evaluate:
-                dr.eval(image)
-                dr.sync_thread()
+        args = (self, scene, sensor, seed, spp, develop, evaluate)
+        image = wavefront.render(*args, tiled=self.twins.tile_order,
+                                 by_sample=self.picks_by_packet()) \
+            if self.twins.wavefront_loop and wavefront.supported(sensor, spp) else \
+            mi.SamplingIntegrator.render(*args)
+        aovs.unfiltered(self, scene, sensor, image, evaluate)
         return image
 
     def picks_by_packet(self) -> bool:
@@ -220,11 +201,11 @@ class _AMRIso:
         # ---- Alpha is the coverage by surfaces (the environment behind counts as empty);
         # with stochastic layers, the share of samples that stop at a layer (1 - T on average).
         covered = active & (si.is_valid() | (T < 1.0))
-        aovs = iso_aovs(self, ray, o, d, t_mesh, jitter, active) if self.opt.aovs else []
-        return L, covered, aovs
+        channels = aovs.iso_aovs(self, ray, o, d, t_mesh, jitter, active) if self.opt.aovs else []
+        return L, covered, channels
 
     def aov_names(self):
-        return list(AOV_NAMES) if self.opt.aovs else []
+        return list(aovs.NAMES) if self.opt.aovs else []
 
     def _jitter(self, u, ray, lanes):
         """The sampling methods' step offset: ``u`` from the sampler, or (``jitter="stable"``)

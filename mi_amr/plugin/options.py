@@ -273,3 +273,15 @@ _READERS = {
     "boolean": _bool,
     "2 floats": _pair,
 }
+
+
+def warn_outside(prep, isovalues) -> None:
+    """A warning (Mitsuba's log) for isovalues outside the field's range: the image would show
+    no isosurface, and nothing else would say why."""
+    import mitsuba as mi
+
+    lo, hi = prep.volume.value_range(prep.field)
+    outside = [v for v in isovalues if not lo <= v <= hi]
+    if outside:
+        mi.Log(mi.LogLevel.Warn, f"amr_iso: isovalue(s) {', '.join(f'{v:g}' for v in outside)} "
+               f"outside the range [{lo:g}, {hi:g}] of field '{prep.field}': no isosurface")
