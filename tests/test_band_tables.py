@@ -44,9 +44,9 @@ def lookups(m, inputs, k, shape, rng):
     a, b, dx = ramps(shape, rng)
     c = CENTRES[k]
     F = lambda v: m.Float(np.asarray(v, dtype=np.float32))  # noqa: E731
-    args = (F(a + c), F(b + c), F(dx), m.Float(c))
-    alpha_p, point = band.segment_alpha_and_point(m, inputs, k, *args, r=0.5)
-    alpha_c, centroid = band.segment_alpha_and_centroid(m, inputs, k, *args)
+    ramp = band.Ramp(a=F(a + c), b=F(b + c), dx=F(dx))
+    alpha_p, point = band.segment_alpha_and_point(m, inputs, k, ramp, m.Float(c), r=0.5)
+    alpha_c, centroid = band.segment_alpha_and_centroid(m, inputs, k, ramp, m.Float(c))
     out = (band.integral(m, inputs, k, F(x)), band.integral_inverse(m, inputs, k, F(T)),
            alpha_p, point, alpha_c, centroid)
     return (x, T, (a, b, dx)), [np.array(v) for v in out]
