@@ -58,7 +58,7 @@ MUTANTS = (
            "the centroid splits every band's steps at band 0's plateau"),
     Mutant("rope-plus-z", "mi_amr/kernels/traverse.py",
            (("dr.minimum(face, 5)", "dr.minimum(face, 4)", 1),),
-           ("tests/test_march.py", "tests/test_*step*.py"),
+           ("tests/test_traversal.py",),
            "the +z rope reads the -z one: the walk falls back to the root (only speed changes)"),
     Mutant("roots-tangent-r1", "mi_amr/kernels/roots.py",
            (("touch1 = (r1 < L) & (dr.abs(f1) <= tol)", "touch1 = (r1 < L) & (dr.abs(f1) < 0.0)",
