@@ -512,3 +512,37 @@ def test17_a_frame_that_cannot_be_written_is_one_line(series, tmp_path, monkeypa
     assert text[1:] == [f"  frame {i}: {out / f'frame_{i:05d}.png'}: cannot write the frame "
                         f"([Errno 28] No space left on device)" for i in range(2)]
     assert not list(out.iterdir())
+
+
+def test18_the_next_time_step_is_prepared_while_a_frame_renders(series, tmp_path):
+    """In one process each job is told the next frame's data file where it changes; the frame
+    renderer prepares that file in a background thread while its frame renders, so the next
+    frame prepares nothing itself (and compiles nothing)."""
+    from mi_amr.workflows.movie import farm
+    from mi_amr.workflows.movie.frames import FrameRenderer
+    from mi_amr.workflows.movie.spec import FrameSpec
+
+    names = ["a", "a", "b", None, "c", "c"]
+    jobs = [farm.Job(scene="s", spec=FrameSpec(index=i, file=f).as_dict(), path="p",
+                     resolution=None, spp=None, defines={}, variant="v")
+            for i, f in enumerate(names)]
+    told = list(farm.with_next_files(iter(jobs)))
+    assert [j.spec["index"] for j in told] == list(range(6))
+    assert [j.next_file for j in told] == [None, "b", None, "c", None, None]
+
+    files = [str(series / f"step{t}.npz") for t in range(3)]
+    r = FrameRenderer(series / "scene.xml", resolution=RES)
+    preps = r.integ.preparations
+    heard, old = [], preps.report
+    preps.report = lambda text: heard.append(threading.current_thread().name)
+    try:
+        preps.clear()
+        r.render_to(FrameSpec(index=0, file=files[0]), tmp_path / "0.png", next_file=files[1])
+        r.prefetch.wait()
+        assert "mi_amr-prefetch" in heard, heard
+        heard.clear()
+        out = r.render_to(FrameSpec(index=1, file=files[1]), tmp_path / "1.png")
+        assert heard == [] and out["compiled"] == 0
+        assert r.prefetch.finished() == files[1]
+    finally:
+        preps.report = old
