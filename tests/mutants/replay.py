@@ -79,6 +79,17 @@ MUTANTS = (
              "stable_jitter(m, pos // (spp_u * PACKET), key)", 1),),
            ("tests/test_packet_picks.py",),
            "the stratum's turn and the packet's number drawn from one hash stream"),
+    Mutant("skip-restarts-at-root", "mi_amr/kernels/traverse.py",
+           (("_restart(ray, t_next + ray.eps(t_next), at.node, f_out, skip)",
+             "_restart(ray, t_next + ray.eps(t_next), at.node, f_out * 0 + 6, skip)", 1),),
+           ("tests/test_traversal.py",),
+           "a skipped node's search restarts at the root instead of its rope (only slower)"),
+    Mutant("dual-plane-skipped", "mi_amr/kernels/traverse.py",
+           (("plane = dr.select(up, cell + 1.5, cell + 0.5)",
+             "plane = dr.select(up, cell + 2.5, cell + 0.5)", 1),),
+           ("tests/test_march.py",),
+           "a ray going up a coordinate skips every other dual-cell plane: pieces span two "
+           "cells, so their cubic is wrong"),
 )
 
 
