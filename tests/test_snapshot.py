@@ -3,6 +3,7 @@ exactly what the first one prepared, renders the same image, and never uses an e
 stale, unreadable or turned off; the folder stays within its size limit."""
 
 import os
+import shutil
 import textwrap
 import time
 import warnings
@@ -171,7 +172,7 @@ def test06_the_least_recently_used_entries_go_beyond_the_limit(data, cache, tmp_
     os.utime(stale, (0, 0))
     # Room for two entries: using c0 again makes c1 the least recently used.
     assert "snapshot" in prepare(copies[0]).timings
-    monkeypatch.setenv("MI_AMR_CACHE_GB", str(2.5 * max(sizes.values()) / 2 ** 30))
+    monkeypatch.setenv("MI_AMR_CACHE_GB", str(2.5 * max(sizes.values()) / 1e9))
     fourth = tmp_path / "c3.npz"
     fourth.write_bytes(data.read_bytes())
     prepare(fourth)
@@ -210,7 +211,7 @@ def test08_data_files_beside_the_named_file_are_part_of_the_key(data, cache, tmp
         snapshot.entry_key(copy, "q_criterion", "speed", 4)
     monkeypatch.setenv("MI_AMR_CACHE_GB", "lots")
     with pytest.warns(UserWarning, match="MI_AMR_CACHE_GB='lots'"):
-        assert snapshot.limit_bytes() == int(snapshot.DEFAULT_LIMIT_GB * 2 ** 30)
+        assert snapshot.limit_bytes() == int(snapshot.DEFAULT_LIMIT_GB * 1e9)
 
 
 def test09_a_second_writer_of_the_same_entry_leaves_the_first_one(data, cache):
@@ -297,16 +298,19 @@ def test11_a_users_folders_in_the_cache_are_never_removed_nor_counted(data, cach
     (cache / ("cd" * 16)).symlink_to(outside, target_is_directory=True)
     (cache / "README.txt").write_text("a file")
     before = tree_listing(cache) | tree_listing(outside)
-    monkeypatch.setenv("MI_AMR_CACHE_GB", "0")
     prepare(data)
+    ours = [p for p in cache.iterdir() if (p / snapshot_folder.MARKER).is_file()]
+    assert len(ours) == 1
+    entry_gb = sum(f.stat().st_size for f in ours[0].rglob("*")) / 1e9
     after = tree_listing(cache) | tree_listing(outside)
     assert {p: v for p, v in before.items()} == {p: after[p] for p in before}
-    # Entries of the cache's own do go (the limit is 0): only the new one is kept.
+    # Entries of the cache's own do go (room for one entry: the new one replaces the old).
+    monkeypatch.setenv("MI_AMR_CACHE_GB", str(1.5 * entry_gb))
     copy = tmp_path / "copy.npz"
     copy.write_bytes(data.read_bytes())
     prepare(copy)
-    ours = [p for p in cache.iterdir() if (p / snapshot_folder.MARKER).is_file()]
-    assert len(ours) == 1
+    now = [p for p in cache.iterdir() if (p / snapshot_folder.MARKER).is_file()]
+    assert len(now) == 1 and now != ours
     assert {p: after[p] for p in before} == {p: tree_listing(cache).get(p, tree_listing(
         outside).get(p)) for p in before}
 
@@ -551,3 +555,29 @@ def test19_ctrl_c_while_a_snapshot_is_written_leaves_nothing_and_exits_130(data,
     assert proc.stderr.strip().splitlines()[-1] == "interrupted", proc.stderr
     assert "Traceback" not in proc.stderr and "KeyboardInterrupt" not in proc.stderr
     assert [p.name for p in root.iterdir()] == []
+
+
+def test20_the_cache_stays_within_its_limit_after_every_load(data, cache, tmp_path,
+                                                             monkeypatch):
+    """The limit holds after every load, its leaf ranges added included: an entry larger than
+    the whole limit is not kept (one warning naming the file), and the one just written goes
+    last, only when it does not fit by itself."""
+    def used():
+        return sum(f.stat().st_size for f in cache.rglob("*") if f.is_file())
+
+    prep = prepare(data)
+    prep.search_ready(True)
+    entry = used()
+    shutil.rmtree(cache)
+    monkeypatch.setenv("MI_AMR_CACHE_GB", str(1.5 * entry / 1e9))
+    for i in range(3):
+        copy = tmp_path / f"copy{i}.npz"
+        copy.write_bytes(data.read_bytes())
+        prepare(copy).search_ready(True)            # the ranges are added after the save
+        assert 0 < used() <= 1.5 * entry
+    monkeypatch.setenv("MI_AMR_CACHE_GB", str(0.5 * entry / 1e9))
+    with pytest.warns(UserWarning, match=r"no snapshot kept: .*copy3.npz prepared takes"):
+        copy = tmp_path / "copy3.npz"
+        copy.write_bytes(data.read_bytes())
+        prepare(copy).search_ready(True)
+    assert used() <= 0.5 * entry

@@ -63,7 +63,7 @@ class SnapshotCache:
     most bytes the cache's own folders there may hold (``limit``)."""
 
     root: Path | None
-    limit: int = int(DEFAULT_LIMIT_GB * 2 ** 30)
+    limit: int = int(DEFAULT_LIMIT_GB * 1e9)
 
     @classmethod
     def from_env(cls, environ=None) -> "SnapshotCache":
@@ -109,11 +109,19 @@ class SnapshotCache:
         on."""
         if self.root is None:
             return False
+        need = _entry_bytes(prepared)
+        if need > self.limit:
+            warnings.warn(f"mi_amr: no snapshot kept: {prepared.volume.source} prepared takes "
+                          f"about {need / 1e9:.2f} GB, more than the snapshot cache's limit of "
+                          f"{self.limit / 1e9:.2f} GB (MI_AMR_CACHE_GB)")
+            self._sweep(None)                   # a lowered limit holds all the same
+            return False
         try:
             root_fd = folder.open_root(self.root, create=True)
             try:
                 placed = _save(root_fd, key, prepared)
                 folder.sweep(root_fd, self.limit, keep=key)
+                placed = placed and _complete(root_fd, key)
             finally:
                 os.close(root_fd)
         except (OSError, TypeError) as exc:     # TypeError: a value the format cannot hold
@@ -121,6 +129,16 @@ class SnapshotCache:
                           f"MI_AMR_CACHE to another folder, or to off")
             return False
         return placed
+
+    def _sweep(self, keep: str | None) -> None:
+        """Evict down to the limit (best effort)."""
+        with contextlib.suppress(OSError):
+            root_fd = folder.open_root(self.root, create=False)
+            if root_fd is not None:
+                try:
+                    folder.sweep(root_fd, self.limit, keep=keep)
+                finally:
+                    os.close(root_fd)
 
     def save_ranges(self, key: str, kind: str, host: np.ndarray) -> None:
         """Add leaf value ranges (``kind`` ``basis`` or ``finest``) to entry ``key`` if it
@@ -134,11 +152,12 @@ class SnapshotCache:
                     _add_ranges(fd, key, kind, host)
             finally:
                 os.close(fd)
+        self._sweep(key)                                # the ranges count too
 
 
 def limit_bytes(environ=None) -> int:
     """The most the snapshot folder may hold, from ``$MI_AMR_CACHE_GB`` (a number of
-    gigabytes; anything else is warned about and the default used)."""
+    gigabytes of 10^9 bytes; anything else is warned about and the default used)."""
     text = (os.environ if environ is None else environ).get("MI_AMR_CACHE_GB")
     try:
         gb = DEFAULT_LIMIT_GB if text is None else float(text)
@@ -148,7 +167,7 @@ def limit_bytes(environ=None) -> int:
         warnings.warn(f"mi_amr: MI_AMR_CACHE_GB={text!r} is not a number of gigabytes >= 0; "
                       f"using {DEFAULT_LIMIT_GB}")
         gb = DEFAULT_LIMIT_GB
-    return int(min(gb, 2.0 ** 40) * 2 ** 30)
+    return int(min(gb, 1e12) * 1e9)
 
 
 @contextlib.contextmanager
@@ -432,6 +451,17 @@ def _save(root_fd: int, key: str, prepared) -> bool:
         folder.remove(root_fd, tmp)
         raise
     return _complete(root_fd, key)
+
+
+def _entry_bytes(prepared) -> int:
+    """About what the entry of ``prepared`` takes on disk: its fields, brick pools, leaf
+    ranges and kd-tree arrays (the metadata and tables are small beside them)."""
+    parts = [prepared.volume.nbytes]
+    parts += [np.asarray(pool).nbytes for pool in prepared.device.host_bricks[1]]
+    parts += [np.asarray(host).nbytes for host in prepared.device.host_ranges.values()]
+    parts += [np.asarray(a).nbytes for a in prepared.tree.arrays().values()
+              if isinstance(a, np.ndarray)]
+    return int(sum(parts))
 
 
 def _exists(root_fd: int, name: str) -> bool:

@@ -252,9 +252,9 @@ def _empty(fd: int) -> None:
 
 def sweep(root_fd: int, limit: int, keep: str | None = None) -> None:
     """Keep the cache folder ``root_fd`` within ``limit`` bytes: remove what removals cut
-    short left and stale temporary folders, then the least recently used entries (never
-    ``keep``) until the cache's own folders, temporary ones being written included, hold at
-    most ``limit`` bytes."""
+    short left and stale temporary folders, then the least recently used entries (``keep``,
+    the entry just written, last: only when it does not fit by itself) until the cache's own
+    folders, temporary ones being written included, hold at most ``limit`` bytes."""
     now = time.time()
     total, entries = 0, []
     for child in list(os.scandir(root_fd)):
@@ -265,9 +265,9 @@ def sweep(root_fd: int, limit: int, keep: str | None = None) -> None:
             remove(root_fd, item.name)
             continue
         total += item.size
-        if item.kind in ("entry", "old") and item.name != keep:
+        if item.kind in ("entry", "old"):
             entries.append(item)
-    for item in sorted(entries, key=lambda e: e.used):
+    for item in sorted(entries, key=lambda e: (e.name == keep, e.used)):
         if total <= limit:
             break
         if remove(root_fd, item.name):
