@@ -315,20 +315,15 @@ def test11_tiles_cover_the_image_once():
 
 # ---------------------------------------------------------------------- a full disk
 
-def test12_a_full_disk_on_save_is_one_error_line(viewer, monkeypatch, tmp_path, variant):
-    """Saving on a full disk (ENOSPC from the writer) answers one error line, no traceback,
-    and leaves no file; the scene file and keyframe writers too."""
-    import errno
-
-    from mi_amr.workflows.movie import output
+def test12_a_full_disk_on_save_is_one_error_line(viewer, tmp_path, variant):
+    """Saving where the system refuses the bytes answers one error line, no traceback, and
+    leaves no file; the scene file and keyframe writers too. Here a file size limit of 0
+    bytes (RLIMIT_FSIZE, while each request runs) refuses them: EFBIG, as a full disk gives
+    ENOSPC, and a new empty file is still made, as on a full disk."""
+    resource = pytest.importorskip("resource")
     from mi_amr.workflows.viewer import hub as hub_module
 
-    def full(*args, **kwargs):
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(output, "write_image_atomic", full)
-    monkeypatch.setattr(output, "write_bytes_atomic", full)
-    monkeypatch.setattr("mi_amr.core.atomic.replacing", full)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
     loop = asyncio.new_event_loop()
     sent = []
 
@@ -344,14 +339,17 @@ def test12_a_full_disk_on_save_is_one_error_line(viewer, monkeypatch, tmp_path, 
                         {"op": "add_keyframe", "name": "k.toml"},
                         {"op": "save_image", "name": "v.png"}):
             n = len(sent)
-            loop.run_until_complete(h.handle(Page(), json.dumps(request)))
-            end = time.monotonic() + WAIT_S
-            while not any(m["type"] in ("error", "saved") for m in sent[n:]) and \
-                    time.monotonic() < end:
-                loop.run_until_complete(asyncio.sleep(0.05))
+            resource.setrlimit(resource.RLIMIT_FSIZE, (0, hard))
+            try:
+                loop.run_until_complete(h.handle(Page(), json.dumps(request)))
+                end = time.monotonic() + WAIT_S
+                while not any(m["type"] in ("error", "saved") for m in sent[n:]) and \
+                        time.monotonic() < end:
+                    loop.run_until_complete(asyncio.sleep(0.05))
+            finally:
+                resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
             errors = [m for m in sent[n:] if m["type"] == "error"]
-            assert errors and re.search("No space left on device", errors[0]["message"]), \
-                sent[n:]
+            assert errors and re.search("File too large", errors[0]["message"]), sent[n:]
             assert "internal error" not in errors[0]["message"]
         assert not list((tmp_path / "out").iterdir())
     finally:

@@ -412,11 +412,10 @@ def save_image(hub: Hub, client: Client, msg: dict) -> None:
         else:
             image = worker.counted("saves", lambda: session.render_tiled(size, state.spp))
         try:
-            write_image_atomic(path, image)
-        except (OSError, RuntimeError) as e:    # Mitsuba's writer raises RuntimeError
+            write_image_atomic(path, image, "image")
+        except AMRError as e:           # a full disk; the writer's message names the file
             worker.publish("reply", {"client": client, "message": error_message(
-                f"save: cannot write {path} ({str(e).strip() or type(e).__name__}); any "
-                f"existing file is unchanged")}, None)
+                f"save: {e}; any existing file is unchanged")}, None)
             return
         worker.publish("reply", {"client": client, "message": {
             "type": "saved", "what": "image", "path": str(path),
