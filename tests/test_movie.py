@@ -416,8 +416,8 @@ def test14_a_long_movie_starts_at_once_in_little_memory(series, tmp_path):
     """``frames=10**6``: the movie's plan is made without planning its frames (a lazy
     sequence; 10^8 frames used to take 1.15 GB before the first frame), and the first frames
     are rendered without planning the others first (that plan, stopping the run when its
-    fourth frame is asked for, leaves three frames); the lazy plan gives the frames an eager
-    one does."""
+    fifth frame is asked for, leaves the first three or four: the run takes a frame ahead to
+    prepare its data file); the lazy plan gives the frames an eager one does."""
     import tracemalloc
 
     from mi_amr.workflows import movie
@@ -425,9 +425,9 @@ def test14_a_long_movie_starts_at_once_in_little_memory(series, tmp_path):
     class Stop(Exception):
         pass
 
-    class ThreeFrames(S.Plan):
+    class FourFrames(S.Plan):
         def _spec(self, i):
-            if i >= 3:
+            if i >= 4:
                 raise Stop
             return super()._spec(i)
 
@@ -444,8 +444,9 @@ def test14_a_long_movie_starts_at_once_in_little_memory(series, tmp_path):
     assert peak < 20e6, f"{peak / 1e6:.0f} MB traced planning the movie"
     out = tmp_path / "long"
     with pytest.raises(Stop):
-        render_movie_quiet(scene, out, specs=ThreeFrames(**vars(long)))
-    assert [p.name for p in frames_in(out)] == [f"frame_{i:05d}.png" for i in range(3)]
+        render_movie_quiet(scene, out, specs=FourFrames(**vars(long)))
+    names = [p.name for p in frames_in(out)]
+    assert names == [f"frame_{i:05d}.png" for i in range(len(names))] and 3 <= len(names) <= 4
     lazy = S.plan(7, camera=CAMERA, orbit_degrees=300, isovalues="log:0.01:1")
     cams, isos = S.orbit(CAMERA, 300, 7), list(np.linspace(0.0, 1.0, 7))
     assert [s.camera for s in lazy] == cams and len(lazy) == 7 and lazy[-1].index == 6
@@ -519,3 +520,37 @@ def test17_a_frame_that_cannot_be_written_is_one_line(series, tmp_path, capsys):
         assert line.startswith(f"  frame {i}: {frame}: cannot write the frame ([Errno 21] "), line
     assert sorted(p.relative_to(out) for p in out.rglob("*")) == sorted(
         Path(f"frame_{i:05d}.png") / name for i in range(2) for name in ("", "kept"))
+
+
+def test18_the_next_time_step_is_prepared_while_a_frame_renders(series, tmp_path):
+    """In one process each job is told the next frame's data file where it changes; the frame
+    renderer prepares that file in a background thread while its frame renders, so the next
+    frame prepares nothing itself (and compiles nothing)."""
+    from mi_amr.workflows.movie import farm
+    from mi_amr.workflows.movie.frames import FrameRenderer
+    from mi_amr.workflows.movie.spec import FrameSpec
+
+    names = ["a", "a", "b", None, "c", "c"]
+    jobs = [farm.Job(scene="s", spec=FrameSpec(index=i, file=f).as_dict(), path="p",
+                     resolution=None, spp=None, defines={}, variant="v")
+            for i, f in enumerate(names)]
+    told = list(farm.with_next_files(iter(jobs)))
+    assert [j.spec["index"] for j in told] == list(range(6))
+    assert [j.next_file for j in told] == [None, "b", None, "c", None, None]
+
+    files = [str(series / f"step{t}.npz") for t in range(3)]
+    r = FrameRenderer(series / "scene.xml", resolution=RES)
+    preps = r.integ.preparations
+    heard, old = [], preps.report
+    preps.report = lambda text: heard.append(threading.current_thread().name)
+    try:
+        preps.clear()
+        r.render_to(FrameSpec(index=0, file=files[0]), tmp_path / "0.png", next_file=files[1])
+        r.prefetch.wait()
+        assert "mi_amr-prefetch" in heard, heard
+        heard.clear()
+        out = r.render_to(FrameSpec(index=1, file=files[1]), tmp_path / "1.png")
+        assert heard == [] and out["compiled"] == 0
+        assert r.prefetch.finished() == files[1]
+    finally:
+        preps.report = old

@@ -104,6 +104,25 @@ def test02_a_packet_shares_its_number_stratified_over_a_pixels_samples(variant):
         assert abs(np.corrcoef(v, u)[0, 1]) < 0.1
 
 
+def test09_a_groups_turn_is_independent_of_every_packets_number(variant):
+    """The turn that rotates a group's strata (which sample index gets which stratum) and
+    the packets' numbers ``xi`` come from two hash streams: drawn from one, group ``G``'s
+    turn would be packet ``G``'s ``xi`` times ``spp``, rounded down, every time."""
+    from mi_amr.plugin import wavefront
+
+    width, height, spp = 64, 64, 4
+    lanes = by_sample_lanes(width, height, spp, seed=5)
+    u = packet_numbers(lanes, salt=0).astype(np.float64)
+    lane = np.array(lanes.lane)
+    packet, group = wavefront.PACKET, wavefront.PACKET * spp
+    xi = (u[::packet] * spp) % 1.0                                # per packet
+    first = np.arange(0, len(u), group)                           # each group's first lane
+    turn = (np.floor(u[first] * spp).astype(np.int64) - lane[first] % spp) % spp
+    same = np.floor(xi[:len(turn)] * spp).astype(np.int64) == turn
+    assert len(turn) == 256 and len(np.unique(turn)) == spp
+    assert same.mean() < 0.4, same.mean()                         # 1 / spp expected
+
+
 def test03_no_shared_numbers_outside_a_wavefront_by_sample(variant):
     from mi_amr.kernels.device import backend_of
     from mi_amr.plugin import wavefront

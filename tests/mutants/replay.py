@@ -58,7 +58,7 @@ MUTANTS = (
            "the centroid splits every band's steps at band 0's plateau"),
     Mutant("rope-plus-z", "mi_amr/kernels/traverse.py",
            (("dr.minimum(face, 5)", "dr.minimum(face, 4)", 1),),
-           ("tests/test_march.py", "tests/test_*step*.py"),
+           ("tests/test_traversal.py",),
            "the +z rope reads the -z one: the walk falls back to the root (only speed changes)"),
     Mutant("roots-tangent-r1", "mi_amr/kernels/roots.py",
            (("touch1 = (r1 < L) & (dr.abs(f1) <= tol)", "touch1 = (r1 < L) & (dr.abs(f1) < 0.0)",
@@ -79,6 +79,17 @@ MUTANTS = (
              "stable_jitter(m, pos // (spp_u * PACKET), key)", 1),),
            ("tests/test_packet_picks.py",),
            "the stratum's turn and the packet's number drawn from one hash stream"),
+    Mutant("skip-restarts-at-root", "mi_amr/kernels/traverse.py",
+           (("_restart(ray, t_next + ray.eps(t_next), at.node, f_out, skip)",
+             "_restart(ray, t_next + ray.eps(t_next), at.node, f_out * 0 + 6, skip)", 1),),
+           ("tests/test_traversal.py",),
+           "a skipped node's search restarts at the root instead of its rope (only slower)"),
+    Mutant("dual-plane-skipped", "mi_amr/kernels/traverse.py",
+           (("plane = dr.select(up, cell + 1.5, cell + 0.5)",
+             "plane = dr.select(up, cell + 2.5, cell + 0.5)", 1),),
+           ("tests/test_march.py",),
+           "a ray going up a coordinate skips every other dual-cell plane: pieces span two "
+           "cells, so their cubic is wrong"),
 )
 
 

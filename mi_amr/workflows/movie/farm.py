@@ -11,6 +11,7 @@ dies is retried elsewhere; since frames are written atomically, no half-written 
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import os
 import time
@@ -38,6 +39,7 @@ class Job:
     spp: int | None
     defines: dict
     variant: str
+    next_file: str | None = None    # the next frame's data file, prepared while this renders
 
 
 @dataclass
@@ -74,7 +76,7 @@ def render_task(job: Job) -> dict:
     spec = FrameSpec.from_dict(job.spec)
     out = {"index": spec.index, "file": spec.file, "path": job.path, "pid": os.getpid()}
     try:
-        out.update(_renderer(job).render_to(spec, job.path))
+        out.update(_renderer(job).render_to(spec, job.path, next_file=job.next_file))
     except AMRError as e:
         out["error"] = str(e)
     except Exception as e:              # noqa: BLE001 -- reported per frame, not a crash
@@ -116,6 +118,27 @@ def jobs_for(scene, specs, out_dir, fmt, *, resolution, spp, defines, variant, f
                   defines=dict(defines), variant=variant)
 
 
+def with_next_files(jobs):
+    """``jobs`` (taken one ahead), each told the next job's data file where it differs from
+    its own, so that one process prepares the next time step while this frame renders. (On
+    Dask the next frame usually goes to another worker, which would prepare it again: there
+    jobs go as they are.)"""
+    previous = None
+    for job in jobs:
+        if previous is not None:
+            yield _told(previous, job)
+        previous = job
+    if previous is not None:
+        yield previous
+
+
+def _told(job: Job, following: Job) -> Job:
+    file, next_file = job.spec.get("file"), following.spec.get("file")
+    if next_file is None or next_file == file:
+        return job
+    return dataclasses.replace(job, next_file=next_file)
+
+
 def run_jobs(jobs, *, workers: int = 1, scheduler: str | None = None, progress: bool = True,
              variant: str = "llvm_ad_rgb", total: int | None = None):
     """Run ``jobs`` (an iterable, taken as it goes): in this process with one worker and no
@@ -126,7 +149,7 @@ def run_jobs(jobs, *, workers: int = 1, scheduler: str | None = None, progress: 
     bar = tqdm(total=total, unit="frame", disable=not progress, smoothing=0.1)
     try:
         if scheduler is None and workers <= 1:
-            for job in jobs:
+            for job in with_next_files(jobs):
                 yield render_task(job)
                 bar.update(1)
         else:

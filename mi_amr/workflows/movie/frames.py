@@ -1,6 +1,8 @@
 """Rendering a movie's frames in one process: the scene is loaded once, and each frame only
 changes kernel inputs through ``mi.traverse`` (camera, first isovalue, colour range) or points
-the integrator at the frame's data file, so after the first frame nothing compiles.
+the integrator at the frame's data file, so after the first frame nothing compiles. Told the
+next frame's data file, the renderer prepares it in the background while this frame renders
+(:class:`~mi_amr.workflows.prefetch.Prefetcher`).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import numpy as np
 from mi_amr.errors import AMRError
 from mi_amr.workflows.movie.output import write_image_atomic
 from mi_amr.workflows.movie.spec import FrameSpec
+from mi_amr.workflows.prefetch import Prefetcher
 
 
 class FrameRenderer:
@@ -43,6 +46,7 @@ class FrameRenderer:
         self.params = mi.traverse(self.scene)
         self.camera = scene_camera(scene_path, params, self.scene).as_dict()
         self.file = None
+        self.prefetch = Prefetcher()
 
     def base_camera(self) -> dict:
         """The scene's own camera (``origin``, ``target``, ``up``, ``fov``)."""
@@ -56,6 +60,7 @@ class FrameRenderer:
         timings = {}
         if spec.file is not None and spec.file != self.file:
             t0 = time.perf_counter()
+            self.prefetch.wait()                    # it may be preparing this very file
             self.integ.load_volume(spec.file)       # its leaf ranges too (search_ready)
             timings = dict(self.integ.prep.timings, load=time.perf_counter() - t0)
             self.file = spec.file
@@ -81,14 +86,22 @@ class FrameRenderer:
         dr.sync_thread()
         return np.array(img, dtype=np.float32)
 
-    def render_to(self, spec: FrameSpec, path) -> dict:
-        """Render frame ``spec`` to ``path`` (written atomically); returns its timings (seconds:
-        ``load`` and its steps when the data file changed, ``frame``, ``write``) and the number
-        of kernels compiled."""
+    def prepare_next(self, path) -> None:
+        """Start preparing the data file ``path`` (the next frame's) in the background, unless
+        it is the one shown or None."""
+        if path is not None and str(path) != self.file:
+            self.prefetch.start(self.integ, path)
+
+    def render_to(self, spec: FrameSpec, path, next_file=None) -> dict:
+        """Render frame ``spec`` to ``path`` (written atomically), preparing ``next_file`` (the
+        next frame's data file, if any) meanwhile; returns its timings (seconds: ``load`` and
+        its steps when the data file changed -- what was left of it when it was prepared in
+        the background --, ``frame``, ``write``) and the number of kernels compiled."""
         import drjit as dr
 
         t0 = time.perf_counter()
         timings = self.show(spec)
+        self.prepare_next(next_file)
         dr.set_flag(dr.JitFlag.KernelHistory, True)
         dr.kernel_history()
         t1 = time.perf_counter()

@@ -5,15 +5,13 @@ The files are checked once, at start: every one holds the same fields (a series 
 simulation), among them what the scene shows. A step is a new ``data_file`` in the view's
 state, an ``integrator.load_volume`` in the render thread: everything else (camera, isovalues,
 colours, colour range) stays, and no kernel compiles. While step ``k`` is shown, a background
-thread (:class:`Prefetcher`) prepares step ``k + 1`` (reads it, builds its kd-tree and device
+thread (:class:`~mi_amr.workflows.prefetch.Prefetcher`) prepares step ``k + 1`` (reads it, builds its kd-tree and device
 arrays into the integrator's :class:`~mi_amr.kernels.prepared.Preparations`), so that stepping forward
 costs a frame, not a load.
 """
 
 from __future__ import annotations
 
-import threading
-import traceback
 from pathlib import Path
 
 from mi_amr.errors import AMRError
@@ -51,55 +49,6 @@ def check_series(files, field: str, color_field) -> None:
     if missing:
         raise AMRError(f"--files: {files[0]} has no field(s) {missing} that the scene shows; "
                        f"the series holds {first}")
-
-
-class Prefetcher:
-    """Prepares one data file at a time in a background thread, into the integrator's
-    :class:`~mi_amr.kernels.prepared.Preparations` (the render thread then finds it there). The render thread
-    calls :meth:`wait` before it loads anything itself, so the two never prepare at once."""
-
-    def __init__(self):
-        self._thread = None
-        self.path = None
-        self._args = None               # what was prepared last (file, fields, backend)
-
-    def start(self, integrator, path) -> None:
-        """Prepare ``path`` for ``integrator`` (its field, colour field, backend), unless it is
-        prepared (or being prepared) for it already."""
-        opt = integrator.opt
-        args = (integrator.preparations, str(path), opt.field, opt.color_field, opt.leaf_cells,
-                integrator.m, opt.reconstruction == "basis")
-        if args == self._args:
-            return
-        self.wait()
-        self.path, self._args = str(path), args
-        self._thread = threading.Thread(target=self._prepare, args=args,
-                                        name="mi_amr-view-prefetch", daemon=True)
-        self._thread.start()
-
-    def _prepare(self, preparations, path, field, color_field, leaf_cells, m, basis) -> None:
-        import drjit as dr
-
-        try:
-            preparations.prepare(path, field, color_field, leaf_cells=leaf_cells,
-                                 m=m).search_ready(basis)
-            dr.sync_thread()
-        except AMRError:                # a bad file: the step loads it itself and says why
-            pass
-        except Exception:               # a bug: print it; the step loads the file itself
-            traceback.print_exc()
-
-    def wait(self) -> None:
-        """Until the preparation under way (if any) is done."""
-        if self._thread is not None:
-            self._thread.join()
-            self._thread = None
-
-    def finished(self):
-        """The file last prepared when its preparation is done (None while it runs, or when
-        none was started)."""
-        thread = self._thread
-        return self.path if thread is None or not thread.is_alive() else None
 
 
 def next_step(files, current) -> str | None:

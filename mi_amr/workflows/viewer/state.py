@@ -108,7 +108,7 @@ class Session:
     one at start; see :mod:`.series`)."""
 
     def __init__(self, scene_path, *, resolution=None, spp: int = 4, series=()):
-        from mi_amr.workflows.viewer.series import Prefetcher
+        from mi_amr.workflows.prefetch import Prefetcher
 
         self.workdir = Path(tempfile.mkdtemp(prefix="mi_amr-view-"))
         self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
