@@ -18,16 +18,15 @@ NAMES = ("q_criterion", "vorticity_magnitude", "speed")
                                                      (1, (4, 2), np.float32, False),
                                                      (2, (2, 4), np.float64, True),
                                                      (5, (2, 2), np.float32, True)])
-def test01_device_fields_equal_the_grid_by_grid_twin(monkeypatch, seed, ratios, dtype, holes):
+def test01_device_fields_equal_the_grid_by_grid_twin(seed, ratios, dtype, holes):
     """Ghosts from the same level, interpolated from coarser ones (ratios 2 and 4), one-sided
     differences, grids 1 or 2 cells thick, missing data, several chunks a level: the same bits
     as the slow twin's gradient, rounded to the velocity's dtype."""
     from mi_amr.kernels import derive as device_derive
 
-    monkeypatch.setattr(device_derive, "CHUNK_CELLS", 60)
     vol = _velocity_hierarchy(seed, ratios, dtype, holes)
     slow = list(gradient.grid_gradients_reference(vol, ("vx", "vy", "vz")))
-    out = device_derive.derive(vol, *NAMES, m=drjit.llvm.ad)
+    out = device_derive.derive(vol, *NAMES, m=drjit.llvm.ad, chunk_cells=60)
     for g, h, grad in zip(vol.grids, out.grids, slow):
         np.testing.assert_array_equal(h.fields["q_criterion"],
                                       host_derive.q_criterion(grad).astype(dtype))
@@ -40,21 +39,34 @@ def test01_device_fields_equal_the_grid_by_grid_twin(monkeypatch, seed, ratios, 
             np.testing.assert_array_equal(a.fields[name], b.fields[name])
 
 
-def test02_a_level_without_a_dense_table_is_derived_on_the_host(monkeypatch):
+def _launches(fn):
+    """``(fn(), number of Dr.Jit kernels launched while it ran)``."""
+    import drjit as dr
+
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history()                         # clear
+    try:
+        out = fn()
+        return out, sum(1 for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT)
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+
+
+def test02_a_level_without_a_dense_table_is_derived_on_the_host():
     """Where a level is too sparse for the device lookup (no dense block table), the host
-    derives the volume, with the same numbers."""
+    derives the volume, with the same numbers: no kernel runs (one volume with dense tables
+    runs several)."""
     from mi_amr.core import levels
     from mi_amr.kernels import derive as device_derive
 
     vol = _velocity_hierarchy(1, (2, 2), np.float32, False)
     expected = mi_amr.derive(vol, "q_criterion")
-    monkeypatch.setattr(levels, "DENSE_BLOCKS", 0)
+    _, dense = _launches(lambda: device_derive.derive(vol, "q_criterion", m=drjit.llvm.ad))
     vol = _velocity_hierarchy(1, (2, 2), np.float32, False)
+    vol.level_caches.dense_blocks = 0           # before any level's table is made
     assert levels.level_index(vol, 0).table is None
-    called = []
-    monkeypatch.setattr(device_derive, "_fill", lambda *a: called.append(a))
-    out = device_derive.derive(vol, "q_criterion", m=drjit.llvm.ad)
-    assert not called
+    out, sparse = _launches(lambda: device_derive.derive(vol, "q_criterion", m=drjit.llvm.ad))
+    assert dense > 0 and sparse == 0
     for a, b in zip(out.grids, expected.grids):
         np.testing.assert_array_equal(a.fields["q_criterion"], b.fields["q_criterion"])
 
@@ -115,25 +127,28 @@ def test_device_interpolation_is_the_host_one(seed, ratios, holes):
 
 
 @pytest.mark.parametrize("how", ["mapped", "copied", "no-buffer"])
-def test_kernels_write_the_host_buffers_or_are_copied_over(monkeypatch, how):
-    """The derivation's kernels scatter into the host buffers of the fields, mapped; where the
-    target turns out not to be that memory (Dr.Jit copied it: its probes still hold their
-    payload) or there is no single buffer, the values are copied over: the same numbers."""
+def test_kernels_write_the_host_buffers_or_are_copied_over(how):
+    """The derivation's kernels scatter into a field's host buffer, mapped (it holds the
+    values before anything is copied); where the target turns out not to be that memory (a
+    backend that copies it: its probes still hold their payload) or the field's levels are no
+    single buffer, :func:`_settle` copies the values over."""
+    import drjit as dr
+
+    from mi_amr.core.buffers import aligned_parts
     from mi_amr.kernels import derive as device_derive
 
-    vol = _velocity_hierarchy(2, (2, 4), np.float32, True)
-    want = mi_amr.derive(vol, *NAMES)
-    settled = []
-    real_settle = device_derive._settle
-    monkeypatch.setattr(device_derive, "_settle",
-                        lambda m, t, record: settled.append(record[1] is not None) or
-                        real_settle(m, t, record))
+    m = drjit.llvm.ad
+    sizes = [5, 300, 41]
+    parts = [np.empty(n, np.float32) for n in sizes] if how == "no-buffer" else \
+        aligned_parts(sizes, np.float32)
+    target, record = device_derive._written(m, parts)
+    assert (record[1] is None) == (how == "no-buffer")
     if how == "copied":
-        monkeypatch.setattr(device_derive, "_map", lambda T, host: T(host.copy()))
-    if how == "no-buffer":
-        monkeypatch.setattr(device_derive, "joined", lambda parts, dtype: None)
-    out = device_derive.derive(vol, *NAMES, m=drjit.llvm.ad)
-    assert settled == [how != "no-buffer"] * 2
-    for a, b in zip(out.grids, want.grids):
-        for name in NAMES:
-            np.testing.assert_array_equal(a.fields[name], b.fields[name])
+        target = type(target)(record[1].copy())
+    values = np.arange(sum(sizes), dtype=np.float32) * 0.5 - 7.0
+    dr.scatter(target, m.Float32(values), dr.arange(m.UInt32, len(values)))
+    dr.eval(target)
+    if how == "mapped":
+        np.testing.assert_array_equal(np.concatenate(parts), values)
+    device_derive._settle(m, target, record)
+    np.testing.assert_array_equal(np.concatenate(parts), values)

@@ -80,15 +80,14 @@ def test04_ranges_first_asked_for_inside_a_traced_loop_are_the_same():
     np.testing.assert_array_equal(got[0], outside)
 
 
-def test05_ranges_in_many_launches_are_the_same(monkeypatch):
+def test05_ranges_in_many_launches_are_the_same():
     m = dr.llvm.ad
     vol = AMRVolume.from_grids(with_missing(HIERARCHIES["random0"](), 10), allow_nonfinite=True)
     tree = KDTree(vol, leaf_cells=4)
     values = m.Float(np.concatenate([g.fields["f"].ravel() for g in vol.grids])
                      .astype(np.float32))
     want = ranges.leaf_ranges(m, tree, values, "f", "basis")
-    monkeypatch.setattr(ranges, "CHUNK_PAIRS", 7)
-    got = ranges.leaf_ranges(m, tree, values, "f", "basis")
+    got = ranges.leaf_ranges(m, tree, values, "f", "basis", pairs=7)
     assert len(tree.leaf_windows("f", "basis")[0]) > 70
     for a, b in zip(got, want):
         np.testing.assert_array_equal(a, b)
@@ -114,7 +113,7 @@ def test06_a_volume_of_another_structure_compiles_no_kernel():
     assert compiled == 0
 
 
-def test06b_a_launch_of_one_pair_compiles_no_kernel(monkeypatch):
+def test06b_a_launch_of_one_pair_compiles_no_kernel():
     """A last launch of the ranges holding a single (leaf, grid) pair runs the kernel the
     others compiled (a one-lane input would compile into a broadcast), with the same ranges."""
     from conftest import kernels_compiled
@@ -123,12 +122,14 @@ def test06b_a_launch_of_one_pair_compiles_no_kernel(monkeypatch):
 
     m = dr.llvm.ad
     vol = AMRVolume.from_grids(with_missing(HIERARCHIES["random2"](), 11), allow_nonfinite=True)
-    want = PreparedVolume(vol, "f", m=m).device.node_ranges(True)
-    pairs = len(PreparedVolume(vol, "f", m=m).tree.leaf_windows("f", "basis")[0])
-    monkeypatch.setattr(ranges, "CHUNK_PAIRS", pairs - 1)          # launches of pairs - 1, 1
-    got, compiled = kernels_compiled(lambda: PreparedVolume(vol, "f", m=m).device.node_ranges(True))
+    prep = PreparedVolume(vol, "f", m=m)
+    want = ranges.leaf_ranges(m, prep.tree, prep.device.values, "f", "basis")
+    pairs = len(prep.tree.leaf_windows("f", "basis")[0])
+    got, compiled = kernels_compiled(lambda: ranges.leaf_ranges(
+        m, prep.tree, prep.device.values, "f", "basis", pairs=pairs - 1))    # pairs - 1, 1
     assert compiled == 0
-    np.testing.assert_array_equal(got, want)
+    for a, b in zip(got, want):
+        np.testing.assert_array_equal(a, b)
 
 
 def test07_a_session_gives_back_what_it_prepared_until_cleared(tmp_path):

@@ -151,11 +151,15 @@ def test05_the_reference_pages_hold_every_parameter_and_command(site):
             assert invocation.split()[0] in cli, (name, invocation)
 
 
-def _mini_site(tmp_path, directive: str):
-    """A one-page Sphinx project that uses only ``directive`` of docs/_ext/amr_docs.py."""
+def _mini_site(tmp_path, directive: str, modules=None):
+    """A one-page Sphinx project that uses only ``directive`` of docs/_ext/amr_docs.py;
+    ``modules`` (name -> source) are written beside it, importable while it builds."""
     src = tmp_path / "src"
     src.mkdir()
+    for name, text in (modules or {}).items():
+        (src / f"{name}.py").write_text(text)
     (src / "conf.py").write_text(f"import sys\nsys.path.insert(0, {str(DOCS / '_ext')!r})\n"
+                                 f"sys.path.insert(0, {str(src)!r})\n"
                                  "extensions = ['amr_docs']\n")
     (src / "index.rst").write_text(f"Reference\n=========\n\n{directive}\n")
     return src
@@ -170,38 +174,34 @@ def _build_in_process(src: Path, out: Path) -> str:
     return html.unescape((out / "index.html").read_text(encoding="utf-8"))
 
 
-def test06_a_parameter_added_to_params_appears_on_the_page(tmp_path, monkeypatch):
-    """Adding a row to mi_amr.params.TABLE is all it takes: the directive reads the table when
-    the page is built."""
-    from mi_amr import params
-
-    src = _mini_site(tmp_path, ".. amr-params::")
-    before = _build_in_process(src, tmp_path / "before")
-    assert "zz_new_param" not in before and "shininess" in before
-    new = params.Param("zz_new_param", "float", 2.5, "a parameter added by ``test06``",
-                       lo=0.0, hi=10.0, traversable=True)
-    monkeypatch.setattr(params, "TABLE", params.TABLE + (new,))
-    after = _build_in_process(src, tmp_path / "after")
-    row = after[after.index("zz_new_param"):]
+def test06_a_parameter_added_to_params_appears_on_the_page(tmp_path):
+    """Adding a row to a parameter table is all it takes: the directive reads the table
+    (mi_amr.params.TABLE, or the one its argument names) when the page is built."""
+    src = _mini_site(tmp_path, ".. amr-params::\n\n.. amr-params:: test06_params:TABLE", {
+        "test06_params": "from mi_amr.params import TABLE as BASE, Param\n"
+                         "TABLE = BASE + (Param('zz_new_param', 'float', 2.5, 'a parameter "
+                         "added by ``test06``', lo=0.0, hi=10.0, traversable=True),)\n"})
+    page = _build_in_process(src, tmp_path / "out")
+    first, second = page.split("</table>")[:2]
+    assert "zz_new_param" not in first and "shininess" in first and "shininess" in second
+    row = second[second.index("zz_new_param"):]
     row = re.sub(r"<[^>]+>", " ", row[:row.index("</tr>")])
     assert row.split() == ["zz_new_param", "float", "2.5", "0", "to", "10", "yes", "a",
                            "parameter", "added", "by", "test06"]
 
 
-def test07_a_flag_added_to_the_cli_appears_on_the_page(tmp_path, monkeypatch):
-    import mi_amr.cli as cli
-
-    original = cli._parser
-
-    def with_flag(prog):
-        parser = original(prog)
-        sub = next(a for a in parser._actions if hasattr(a, "choices") and a.choices)
-        sub.choices["render"].add_argument("--zz-new-flag", type=int, default=7,
-                                           help="a flag added by test07")
-        return parser
-
-    src = _mini_site(tmp_path, ".. amr-cli::")
-    monkeypatch.setattr(cli, "_parser", with_flag)
+def test07_a_flag_added_to_the_cli_appears_on_the_page(tmp_path):
+    """A flag added to a parser appears in its command's section: the directive reads the
+    parsers (mi_amr.cli's, or the factory its argument names) when the page is built."""
+    src = _mini_site(tmp_path, ".. amr-cli:: test07_cli:parser", {
+        "test07_cli": "from mi_amr.cli import _parser\n\n\n"
+                      "def parser(prog):\n"
+                      "    out = _parser(prog)\n"
+                      "    sub = next(a for a in out._actions if hasattr(a, 'choices') and "
+                      "a.choices)\n"
+                      "    sub.choices['render'].add_argument('--zz-new-flag', type=int, "
+                      "default=7, help='a flag added by test07')\n"
+                      "    return out\n"})
     page = _build_in_process(src, tmp_path / "out")
     section = page[page.index('id="cli-render"'):]
     section = section[:section.index("</section>")]

@@ -376,19 +376,16 @@ def test15b2_leaf_count_tables_equal_their_slow_twin(seed):
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test15b3_blocks_of_pairs_and_boxes_do_not_change_the_tree(monkeypatch, seed):
+def test15b3_blocks_of_pairs_and_boxes_do_not_change_the_tree(seed):
     """The build, the active lists and the leaf value ranges work through (node, grid) pairs
-    CHUNK at a time and descend boxes BOX_BLOCK at a time; tiny blocks (many of them, with
-    leaves and runs of pairs cut across blocks) give the same tree and ranges as the default
-    ones."""
-    from mi_amr.core import kdtree as kdtree_module
-
+    ``chunk`` (default CHUNK) at a time and descend boxes ``box_block`` (BOX_BLOCK) at a time;
+    tiny blocks (many of them, with leaves and runs of pairs cut across blocks) give the same
+    tree and ranges as the default ones."""
     vol = AMRVolume.from_grids(random_grids(seed, ratios=((2, 2), (4, 2), (2, 4))[seed],
                                             fn=random_field(seed)))
     want = KDTree(vol, leaf_cells=4)
-    monkeypatch.setattr(kdtree_module, "CHUNK", 5)
-    monkeypatch.setattr(kdtree_module, "BOX_BLOCK", 3)
-    got = KDTree(vol, leaf_cells=4)
+    got = KDTree(vol, leaf_cells=4, chunk=5, box_block=3)
+    assert len(got.leaf_grids) > 10 * got.chunk and len(vol.grids) > 3 * got.box_block
     for name in ("node_code", "node_split", "node_lo", "node_hi", "leaf_owner", "leaf_grids",
                  "leaf_nsupport", "leaf_nactive", "leaf_levels", "leaf_min_h", "node_ropes"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
@@ -504,9 +501,10 @@ def test31_check_finds_a_broken_tree():
 def test32_a_tree_made_from_its_arrays_is_the_tree(reference_volume):
     """:meth:`KDTree.from_arrays` of :meth:`KDTree.arrays` (what a snapshot keeps) is the
     built tree: every attribute a build sets is in ``KDTree.STATE`` (a new one missing there
-    would be lost by a snapshot), equal, and the tree passes its check."""
+    would be lost by a snapshot), equal, and the tree passes its check. Besides, a tree holds
+    its volume and the block sizes it works through (this process's, not the tree's)."""
     built = KDTree(reference_volume, leaf_cells=4)
-    assert set(vars(built)) == set(KDTree.STATE) | {"volume"}
+    assert set(vars(built)) == set(KDTree.STATE) | {"volume", "chunk", "box_block"}
     again = KDTree.from_arrays(reference_volume, built.arrays())
     assert again.volume is reference_volume
     for name in KDTree.STATE:

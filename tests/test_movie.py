@@ -391,9 +391,10 @@ def test13_nonsense_movie_values_are_one_line_and_render_nothing(series, tmp_pat
                                                                  monkeypatch, args, says):
     """Each is one ``error:`` line and exit status 2, before any frame (``--orbit nan`` used
     to render black frames and report success; ``inf``, a keyframe ``fov = 0``, a frame
-    number beyond int64 or a Latin-1 keyframe file gave tracebacks or nonsense)."""
+    number beyond int64 or a Latin-1 keyframe file gave tracebacks or nonsense). A frame
+    file that is no image lies in the folder: a run that got past the checks would stop on
+    it (kept frames are checked before any is rendered) with another message."""
     from mi_amr.cli import main
-    from mi_amr.workflows.movie import farm
 
     monkeypatch.chdir(series)
     for name, (key, _) in BAD_KEYFRAMES.items():
@@ -401,44 +402,51 @@ def test13_nonsense_movie_values_are_one_line_and_render_nothing(series, tmp_pat
     (tmp_path / "latin1.json").write_bytes('{"keyframe": [{"frame": 0}]} \u00e9'.encode("latin-1"))
     args = [str(tmp_path / f"{a}.json") if a in BAD_KEYFRAMES or a == "latin1" else a
             for a in args]
-    monkeypatch.setattr(farm, "render_task", lambda job: pytest.fail("a frame was rendered"))
     out = tmp_path / "out"
+    out.mkdir()
+    (out / "frame_00000.png").write_bytes(b"no image")
     assert main(["movie", str(series / "scene.xml"), "-o", str(out), *args]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and says in err[0], err
-    assert not out.exists() or not list(out.iterdir())
+    assert [p.name for p in out.iterdir()] == ["frame_00000.png"]
+    assert (out / "frame_00000.png").read_bytes() == b"no image"
 
 
-def test14_a_long_movie_starts_at_once_in_little_memory(series, tmp_path, monkeypatch):
-    """``frames=10**6``: the first frames are handed to the renderer without planning the
-    others first (the plan is a lazy sequence; 10^8 frames used to take 1.15 GB before the
-    first frame), and the lazy plan gives the frames an eager one does."""
+def test14_a_long_movie_starts_at_once_in_little_memory(series, tmp_path):
+    """``frames=10**6``: the movie's plan is made without planning its frames (a lazy
+    sequence; 10^8 frames used to take 1.15 GB before the first frame), and the first frames
+    are rendered without planning the others first (that plan, stopping the run when its
+    fifth frame is asked for, leaves the first three or four: the run takes a frame ahead to
+    prepare its data file); the lazy plan gives the frames an eager one does."""
     import tracemalloc
 
-    from mi_amr.workflows.movie import farm
+    from mi_amr.workflows import movie
 
     class Stop(Exception):
         pass
 
-    calls = []
+    class FourFrames(S.Plan):
+        def _spec(self, i):
+            if i >= 4:
+                raise Stop
+            return super()._spec(i)
 
-    def fake(job):
-        calls.append(job.spec["index"])
-        if len(calls) == 3:
-            raise Stop
-        return {"index": job.spec["index"], "file": None, "path": job.path}
-
-    monkeypatch.setattr(farm, "render_task", fake)
+    scene = series / "scene.xml"
     tracemalloc.start()
     try:
-        with pytest.raises(Stop):
-            render_movie_quiet(series / "scene.xml", tmp_path / "long", orbit=360,
-                               isovalues="0.1:0.4", frames=10 ** 6)
+        long = movie._plan(scene, frames=10 ** 6, files=None, orbit=360, isovalues="0.1:0.4",
+                           keyframes=None, color_range=None, defines={}, resolution=None,
+                           spp=None, variant="llvm_ad_rgb")
         peak = tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-    assert calls == [0, 1, 2]
-    assert peak < 20e6, f"{peak / 1e6:.0f} MB traced before the third frame"
+    assert isinstance(long, S.Plan) and len(long) == 10 ** 6
+    assert peak < 20e6, f"{peak / 1e6:.0f} MB traced planning the movie"
+    out = tmp_path / "long"
+    with pytest.raises(Stop):
+        render_movie_quiet(scene, out, specs=FourFrames(**vars(long)))
+    names = [p.name for p in frames_in(out)]
+    assert names == [f"frame_{i:05d}.png" for i in range(len(names))] and 3 <= len(names) <= 4
     lazy = S.plan(7, camera=CAMERA, orbit_degrees=300, isovalues="log:0.01:1")
     cams, isos = S.orbit(CAMERA, 300, 7), list(np.linspace(0.0, 1.0, 7))
     assert [s.camera for s in lazy] == cams and len(lazy) == 7 and lazy[-1].index == 6
@@ -491,27 +499,27 @@ def test16_frames_are_bit_identical_between_runs_and_worker_counts(series, tmp_p
     assert not np.array_equal(read(a[0]), read(a[1]))
 
 
-def test17_a_frame_that_cannot_be_written_is_one_line(series, tmp_path, monkeypatch, capsys):
-    """A full disk: each frame fails with one line naming it (it used to be a multi-line
-    traceback per frame), the run exits with status 1 and no temporary file is left."""
-    import contextlib
+def test17_a_frame_that_cannot_be_written_is_one_line(series, tmp_path, capsys):
+    """A frame the disk refuses (here a folder is in the way of each frame's name): each
+    frame fails with one line naming it (it used to be a multi-line traceback per frame), the
+    run exits with status 1 and no temporary file is left."""
+    from pathlib import Path
 
     from mi_amr.cli import main
-    from mi_amr.workflows.movie import output
 
-    @contextlib.contextmanager
-    def full(path):
-        raise OSError(28, "No space left on device")
-        yield
-
-    monkeypatch.setattr(output, "replacing", full)
     out = tmp_path / "full"
-    assert main(["movie", str(series / "scene.xml"), "-o", str(out), "--frames", "2"]) == 1
+    for i in range(2):
+        (out / f"frame_{i:05d}.png" / "kept").mkdir(parents=True)
+    assert main(["movie", str(series / "scene.xml"), "-o", str(out), "--frames", "2",
+                 "--force"]) == 1
     text = capsys.readouterr().out.strip().splitlines()
     assert text[0].startswith("0 frame(s) rendered, 0 skipped (already there), 2 failed")
-    assert text[1:] == [f"  frame {i}: {out / f'frame_{i:05d}.png'}: cannot write the frame "
-                        f"([Errno 28] No space left on device)" for i in range(2)]
-    assert not list(out.iterdir())
+    assert len(text) == 3
+    for i, line in enumerate(text[1:]):
+        frame = out / f"frame_{i:05d}.png"
+        assert line.startswith(f"  frame {i}: {frame}: cannot write the frame ([Errno 21] "), line
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == sorted(
+        Path(f"frame_{i:05d}.png") / name for i in range(2) for name in ("", "kept"))
 
 
 def test18_the_next_time_step_is_prepared_while_a_frame_renders(series, tmp_path):

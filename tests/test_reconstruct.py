@@ -327,7 +327,7 @@ def test07_segment_cubic_equals_the_point_reconstruction_inside_one_piece(hierar
 
 @pytest.mark.parametrize("dense", [True, False])
 @pytest.mark.parametrize("hierarchy", sorted(HIERARCHIES))
-def test08_brick_pools_equal_their_slow_twin(monkeypatch, hierarchy, dense):
+def test08_brick_pools_equal_their_slow_twin(hierarchy, dense):
     """The device pull of leaf cells into bricks (each slot finds its cell's grid through the
     level's dense block table, or ``dense=False`` a binary search of its sorted blocks) builds
     the same tables and pools as the grid-by-grid, brick-by-brick slow twin, NaN for covered,
@@ -335,13 +335,13 @@ def test08_brick_pools_equal_their_slow_twin(monkeypatch, hierarchy, dense):
     from mi_amr.core import levels
     from mi_amr.kernels import bricks
 
-    if not dense:
-        monkeypatch.setattr(levels, "DENSE_BLOCKS", 0)
     grids = HIERARCHIES[hierarchy]()
     for g in grids:
         f = g["fields"]["f"]
         g["fields"]["c"] = np.where(f > 1.5, np.nan, np.cos(f))
     vol = AMRVolume.from_grids(grids, allow_nonfinite=True)
+    if not dense:
+        vol.level_caches.dense_blocks = 0       # before any level's table is made
     first = 3
     for level in range(vol.num_levels):
         assert (levels.level_index(vol, level).table is not None) == dense

@@ -173,10 +173,10 @@ def test05_a_client_that_never_reads_cannot_grow_the_server(viewer):
     assert not tracebacks(viewer), "".join(viewer.output[-40:])
 
 
-def test06_the_outgoing_queue_is_bounded_and_a_stalled_page_is_dropped(monkeypatch):
+def test06_the_outgoing_queue_is_bounded_and_a_stalled_page_is_dropped():
     """The hub's queue for one page: the newest state and info replace older ones, and a page
-    that lets more than MAX_WAITING messages pile up, or takes none within SEND_TIMEOUT_S, is
-    dropped (its pump returns)."""
+    that lets more than MAX_WAITING messages pile up, or takes none within its send timeout
+    (SEND_TIMEOUT_S unless given), is dropped (its pump returns)."""
     from mi_amr.workflows.viewer import hub
 
     class Stalled:                      # a socket whose sends never finish
@@ -196,8 +196,7 @@ def test06_the_outgoing_queue_is_bounded_and_a_stalled_page_is_dropped(monkeypat
             client.post({"type": "error", "message": str(i)})
         assert client.dropped is not None and not client.messages
 
-        monkeypatch.setattr(hub, "SEND_TIMEOUT_S", 0.2)
-        stalled = hub.Client(Stalled())
+        stalled = hub.Client(Stalled(), send_timeout_s=0.2)
         stalled.post({"type": "notice", "message": "x"})
         await asyncio.wait_for(stalled.pump(), 10)
         assert stalled.dropped is not None
@@ -316,20 +315,15 @@ def test11_tiles_cover_the_image_once():
 
 # ---------------------------------------------------------------------- a full disk
 
-def test12_a_full_disk_on_save_is_one_error_line(viewer, monkeypatch, tmp_path, variant):
-    """Saving on a full disk (ENOSPC from the writer) answers one error line, no traceback,
-    and leaves no file; the scene file and keyframe writers too."""
-    import errno
-
-    from mi_amr.workflows.movie import output
+def test12_a_full_disk_on_save_is_one_error_line(viewer, tmp_path, variant):
+    """Saving where the system refuses the bytes answers one error line, no traceback, and
+    leaves no file; the scene file and keyframe writers too. Here a file size limit of 0
+    bytes (RLIMIT_FSIZE, while each request runs) refuses them: EFBIG, as a full disk gives
+    ENOSPC, and a new empty file is still made, as on a full disk."""
+    resource = pytest.importorskip("resource")
     from mi_amr.workflows.viewer import hub as hub_module
 
-    def full(*args, **kwargs):
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(output, "write_image_atomic", full)
-    monkeypatch.setattr(output, "write_bytes_atomic", full)
-    monkeypatch.setattr("mi_amr.core.atomic.replacing", full)
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
     loop = asyncio.new_event_loop()
     sent = []
 
@@ -345,14 +339,17 @@ def test12_a_full_disk_on_save_is_one_error_line(viewer, monkeypatch, tmp_path, 
                         {"op": "add_keyframe", "name": "k.toml"},
                         {"op": "save_image", "name": "v.png"}):
             n = len(sent)
-            loop.run_until_complete(h.handle(Page(), json.dumps(request)))
-            end = time.monotonic() + WAIT_S
-            while not any(m["type"] in ("error", "saved") for m in sent[n:]) and \
-                    time.monotonic() < end:
-                loop.run_until_complete(asyncio.sleep(0.05))
+            resource.setrlimit(resource.RLIMIT_FSIZE, (0, hard))
+            try:
+                loop.run_until_complete(h.handle(Page(), json.dumps(request)))
+                end = time.monotonic() + WAIT_S
+                while not any(m["type"] in ("error", "saved") for m in sent[n:]) and \
+                        time.monotonic() < end:
+                    loop.run_until_complete(asyncio.sleep(0.05))
+            finally:
+                resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
             errors = [m for m in sent[n:] if m["type"] == "error"]
-            assert errors and re.search("No space left on device", errors[0]["message"]), \
-                sent[n:]
+            assert errors and re.search("File too large", errors[0]["message"]), sent[n:]
             assert "internal error" not in errors[0]["message"]
         assert not list((tmp_path / "out").iterdir())
     finally:

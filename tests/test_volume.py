@@ -161,24 +161,26 @@ def test09_leaf_mask_of_random_hierarchies():
 
 
 @pytest.mark.parametrize("box_cells, chunk_cells", [(4096, 1 << 16), (0, 1 << 16), (8, 1)])
-def test09b_leaf_masks_equal_their_slow_twin(monkeypatch, box_cells, chunk_cells):
-    """The flat leaf masks, cleared through flat cell indices in blocks (or box by box with
-    slices above MASK_BOX_CELLS), equal the slow twin's per-pair slices on random and reference
-    hierarchies, ratio 4 included."""
+def test09b_leaf_masks_equal_their_slow_twin(box_cells, chunk_cells):
+    """The flat leaf masks, cleared through flat cell indices in blocks of about
+    ``chunk_cells`` cells (or box by box with slices above ``box_cells``), equal the slow
+    twin's per-pair slices on random and reference hierarchies, ratio 4 included; so do the
+    volume's own (the default sizes)."""
     from mi_amr.core import volume as volume_module
 
-    monkeypatch.setattr(volume_module, "MASK_BOX_CELLS", box_cells)
-    monkeypatch.setattr(volume_module, "MASK_CHUNK_CELLS", chunk_cells)
     hierarchies = [random_grids(seed, ratios=ratios) for seed in range(4)
                    for ratios in ((2, 2), (4, 2), (2, 4))] + [reference_grids((4, 2))]
     for grids in hierarchies:
         vol = AMRVolume.from_grids(grids)
         masks, partly = volume_module._leaf_masks_reference(vol)
+        want = np.concatenate([m.ravel() for m in masks])
+        flat, got_partly = volume_module._leaf_masks(vol, box_cells, chunk_cells)
+        np.testing.assert_array_equal(got_partly, partly)
+        np.testing.assert_array_equal(flat, want)
         np.testing.assert_array_equal(vol.partly_covered(), partly)
         for i, mask in enumerate(masks):
             np.testing.assert_array_equal(vol.leaf_mask(i), mask, err_msg=f"grid {i}")
-        np.testing.assert_array_equal(vol.leaf_mask_flat(),
-                                      np.concatenate([m.ravel() for m in masks]))
+        np.testing.assert_array_equal(vol.leaf_mask_flat(), want)
 
 
 def test10_value_range_global_and_per_grid():
@@ -347,13 +349,19 @@ def test25_every_grid_holds_the_same_fields():
 
 
 @pytest.mark.parametrize("block_cells", [1, 64, 1 << 16])
-def test25b_the_first_bad_grid_is_named_whatever_the_check_blocks(monkeypatch, block_cells):
-    """Fields are checked in blocks of grids (FINITE_CHECK_CELLS cells); the error still names
-    the first bad grid in order, a missing field and a NaN in any order and in any block, as
-    the grid-by-grid check (_check_grid_fields) would."""
+def test25b_the_first_bad_grid_is_named_whatever_the_check_blocks(block_cells):
+    """Fields are checked in blocks of grids (``block_cells`` cells, FINITE_CHECK_CELLS when
+    a volume is made); the error still names the first bad grid in order, a missing field and
+    a NaN in any order and in any block, as the grid-by-grid check (_check_grid_fields)
+    would."""
     from mi_amr.core import volume as volume_module
 
-    monkeypatch.setattr(volume_module, "FINITE_CHECK_CELLS", block_cells)
+    def check(grids, allow_nonfinite=False):
+        """The field check of ``AMRVolume.from_grids`` on these grids, blocks of block_cells."""
+        records = [Grid(g["level"], tuple(map(float, g["origin"])), (1.0, 1.0, 1.0),
+                        next(iter(g["fields"].values())).shape, g["fields"]) for g in grids]
+        volume_module._check_fields(records, "", allow_nonfinite, block_cells)
+
     n = 40
 
     def row(nan_at=None, lacking_at=None):
@@ -370,7 +378,10 @@ def test25b_the_first_bad_grid_is_named_whatever_the_check_blocks(monkeypatch, b
         first = min(i for i in (nan_at, lacking_at) if i is not None)
         what = "missing field" if first == lacking_at else "non-finite"
         with pytest.raises(AMRError, match=grid_label(first, 0) + f".*{what}"):
+            check(row(nan_at, lacking_at))
+        with pytest.raises(AMRError, match=grid_label(first, 0) + f".*{what}"):
             AMRVolume.from_grids(row(nan_at, lacking_at))
+    check(row(nan_at=5), allow_nonfinite=True)
     vol = AMRVolume.from_grids(row(nan_at=5), allow_nonfinite=True)
     assert len(vol.grids) == n
 

@@ -4,11 +4,14 @@ parameter or a new command-line flag appears in the documentation with no other 
 ``.. amr-params::``
     The integrator's parameters, one row each, read from :data:`mi_amr.params.TABLE` when the
     page is built: name, type, default, allowed values, whether ``mi.traverse`` exposes it, and
-    its meaning (inline reStructuredText, as the table writes it).
+    its meaning (inline reStructuredText, as the table writes it). An argument
+    ``module:NAME`` shows that table of :class:`mi_amr.params.Param` rows instead.
 
 ``.. amr-cli::``
     Every command of ``python -m mi_amr``, one section each, read from the argparse parsers of
-    :mod:`mi_amr.cli`: the usage line, the command's help and a table of its arguments.
+    :mod:`mi_amr.cli`: the usage line, the command's help and a table of its arguments. An
+    argument ``module:NAME`` names another parser factory (called with the program name, as
+    ``mi_amr.cli._parser`` is).
 
 Only docutils and Sphinx are used; the functions that gather the rows (:func:`param_rows`,
 :func:`cli_commands`) are plain Python, so tests can call them on a modified table or parser.
@@ -77,6 +80,13 @@ def param_rows(table=None):
              p.meaning) for p in table]
 
 
+def named(spec: str):
+    """``(module, object)`` of ``spec``, ``"module:NAME"`` (the module imported by name)."""
+    module_name, _, attr = spec.partition(":")
+    module = importlib.import_module(module_name)
+    return module, getattr(module, attr)
+
+
 def _subparsers(parser: argparse.ArgumentParser):
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
@@ -143,15 +153,17 @@ class ParamsDirective(SphinxDirective):
     """``.. amr-params::`` -- the integrator's parameter table from mi_amr.params."""
 
     has_content = False
+    optional_arguments = 1
 
     def _inline(self, text: str):
         found, messages = self.state.inline_text(escape_bars(text), self.lineno)
         return found + messages
 
     def run(self):
-        self.env.note_dependency(importlib.import_module("mi_amr.params").__file__)
+        module, table = named(self.arguments[0] if self.arguments else "mi_amr.params:TABLE")
+        self.env.note_dependency(module.__file__)
         rows = []
-        for name, kind, default, allow, trav, meaning in param_rows():
+        for name, kind, default, allow, trav, meaning in param_rows(table):
             rows.append([[nodes.literal(text=name)], [nodes.Text(kind)],
                          [nodes.Text(default)], self._inline(allow), [nodes.Text(trav)],
                          self._inline(meaning)])
@@ -162,12 +174,13 @@ class CliDirective(SphinxDirective):
     """``.. amr-cli::`` -- one section per command of ``python -m mi_amr``."""
 
     has_content = False
+    optional_arguments = 1
     option_spec = {"prog": directives.unchanged}
 
     def run(self):
-        cli = importlib.import_module("mi_amr.cli")
-        self.env.note_dependency(cli.__file__)
-        parser = cli._parser(self.options.get("prog", "python -m mi_amr"))
+        module, factory = named(self.arguments[0] if self.arguments else "mi_amr.cli:_parser")
+        self.env.note_dependency(module.__file__)
+        parser = factory(self.options.get("prog", "python -m mi_amr"))
         sections = []
         for name, usage, help_text, rows in cli_commands(parser):
             section = nodes.section(ids=[f"cli-{name}"], names=[f"cli-{name}"])

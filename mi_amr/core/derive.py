@@ -41,7 +41,8 @@ def velocity_fields(volume, velocity=None) -> tuple:
                    f"{list(volume.field_names)}")
 
 
-def derive(volume, *names: str, velocity=None, gradient_fields=None):
+def derive(volume, *names: str, velocity=None, gradient_fields=None,
+           chunk_cells: int = levels.CHUNK_CELLS):
     """A volume with the derived fields ``names`` added (any of :data:`DERIVED_FIELDS`).
 
     ``velocity`` names the three velocity components; by default they are found by name
@@ -52,6 +53,10 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None):
     instead of :func:`gradient.map_chunks`: called as ``gradient_fields(volume, comps, names,
     flat)``, it writes field ``name`` of level ``l`` into ``flat[name][l]`` (the device path,
     :mod:`mi_amr.kernels.derive`, gives the same numbers).
+
+    ``chunk_cells`` bounds the host gradient's passes (:func:`gradient.map_chunks`): whole
+    grids of a level holding at least that many cells each, which bounds its temporaries;
+    the numbers do not depend on it.
     """
     unknown = [n for n in names if n not in DERIVED_FIELDS]
     if unknown:
@@ -72,7 +77,7 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None):
             for name, of in wanted:
                 flat[name][level][at:at + grad.shape[-1]] = of(grad)
 
-        for _ in gradient.map_chunks(volume, comps, write):
+        for _ in gradient.map_chunks(volume, comps, write, chunk_cells=chunk_cells):
             pass
     out = volume.with_fields({n: _per_grid(volume, arrays, comps) for n, arrays in flat.items()})
     for name, arrays in flat.items():
@@ -112,10 +117,11 @@ def vorticity_magnitude(grad: np.ndarray) -> np.ndarray:
     return np.sqrt(wx * wx + wy * wy + wz * wz)
 
 
-def velocity_gradient(volume, comps) -> list:
-    """Per grid, ``(3, 3, nx, ny, nz)`` float64 with ``[i][j] = d v_i / d x_j`` (world units)."""
+def velocity_gradient(volume, comps, chunk_cells: int = levels.CHUNK_CELLS) -> list:
+    """Per grid, ``(3, 3, nx, ny, nz)`` float64 with ``[i][j] = d v_i / d x_j`` (world units),
+    computed in chunks of at least ``chunk_cells`` cells (:func:`gradient.level_gradients`)."""
     grads = [None] * len(volume.grids)
-    for grids, grad in gradient.level_gradients(volume, comps):
+    for grids, grad in gradient.level_gradients(volume, comps, chunk_cells):
         at = 0
         for gi in grids:
             shape = volume.grids[gi].shape

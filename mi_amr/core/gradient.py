@@ -30,19 +30,21 @@ import numpy as np
 from mi_amr.core import levels, parallel
 
 
-def level_gradients(volume, comps):
+def level_gradients(volume, comps, chunk_cells: int = levels.CHUNK_CELLS):
     """Yields ``(grids, grad)`` chunk by chunk, level by level: ``grids`` the volume's indices
     of consecutive grids of one level and ``grad`` the ``(3, 3, N)`` float64 array
     ``[i][j] = d v_i / d x_j`` (per world unit) of their cells, grid after grid, each grid's
-    cells in C order of its ``(nx, ny, nz)`` array."""
+    cells in C order of its ``(nx, ny, nz)`` array. A chunk is whole grids holding at least
+    ``chunk_cells`` cells (:func:`levels.grid_chunks`)."""
     with levels.fields_fixed(volume):
-        for job in _chunk_jobs(volume, comps):
+        for job in _chunk_jobs(volume, comps, chunk_cells):
             grad, _ = _job_gradient(volume, comps, job)
             level, start, stop = job
             yield levels.level_index(volume, level).grids[start:stop], grad
 
 
-def map_chunks(volume, comps, fn, threads: int | None = None):
+def map_chunks(volume, comps, fn, threads: int | None = None,
+               chunk_cells: int = levels.CHUNK_CELLS):
     """``fn(level, at, grad)`` for the chunks of :func:`level_gradients` (``at``: where the
     chunk's cells start in the level's :func:`levels.level_values`), yielded in the same
     order, the chunks computed side by side (:func:`parallel.map_ordered`)."""
@@ -51,10 +53,10 @@ def map_chunks(volume, comps, fn, threads: int | None = None):
         return fn(job[0], at, grad)
 
     with levels.fields_fixed(volume):
-        yield from parallel.map_ordered(work, _chunk_jobs(volume, comps), threads)
+        yield from parallel.map_ordered(work, _chunk_jobs(volume, comps, chunk_cells), threads)
 
 
-def _chunk_jobs(volume, comps):
+def _chunk_jobs(volume, comps, chunk_cells):
     """``(level, start, stop)`` of every chunk; the level tables and flat values every chunk
     reads (its level's, and the coarser ones interpolation reads) are cached first, so
     threads only read them."""
@@ -63,7 +65,7 @@ def _chunk_jobs(volume, comps):
         for name in comps:
             levels.level_values(volume, level, name)
     for level in range(volume.num_levels):
-        for start, stop in levels.grid_chunks(levels.level_index(volume, level)):
+        for start, stop in levels.grid_chunks(levels.level_index(volume, level), chunk_cells):
             yield level, start, stop
 
 

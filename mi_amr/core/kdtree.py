@@ -46,7 +46,9 @@ class KDTree:
     """kd-tree over the grid supports of ``volume`` (see the module docstring).
 
     ``leaf_cells`` bounds the leaf size in cells of the finest level present at the leaf.
-    All positions are world space.
+    All positions are world space. ``chunk`` ((node or leaf, grid) pairs, or boxes) and
+    ``box_block`` (boxes) are the blocks the build and the queries work through at a time
+    (:data:`CHUNK`, :data:`BOX_BLOCK`): they bound the temporaries, not the result.
     """
 
     # What a built tree holds besides its volume: :meth:`arrays` gives them, and
@@ -60,10 +62,12 @@ class KDTree:
              "support_hi", "support_lo")
 
     def __init__(self, volume, *, leaf_cells: int = params.default("leaf_cells"),
-                 max_depth: int = 80, arrays: dict | None = None):
+                 max_depth: int = 80, arrays: dict | None = None, chunk: int = CHUNK,
+                 box_block: int = BOX_BLOCK):
         """Build the tree of ``volume``; or, given ``arrays`` (:meth:`arrays` of a tree of this
         volume), take them as they are (:meth:`from_arrays`)."""
         self.volume = volume
+        self.chunk, self.box_block = int(chunk), int(box_block)
         if arrays is not None:
             missing = sorted(set(self.STATE) - set(arrays))
             if missing:
@@ -147,7 +151,7 @@ class KDTree:
             if np.all(axis == LEAF):
                 break
             f_lo, f_hi, p_node, p_grid = _children(f_lo, f_hi, axis, plane, p_node, p_grid,
-                                                   lattice)
+                                                   lattice, chunk=self.chunk)
         self._store(out)
 
     def _classify(self, f_lo, f_hi, p_node, p_grid, lattice):
@@ -156,7 +160,7 @@ class KDTree:
         pairs still useful, whether a grid face cuts the node, and the finest cell width (in
         finest cells) of the grids whose support reaches into it."""
         G, n = len(self.grid_lo), len(f_lo)
-        overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice)
+        overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, chunk=self.chunk)
         p_level = self.level[p_grid]
         partial = overlap & ~contains
         best = np.full(n, -1, dtype=np.int64)
@@ -237,15 +241,15 @@ class KDTree:
         self.leaf_min_h = np.full((L, 3), np.inf)
         if len(runs):
             bits = np.left_shift(1, self.level.astype(np.int64))
-            self.leaf_levels[has] = _reduce_runs(np.bitwise_or, bits, ga, runs)
+            self.leaf_levels[has] = _reduce_runs(np.bitwise_or, bits, ga, runs, self.chunk)
             for a in range(3):
                 self.leaf_min_h[has, a] = _reduce_runs(
-                    np.minimum, np.ascontiguousarray(self.spacing[:, a]), ga, runs)
+                    np.minimum, np.ascontiguousarray(self.spacing[:, a]), ga, runs, self.chunk)
 
     def _active_windows(self, leaf, grid):
         """For (leaf, grid) pairs with overlapping supports: the cell windows of
         :meth:`_windows` (int32) and whether the grid is active in the leaf (a non-empty
-        window holding at least one leaf cell), :data:`CHUNK` pairs at a time."""
+        window holding at least one leaf cell), :attr:`chunk` pairs at a time."""
         P = len(leaf)
         lo = np.empty((P, 3), dtype=np.int32)
         hi = np.empty((P, 3), dtype=np.int32)
@@ -256,8 +260,10 @@ class KDTree:
         tables = _leaf_count_tables(self.volume, np.flatnonzero(partly)) \
             if partly[grid].any() else None
 
+        chunk = self.chunk
+
         def one_part(a):
-            part = slice(a, a + CHUNK)
+            part = slice(a, a + chunk)
             g = grid[part]
             w_lo, w_hi = self._windows_part(leaf[part], g)
             act = np.all(w_hi >= w_lo, axis=1)
@@ -268,7 +274,7 @@ class KDTree:
                 act[sel] = _box_sum(sat, offsets[gs], self.shape[gs], w_lo[sel], w_hi[sel]) > 0
             lo[part], hi[part], active[part] = w_lo, w_hi, act
 
-        parallel.for_each(one_part, range(0, P, CHUNK))      # each writes its own rows
+        parallel.for_each(one_part, range(0, P, chunk))      # each writes its own rows
         return lo, hi, active
 
     def _ropes(self) -> None:
@@ -389,8 +395,8 @@ class KDTree:
         ceil((D + s / 2) / s) - 1``."""
         lo = np.empty((len(leaf), 3), dtype=np.int64)
         hi = np.empty((len(leaf), 3), dtype=np.int64)
-        for a in range(0, len(leaf), CHUNK):
-            part = slice(a, a + CHUNK)
+        for a in range(0, len(leaf), self.chunk):
+            part = slice(a, a + self.chunk)
             lo[part], hi[part] = self._windows_part(leaf[part], grid[part])
         return lo, hi
 
@@ -416,7 +422,7 @@ class KDTree:
     def _listed_pairs(self, count):
         """The first ``count[l]`` listed grids of each leaf ``l`` with a non-empty cell window
         in an owned leaf: ``(leaf, grid, lo, hi)``, windows as in :meth:`_windows` (int32),
-        gathered :data:`CHUNK` pairs at a time."""
+        gathered :attr:`chunk` pairs at a time."""
         L = self.num_leaves
         pl = np.repeat(np.arange(L), count)
         first = np.repeat(self.leaf_start, count)
@@ -424,8 +430,8 @@ class KDTree:
         w_lo, w_hi = self._listed_windows
         owned = self.leaf_owner >= 0
         parts = []
-        for a in range(0, len(at), CHUNK):
-            leaf, pos = pl[a:a + CHUNK], at[a:a + CHUNK]
+        for a in range(0, len(at), self.chunk):
+            leaf, pos = pl[a:a + self.chunk], at[a:a + self.chunk]
             lo, hi = np.take(w_lo, pos, axis=0), np.take(w_hi, pos, axis=0)
             keep = np.flatnonzero((hi >= lo).all(axis=1) & owned[leaf])
             parts.append((leaf[keep], self.leaf_grids[pos[keep]].astype(np.int64), lo[keep],
@@ -475,10 +481,11 @@ class KDTree:
     def overlapping_leaves(self, lo, hi):
         """Pairs ``(box, leaf)`` for every leaf overlapping one of the open boxes ``[lo, hi]``
         (each ``(N, 3)``, world) with positive volume, by descending the tree with
-        :data:`BOX_BLOCK` boxes at a time (the pairs come block after block)."""
+        :attr:`box_block` boxes at a time (the pairs come block after block)."""
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-        parts = [self._overlapping_block(lo[a:a + BOX_BLOCK], hi[a:a + BOX_BLOCK], a)
-                 for a in range(0, len(lo), BOX_BLOCK)]
+        step = self.box_block
+        parts = [self._overlapping_block(lo[a:a + step], hi[a:a + step], a)
+                 for a in range(0, len(lo), step)]
         if not parts:
             return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
         return tuple(np.concatenate(column) for column in zip(*parts))
@@ -551,7 +558,7 @@ class KDTree:
             values = np.where(vol.leaf_mask_flat(), _all_values(vol, field), np.nan)
         else:
             values = _all_values(vol, field)
-        vmin, vmax = _window_min_max(vol, values, pg, lo, hi)
+        vmin, vmax = _window_min_max(vol, values, pg, lo, hi, chunk=self.chunk)
         out_lo = np.full(self.num_leaves, np.inf)
         out_hi = np.full(self.num_leaves, -np.inf)
         np.minimum.at(out_lo, pl, vmin)
@@ -601,10 +608,10 @@ def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
     return n_leaves + len(leaf_ids)
 
 
-def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
+def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = CHUNK):
     """The children of the split nodes (two each, low side first) and the pairs whose open
-    support reaches each side (all low-side pairs, then all high-side ones), :data:`CHUNK`
-    pairs at a time."""
+    support reaches each side (all low-side pairs, then all high-side ones), ``chunk`` pairs
+    at a time."""
     _, _, slo, shi = lattice
     sp = np.flatnonzero(axis != LEAF)
     a, pos = axis[sp], plane[sp]
@@ -616,11 +623,11 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
     child_of[sp] = 2 * np.arange(len(sp))
     slo_flat, shi_flat = slo.reshape(-1), shi.reshape(-1)
     left, right = [], []
-    for start in range(0, len(p_node), CHUNK):
-        child = np.take(child_of, p_node[start:start + CHUNK])
+    for start in range(0, len(p_node), chunk):
+        child = np.take(child_of, p_node[start:start + chunk])
         keep = np.flatnonzero(child >= 0)
-        kn, kg, kc = np.take(p_node[start:start + CHUNK], keep), np.take(
-            p_grid[start:start + CHUNK], keep), np.take(child, keep)
+        kn, kg, kc = np.take(p_node[start:start + chunk], keep), np.take(
+            p_grid[start:start + chunk], keep), np.take(child, keep)
         at, kpos = kg * 3 + np.take(axis, kn), np.take(plane, kn)
         go_left = np.take(slo_flat, at) < kpos
         go_right = np.take(shi_flat, at) > kpos
@@ -633,15 +640,15 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice):
     return c_lo, c_hi, p_node, p_grid
 
 
-def _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice):
+def _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, *, chunk: int = CHUNK):
     """For (node, grid) pairs: does the grid's box overlap the node's box ``[f_lo, f_hi]`` with
-    positive volume, and does it contain it (lattice coordinates)? :data:`CHUNK` pairs at a
+    positive volume, and does it contain it (lattice coordinates)? ``chunk`` pairs at a
     time, so the gathered boxes stay small."""
     glo, ghi, _, _ = lattice
     overlap = np.empty(len(p_node), dtype=bool)
     contains = np.empty(len(p_node), dtype=bool)
-    for a in range(0, len(p_node), CHUNK):
-        part = slice(a, a + CHUNK)
+    for a in range(0, len(p_node), chunk):
+        part = slice(a, a + chunk)
         # (np.take gathers rows several times faster than fancy indexing.)
         pl, ph = np.take(f_lo, p_node[part], axis=0), np.take(f_hi, p_node[part], axis=0)
         gl, gh = np.take(glo, p_grid[part], axis=0), np.take(ghi, p_grid[part], axis=0)
@@ -718,11 +725,11 @@ def _leaf_count_tables_reference(volume, grids):
     return np.concatenate(tables), offsets
 
 
-def _reduce_runs(ufunc, column, index, runs) -> np.ndarray:
+def _reduce_runs(ufunc, column, index, runs, chunk: int = CHUNK) -> np.ndarray:
     """``ufunc.reduceat(column[index], runs)`` (``runs``: the increasing starts of the runs of
-    ``index``, the first at 0), over blocks of about :data:`CHUNK` rows that start at a run's
+    ``index``, the first at 0), over blocks of about ``chunk`` rows that start at a run's
     start, so no gather of all of ``index`` at once."""
-    cut = np.unique(np.searchsorted(runs, np.arange(0, len(index), CHUNK)))
+    cut = np.unique(np.searchsorted(runs, np.arange(0, len(index), chunk)))
     cut = np.append(cut[cut < len(runs)], len(runs))
     out = np.empty(len(runs), dtype=column.dtype)
     for r0, r1 in zip(cut[:-1], cut[1:]):
@@ -750,7 +757,7 @@ def _box_sum(sat, offset, shape, lo, hi):
     return np.where(empty, 0, total)
 
 
-def _window_min_max(volume, values, grid, lo, hi):
+def _window_min_max(volume, values, grid, lo, hi, *, chunk: int = CHUNK):
     """Min and max of the finite ``values`` (all cells of all grids, flat, grid after grid) over
     inclusive index boxes ``[lo, hi]`` (rows) of the grids ``grid``, widened to power-of-two
     blocks: a box is covered by the (at most 8) blocks of ``2**k`` cells per axis, ``2**k`` the
@@ -760,7 +767,7 @@ def _window_min_max(volume, values, grid, lo, hi):
 
     Grids of one shape are stacked into one array; per block size a sparse table holds, per
     cell, the extremum over the block starting there, built by halving along each axis. The
-    boxes are looked up :data:`CHUNK` at a time."""
+    boxes are looked up ``chunk`` at a time."""
     shapes = volume.grid_columns()["shape"]
     offsets = volume.grid_columns()["offset"]
     finite = np.isfinite(values)
@@ -769,7 +776,7 @@ def _window_min_max(volume, values, grid, lo, hi):
     vmin_all = np.where(finite, values, np.inf)
     vmax_all = np.where(finite, values, -np.inf)
     del finite
-    k_need = _block_log2(lo, hi)
+    k_need = _block_log2(lo, hi, chunk)
     out_min = np.full(len(grid), np.inf)
     out_max = np.full(len(grid), -np.inf)
     kinds, kind_of = _shape_kinds(shapes)
@@ -792,8 +799,8 @@ def _window_min_max(volume, values, grid, lo, hi):
             if k > 0:
                 _halve_tables(tmin, tmax, 1 << (k - 1))
             sel = queries[k_here == k] if k_here.min() != k_here.max() else queries
-            for a in range(0, len(sel), CHUNK):
-                part = sel[a:a + CHUNK]
+            for a in range(0, len(sel), chunk):
+                part = sel[a:a + chunk]
                 out_min[part], out_max[part] = _block_lookup(
                     tmin, tmax, row[grid[part]], lo[part], hi[part], k)
 
@@ -801,13 +808,13 @@ def _window_min_max(volume, values, grid, lo, hi):
     return out_min, out_max
 
 
-def _block_log2(lo, hi) -> np.ndarray:
-    """``floor(log2(longest side))`` of each inclusive box ``[lo, hi]`` (rows), CHUNK rows at
-    a time."""
+def _block_log2(lo, hi, chunk: int = CHUNK) -> np.ndarray:
+    """``floor(log2(longest side))`` of each inclusive box ``[lo, hi]`` (rows), ``chunk`` rows
+    at a time."""
     out = np.zeros(len(lo), dtype=np.int64)
-    for a in range(0, len(lo), CHUNK):
-        side = (hi[a:a + CHUNK] - lo[a:a + CHUNK] + 1).max(axis=1)
-        out[a:a + CHUNK] = np.floor(np.log2(side))
+    for a in range(0, len(lo), chunk):
+        side = (hi[a:a + chunk] - lo[a:a + chunk] + 1).max(axis=1)
+        out[a:a + chunk] = np.floor(np.log2(side))
     return out
 
 

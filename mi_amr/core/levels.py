@@ -29,10 +29,12 @@ class LevelIndex:
 
     A block is ``block`` cells per side, the largest power of two (at most 16) dividing every
     grid corner of the level, so each block lies in exactly one grid. The table holds one entry
-    per block, so memory grows with the cells the level has, not with the domain.
+    per block, so memory grows with the cells the level has, not with the domain. Where the
+    level's bounding box holds at most ``dense_blocks`` blocks, a dense table of them is kept
+    too (``table``; None otherwise).
     """
 
-    def __init__(self, volume, level: int):
+    def __init__(self, volume, level: int, dense_blocks: int = DENSE_BLOCKS):
         lo, hi = volume.index_boxes()
         self.grids = np.flatnonzero(volume.levels == level)
         glo, ghi = lo[self.grids], hi[self.grids]
@@ -54,7 +56,7 @@ class LevelIndex:
         # A dense table of the blocks when it is small (the usual case): find() is then one
         # gather instead of a binary search.
         self.table = None
-        if int(np.prod(self.dims)) <= DENSE_BLOCKS:
+        if int(np.prod(self.dims)) <= dense_blocks:
             self.table = np.full(int(np.prod(self.dims)), -1, dtype=np.int32)
             self.table[self.keys] = self.owner
 
@@ -119,19 +121,22 @@ class LevelCaches:
     """What this module keeps of one volume (its ``level_caches``): ``index``, the
     :class:`LevelIndex` of each level; ``values``, per ``(level, field name)`` the flat
     :func:`level_values` with the grid arrays it was made from (``(ids, arrays, flat)``);
-    ``fields_fixed``, how many :func:`fields_fixed` blocks are open."""
+    ``fields_fixed``, how many :func:`fields_fixed` blocks are open; ``dense_blocks``, the
+    largest dense block table a :class:`LevelIndex` of the volume keeps (blocks; see there),
+    read when a level's table is made."""
 
-    def __init__(self):
+    def __init__(self, dense_blocks: int = DENSE_BLOCKS):
         self.index = {}
         self.values = {}
         self.fields_fixed = 0
+        self.dense_blocks = dense_blocks
 
 
 def level_index(volume, level: int) -> LevelIndex:
     """The (cached) :class:`LevelIndex` of ``level``."""
     cache = volume.level_caches.index
     if level not in cache:
-        cache[level] = LevelIndex(volume, level)
+        cache[level] = LevelIndex(volume, level, volume.level_caches.dense_blocks)
     return cache[level]
 
 
@@ -172,6 +177,7 @@ def adopt_caches(volume, source) -> None:
     ``source``, a volume of the same hierarchy (values are checked against the arrays before
     each use)."""
     volume.level_caches.index = dict(source.level_caches.index)
+    volume.level_caches.dense_blocks = source.level_caches.dense_blocks
     # Only fields the volume holds: a flat copy of a dropped field would stay alive with it.
     volume.level_caches.values = {k: v for k, v in source.level_caches.values.items()
                                   if k[1] in volume.field_names}

@@ -530,9 +530,10 @@ def _record_columns(records) -> dict:
             "shape": rows("shape", np.int64)}
 
 
-def _check_fields(records, prefix: str, allow_nonfinite: bool) -> None:
+def _check_fields(records, prefix: str, allow_nonfinite: bool,
+                  block_cells: int = FINITE_CHECK_CELLS) -> None:
     """Every grid holds the fields of grid 0, all finite unless ``allow_nonfinite``. Grids are
-    checked in blocks of about :data:`FINITE_CHECK_CELLS` cells, the values of a block at once;
+    checked in blocks of about ``block_cells`` cells, the values of a block at once;
     a block with a bad grid is checked again grid by grid (:func:`_check_grid_fields`), so the
     first bad grid is reported as a one-by-one check would."""
     names = list(records[0].fields)
@@ -540,7 +541,7 @@ def _check_fields(records, prefix: str, allow_nonfinite: bool) -> None:
     start = 0
     while start < len(records):
         stop, cells = start, 0
-        while stop < len(records) and cells < FINITE_CHECK_CELLS:
+        while stop < len(records) and cells < block_cells:
             n = records[stop].shape
             cells += n[0] * n[1] * n[2]
             stop += 1
@@ -548,18 +549,19 @@ def _check_fields(records, prefix: str, allow_nonfinite: bool) -> None:
         same = [g.fields.keys() == wanted for g in block]
         clean = same.index(False) if False in same else len(block)
         arrays = [a for g in block[:clean] for a in g.fields.values()]
-        if clean < len(block) or not (allow_nonfinite or _all_finite(arrays)):
+        if clean < len(block) or not (allow_nonfinite or _all_finite(arrays, block_cells)):
             for i in range(start, stop):
                 _check_grid_fields(records[i], i, names, prefix, allow_nonfinite)
         start = stop
 
 
-def _all_finite(arrays) -> bool:
-    """Whether every value of ``arrays`` is finite; the small arrays are tested together."""
-    small = [a.reshape(-1) for a in arrays if a.size < FINITE_CHECK_CELLS]
+def _all_finite(arrays, block_cells: int = FINITE_CHECK_CELLS) -> bool:
+    """Whether every value of ``arrays`` is finite; the arrays smaller than ``block_cells``
+    are tested together."""
+    small = [a.reshape(-1) for a in arrays if a.size < block_cells]
     if small and not np.isfinite(np.concatenate(small)).all():
         return False
-    return all(np.isfinite(a).all() for a in arrays if a.size >= FINITE_CHECK_CELLS)
+    return all(np.isfinite(a).all() for a in arrays if a.size >= block_cells)
 
 
 def _check_grid_fields(g, i: int, names, prefix: str, allow_nonfinite: bool) -> None:
@@ -680,14 +682,16 @@ def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str) 
                            f"within the coarser level (proper nesting)")
 
 
-def _leaf_masks(volume: AMRVolume):
+def _leaf_masks(volume: AMRVolume, box_cells: int = MASK_BOX_CELLS,
+                chunk_cells: int = MASK_CHUNK_CELLS):
     """Every grid's leaf mask (True where no cell of the next finer level covers the cell),
     flat over all cells grid after grid (see :meth:`AMRVolume.cell_offsets`); and per grid,
     whether any of its cells is covered. :func:`_leaf_masks_reference` is the slow twin.
 
     The covered index boxes (cells of the coarse grid, from its lower corner) of all (coarse,
-    fine) pairs of a level are cleared at once through their flat cell indices; boxes of more
-    than :data:`MASK_BOX_CELLS` cells are cleared one by one with a slice."""
+    fine) pairs of a level are cleared at once through their flat cell indices, in blocks of
+    pairs of about ``chunk_cells`` cells; boxes of more than ``box_cells`` cells are cleared one
+    by one with a slice."""
     shapes = volume.grid_columns()["shape"]
     offsets = volume.grid_columns()["offset"]
     flat = np.ones(int(np.prod(shapes, axis=1).sum()), dtype=bool)
@@ -695,13 +699,14 @@ def _leaf_masks(volume: AMRVolume):
     for c, a, b in _covered_boxes(volume):
         partly[c] = True
         cells = np.prod(b - a, axis=1)
-        for q in np.flatnonzero(cells > MASK_BOX_CELLS):
+        for q in np.flatnonzero(cells > box_cells):
             n = shapes[c[q]]
             mask = flat[offsets[c[q]]:offsets[c[q]] + int(np.prod(n))].reshape(n)
             mask[a[q, 0]:b[q, 0], a[q, 1]:b[q, 1], a[q, 2]:b[q, 2]] = False
-        small = np.flatnonzero(cells <= MASK_BOX_CELLS)
-        # Blocks of pairs with at most about CHUNK cells between them keep temporaries small.
-        block = max(1, MASK_CHUNK_CELLS // max(1, int(cells[small].max(initial=1))))
+        small = np.flatnonzero(cells <= box_cells)
+        # Blocks of pairs with at most about chunk_cells cells between them keep temporaries
+        # small.
+        block = max(1, chunk_cells // max(1, int(cells[small].max(initial=1))))
         for start in range(0, len(small), block):
             q = small[start:start + block]
             flat[_box_cell_indices(offsets[c[q]], shapes[c[q]], a[q], b[q])] = False

@@ -40,22 +40,24 @@ PROBES = 64                 # positions of a field's host buffer checked after t
 _PAYLOAD = {4: np.uint32(0x7FA5A5A5), 8: np.uint64(0x7FF5A5A5A5A5A5A5)}
 
 
-def derive(volume, *names: str, m, velocity=None):
+def derive(volume, *names: str, m, velocity=None, chunk_cells: int = CHUNK_CELLS):
     """:func:`mi_amr.core.derive.derive` with Q and vorticity computed on backend ``m`` (a
-    Dr.Jit module such as ``drjit.llvm.ad``). A level too sparse for a dense block table
-    (:data:`levels.DENSE_BLOCKS`) has no device lookup, and one of :data:`LEVEL_CELLS_MAX` cells
+    Dr.Jit module such as ``drjit.llvm.ad``), whole grids of a level holding at least
+    ``chunk_cells`` cells at a time. A level too sparse for a dense block table
+    (:class:`levels.LevelIndex`) has no device lookup, and one of :data:`LEVEL_CELLS_MAX` cells
     or more would overflow its positions: such a volume is derived on the host."""
     tables = [levels.level_index(volume, level) for level in range(volume.num_levels)]
     dense = all(t.table is not None and int(np.prod(t.hi - t.lo, axis=1).sum()) <
                 LEVEL_CELLS_MAX for t in tables)
-    fill = (lambda vol, comps, wanted, flat: _fill(vol, comps, wanted, flat, m)) if dense \
-        else None
+    fill = (lambda vol, comps, wanted, flat: _fill(vol, comps, wanted, flat, m, chunk_cells)) \
+        if dense else None
     return host_derive.derive(volume, *names, velocity=velocity, gradient_fields=fill)
 
 
-def _fill(volume, comps, wanted, flat, m):
+def _fill(volume, comps, wanted, flat, m, chunk_cells: int = CHUNK_CELLS):
     """Write fields ``wanted`` (Q, vorticity: those needing the gradient) of every level into
-    ``flat[name][level]`` (NumPy arrays of the level's values), chunk by chunk: the kernels
+    ``flat[name][level]`` (NumPy arrays of the level's values), chunk by chunk (at least
+    ``chunk_cells`` cells, :func:`levels.grid_chunks`): the kernels
     scatter straight into the host buffer, which Dr.Jit maps (:func:`_written`)."""
     with levels.fields_fixed(volume):
         tables = [_Level(volume, level, comps, m) for level in range(volume.num_levels)]
@@ -64,7 +66,7 @@ def _fill(volume, comps, wanted, flat, m):
         level_start = 0                 # where the level's values begin in the buffers
         for level, lv in enumerate(tables):
             dtypes = {name: flat[name][level].dtype for name in wanted}
-            for start, stop in levels.grid_chunks(lv.host, CHUNK_CELLS):
+            for start, stop in levels.grid_chunks(lv.host, chunk_cells):
                 _chunk_fields(tables, level, (start, stop), dtypes, out,
                               level_start + int(lv.host.offsets[start]))
             level_start += len(flat[wanted[0]][level])
@@ -100,8 +102,8 @@ def _bits(a):
 
 
 def _map(T, host):
-    """``host`` as a Dr.Jit array of type ``T`` over the same memory (Dr.Jit maps NumPy's
-    buffer; tests replace this with a copy to check :func:`_settle`'s fallback)."""
+    """``host`` as a Dr.Jit array of type ``T`` over the same memory (Dr.Jit's LLVM backend
+    maps NumPy's aligned buffer; another backend may copy it, which :func:`_settle` finds)."""
     return T(host)
 
 

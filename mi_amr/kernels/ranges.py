@@ -26,21 +26,23 @@ from mi_amr.kernels.arrays import device_array
 CHUNK_PAIRS = 1 << 19
 
 
-def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None):
+def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
+                pairs: int = CHUNK_PAIRS):
     """``(lo, hi)`` float32 NumPy arrays, one entry per leaf of ``tree``, as
     :meth:`~mi_amr.core.kdtree.KDTree.leaf_ranges` gives them (rounded to float32);
     ``values``: the field's values of all cells, grid after grid, as a device ``m.Float``.
-    Leaves with no pair get ``(+inf, -inf)``."""
+    Leaves with no pair get ``(+inf, -inf)``. One kernel launch takes ``pairs`` (leaf, grid)
+    pairs."""
     vol = tree.volume
     pl, pg, lo, hi = tree.leaf_windows(field, reconstruction)
     vmin = np.empty(len(pl), dtype=np.float32)
     vmax = np.empty(len(pl), dtype=np.float32)
     leaf = device_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
         if reconstruction == "basis" and len(pl) else None
-    for a in range(0, len(pl), CHUNK_PAIRS):
+    for a in range(0, len(pl), pairs):
         # A launch of one pair is given it twice: Dr.Jit compiles a one-lane input into a
         # broadcast, which would be another kernel.
-        part = np.arange(a, min(a + CHUNK_PAIRS, len(pl)))
+        part = np.arange(a, min(a + pairs, len(pl)))
         lanes = np.repeat(part, 2) if len(part) == 1 else part
         shape = vol.shapes()[pg[lanes]]
         top = block_tops(lo[lanes], hi[lanes], shape)

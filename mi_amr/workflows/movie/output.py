@@ -75,20 +75,25 @@ def write_bytes_atomic(path, data: bytes) -> None:
         Path(tmp).write_bytes(data)
 
 
-def write_image_atomic(path, image: np.ndarray) -> None:
+def write_image_atomic(path, image: np.ndarray, what: str = "frame") -> None:
     """Write a linear RGBA (or RGB) float image ``(H, W, 4 or 3)`` as 8-bit sRGB PNG or float
     EXR (by the suffix), whole or not at all; alpha stays alpha (the film's coverage, as
-    ``render`` writes it)."""
+    ``render`` writes it). A write that fails raises :class:`AMRError`, one line naming the
+    file and calling it ``what``."""
     import mitsuba as mi
 
     fmt = mi.Bitmap.PixelFormat.RGBA if image.shape[-1] == 4 else mi.Bitmap.PixelFormat.RGB
     bitmap = mi.Bitmap(np.ascontiguousarray(image, dtype=np.float32), pixel_format=fmt)
-    if Path(path).suffix.lower() == ".png":
+    png = Path(path).suffix.lower() == ".png"
+    if png:
         bitmap = bitmap.convert(fmt, mi.Struct.Type.UInt8, srgb_gamma=True)
     try:
-        with replacing(path) as tmp:
-            bitmap.write(str(tmp))
+        # Encoded in memory, the bytes written by Python: Mitsuba's file writer does not
+        # report a write the disk refuses (a full disk left an empty file in the frame's place).
+        stream = mi.MemoryStream()
+        bitmap.write(stream, mi.Bitmap.FileFormat.PNG if png else mi.Bitmap.FileFormat.OpenEXR)
+        write_bytes_atomic(path, stream.raw_buffer())
     except (RuntimeError, OSError) as e:
         # A full disk: one line per frame (the frame is not there; a rerun renders it).
         first = (str(e).strip().splitlines() or [type(e).__name__])[0]
-        raise AMRError(f"{path}: cannot write the frame ({first})") from None
+        raise AMRError(f"{path}: cannot write the {what} ({first})") from None

@@ -47,11 +47,12 @@ class Client:
     """One connected page and what waits to be sent to it, bounded: the newest state and info
     replace any not sent yet (newest state wins), at most one frame waits (a newer frame
     replaces it), and at most :data:`MAX_WAITING` other messages. A page that lets more pile
-    up, or does not take a message within :data:`SEND_TIMEOUT_S`, is not reading: it is
-    disconnected (:meth:`pump` returns)."""
+    up, or does not take a message within ``send_timeout_s`` seconds (default
+    :data:`SEND_TIMEOUT_S`), is not reading: it is disconnected (:meth:`pump` returns)."""
 
-    def __init__(self, ws):
+    def __init__(self, ws, send_timeout_s: float = SEND_TIMEOUT_S):
         self.ws = ws
+        self.send_timeout_s = send_timeout_s
         self.messages = deque()
         self.frame = None
         self.wake = asyncio.Event()
@@ -82,7 +83,7 @@ class Client:
 
     async def pump(self) -> None:
         """Send what waits, in order, until the page is dropped; each send must finish
-        within :data:`SEND_TIMEOUT_S` (a page that does not read stops the sends: the socket's
+        within :attr:`send_timeout_s` (a page that does not read stops the sends: the socket's
         buffer fills)."""
         while self.dropped is None:
             await self.wake.wait()
@@ -94,9 +95,9 @@ class Client:
                     data, self.frame = self.frame, None
                     send = self.ws.send_bytes(data)
                 try:
-                    await asyncio.wait_for(send, SEND_TIMEOUT_S)
+                    await asyncio.wait_for(send, self.send_timeout_s)
                 except asyncio.TimeoutError:
-                    self.drop(f"a message not taken within {SEND_TIMEOUT_S:g} s")
+                    self.drop(f"a message not taken within {self.send_timeout_s:g} s")
 
 
 class Hub:
@@ -411,11 +412,10 @@ def save_image(hub: Hub, client: Client, msg: dict) -> None:
         else:
             image = worker.counted("saves", lambda: session.render_tiled(size, state.spp))
         try:
-            write_image_atomic(path, image)
-        except (OSError, RuntimeError) as e:    # Mitsuba's writer raises RuntimeError
+            write_image_atomic(path, image, "image")
+        except AMRError as e:           # a full disk; the writer's message names the file
             worker.publish("reply", {"client": client, "message": error_message(
-                f"save: cannot write {path} ({str(e).strip() or type(e).__name__}); any "
-                f"existing file is unchanged")}, None)
+                f"save: {e}; any existing file is unchanged")}, None)
             return
         worker.publish("reply", {"client": client, "message": {
             "type": "saved", "what": "image", "path": str(path),
