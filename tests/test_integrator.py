@@ -678,8 +678,9 @@ def test19_a_failed_image_write_leaves_the_old_file(scene_files_ready, tmp_path,
     render_file(SCENES / "analytic_sphere.xml", keep, resolution=(8, 8), quiet=True)
     before = keep.read_bytes()
 
-    def broken(self, path, *args, **kwargs):
-        Path(path).write_bytes(b"\x89PNG half an image")
+    def broken(self, target, *args, **kwargs):
+        if isinstance(target, (str, Path)):
+            Path(target).write_bytes(b"\x89PNG half an image")
         raise RuntimeError("[bitmap.cpp] Fatal libpng error: Invalid IHDR data")
 
     monkeypatch.setattr(mi.Bitmap, "write", broken)
@@ -717,3 +718,28 @@ def test20_png_wider_than_libpng_allows_is_refused_before_rendering(scene_files_
                                                                    "resy": "1"},
                     overwrite=True, quiet=True)
     assert keep.read_bytes() == b"an image"
+
+
+def test21_a_write_the_disk_refuses_is_an_error_not_an_empty_image(scene_files_ready,
+                                                                   tmp_path):
+    """Mitsuba's file writer does not report a write the system refuses: ``render`` wrote an
+    empty file in the image's place and said it was done. Here a file size limit of 0 bytes
+    (RLIMIT_FSIZE, as a full disk refuses with ENOSPC) refuses the bytes."""
+    resource = pytest.importorskip("resource")
+    from mi_amr.workflows.render import render_file
+
+    keep = tmp_path / "keep.png"
+    render_file(SCENES / "analytic_sphere.xml", keep, resolution=(8, 8), quiet=True)
+    before = keep.read_bytes()
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    for name in ("keep.png", "new.exr"):
+        resource.setrlimit(resource.RLIMIT_FSIZE, (0, hard))
+        try:
+            with pytest.raises(AMRError, match=re.escape(f"{tmp_path / name}: cannot write "
+                                                         "the image")):
+                render_file(SCENES / "analytic_sphere.xml", tmp_path / name, resolution=(8, 8),
+                            overwrite=True, quiet=True)
+        finally:
+            resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert [p.name for p in tmp_path.iterdir()] == ["keep.png"]
+    assert keep.read_bytes() == before

@@ -176,9 +176,9 @@ def _check_png_size(output: Path, size) -> None:
 
 
 def _write_image(mi, image, output: Path, channels) -> None:
-    """Write ``image`` (linear RGBA and maybe AOVs, float32) to ``output`` through a temporary
-    file of the same type in the same folder (Mitsuba picks the format from the extension),
-    then rename it. PNG: 8-bit sRGB with alpha."""
+    """Write ``image`` (linear RGBA and maybe AOVs, float32) to ``output`` (PNG or EXR, by its
+    extension) through a temporary file in the same folder, then rename it. PNG: 8-bit sRGB
+    with alpha."""
     output.parent.mkdir(parents=True, exist_ok=True)
     if output.suffix.lower() == ".png":
         bitmap = mi.Bitmap(image[..., :4], pixel_format=mi.Bitmap.PixelFormat.RGBA)
@@ -188,9 +188,16 @@ def _write_image(mi, image, output: Path, channels) -> None:
     else:
         bitmap = mi.Bitmap(image, pixel_format=mi.Bitmap.PixelFormat.MultiChannel,
                            channel_names=channels)
+    fmt = mi.Bitmap.FileFormat.PNG if output.suffix.lower() == ".png" else \
+        mi.Bitmap.FileFormat.OpenEXR
     try:
+        # Encoded in memory, the bytes written by Python: Mitsuba's file writer does not
+        # report a write the disk refuses (it would leave an empty image in the file's place).
+        stream = mi.MemoryStream()
+        bitmap.write(stream, fmt)
+        data = stream.raw_buffer()
         with replacing(output) as tmp:
-            bitmap.write(str(tmp))
+            tmp.write_bytes(data)
     except (RuntimeError, OSError) as e:
         raise AMRError(f"{output}: cannot write the image ({str(e).strip()}); "
                        f"any existing file is unchanged") from None
