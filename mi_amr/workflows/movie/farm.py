@@ -25,7 +25,6 @@ from mi_amr.workflows.movie.spec import FrameSpec
 CONNECT_TIMEOUT = "10s"
 RETRIES = 2
 QUEUED = 4          # frames submitted ahead per worker
-_RENDERERS = {}
 
 
 @dataclass
@@ -59,24 +58,43 @@ class Summary:
         return "\n".join(lines)
 
 
-def _renderer(job: Job):
-    from mi_amr.workflows.movie.frames import FrameRenderer
+class Renderers:
+    """The frame renderer of the scene this process renders: one scene at a time (its
+    volumes are large), made when a job of another scene, size, samples, defines or variant
+    comes. A run in this process holds one; on Dask each worker's :class:`MiAmrSetup` does."""
 
-    key = (job.scene, job.resolution, job.spp, tuple(sorted(job.defines.items())), job.variant)
-    if key not in _RENDERERS:
-        _RENDERERS.clear()          # one scene per process at a time (its volumes are large)
-        _RENDERERS[key] = FrameRenderer(job.scene, resolution=job.resolution, spp=job.spp,
-                                        defines=job.defines, variant=job.variant)
-    return _RENDERERS[key]
+    def __init__(self):
+        self._key, self._renderer = None, None
+
+    def get(self, job: Job):
+        from mi_amr.workflows.movie.frames import FrameRenderer
+
+        key = (job.scene, job.resolution, job.spp, tuple(sorted(job.defines.items())),
+               job.variant)
+        if key != self._key:
+            self._key, self._renderer = None, None      # the old scene goes first
+            self._renderer = FrameRenderer(job.scene, resolution=job.resolution, spp=job.spp,
+                                           defines=job.defines, variant=job.variant)
+            self._key = key
+        return self._renderer
 
 
-def render_task(job: Job) -> dict:
-    """Render one frame where this runs; a user mistake (a bad file in the series) comes back
-    as ``{"error": ...}`` instead of an exception, so the other frames go on."""
+def _worker_renderers() -> Renderers:
+    """The renderers of the Dask worker this task runs on (its :class:`MiAmrSetup`)."""
+    from dask.distributed import get_worker
+
+    return get_worker().plugins[MiAmrSetup.name].renderers
+
+
+def render_task(job: Job, renderers: Renderers | None = None) -> dict:
+    """Render one frame where this runs, with ``renderers`` (None: the Dask worker's); a user
+    mistake (a bad file in the series) comes back as ``{"error": ...}`` instead of an
+    exception, so the other frames go on."""
     spec = FrameSpec.from_dict(job.spec)
     out = {"index": spec.index, "file": spec.file, "path": job.path, "pid": os.getpid()}
     try:
-        out.update(_renderer(job).render_to(spec, job.path, next_file=job.next_file))
+        renderer = (renderers or _worker_renderers()).get(job)
+        out.update(renderer.render_to(spec, job.path, next_file=job.next_file))
     except AMRError as e:
         out["error"] = str(e)
     except Exception as e:              # noqa: BLE001 -- reported per frame, not a crash
@@ -92,6 +110,7 @@ class MiAmrSetup:
 
     def __init__(self, variant: str, threads: int | None):
         self.variant, self.threads = variant, threads
+        self.renderers = None
 
     def setup(self, worker=None):
         import drjit as dr
@@ -103,6 +122,7 @@ class MiAmrSetup:
         from mi_amr.plugin.integrator import register
 
         register()
+        self.renderers = Renderers()
 
 
 def jobs_for(scene, specs, out_dir, fmt, *, resolution, spp, defines, variant, force,
@@ -149,8 +169,9 @@ def run_jobs(jobs, *, workers: int = 1, scheduler: str | None = None, progress: 
     bar = tqdm(total=total, unit="frame", disable=not progress, smoothing=0.1)
     try:
         if scheduler is None and workers <= 1:
+            renderers = Renderers()
             for job in with_next_files(jobs):
-                yield render_task(job)
+                yield render_task(job, renderers)
                 bar.update(1)
         else:
             yield from _run_dask(jobs, workers, scheduler, bar, variant)
