@@ -233,11 +233,8 @@ def _kill_workers(proc, out: Path, frames: int, killed: list) -> None:
 
 
 def _worker_processes(root: int) -> list:
-    """Process ids two or more levels below ``root`` that have no children of their own and
-    are not multiprocessing's resource tracker: the Dask workers, below their nannies. (A
-    nanny whose worker is being restarted has no children for a moment: killed, its worker
-    would be gone for good, and with every nanny gone the movie would wait for workers
-    forever.)"""
+    """Process ids below ``root`` that have no children of their own and are not
+    multiprocessing's resource tracker: the Dask workers (their nannies have children)."""
     children = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
         try:
@@ -247,12 +244,11 @@ def _worker_processes(root: int) -> list:
             continue
         if b"resource_tracker" not in cmdline:
             children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
-    below, todo = [], [(pid, 1) for pid in children.get(root, [])]
+    below, todo = [], list(children.get(root, []))
     while todo:
-        pid, depth = todo.pop()
-        if depth >= 2:
-            below.append(pid)
-        todo += [(kid, depth + 1) for kid in children.get(pid, [])]
+        pid = todo.pop()
+        below.append(pid)
+        todo += children.get(pid, [])
     return sorted(p for p in below if p not in children)
 
 
