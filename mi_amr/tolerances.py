@@ -102,3 +102,10 @@ SHORT_RAMP_DEPTH = 1e-3
 # (band.segment_alpha_and_centroid) may lie from float64 quadrature, in tests; reached next to
 # a capped band's plateau, where the extinction rises like a logarithm.
 CENTROID_ABS = 5e-3
+
+# ---------------------------------------------------------------------- volume shadows
+
+# points: the most a transmittance cache holds per light (volume_shadows="cache",
+# mi_amr.kernels.shadow_grid), 8 MiB of float32. Beyond it the grid is coarsened evenly; its
+# build is one shadow ray per point, so the cap also bounds the cost of a new light or band.
+SHADOW_CACHE_POINTS = 2 ** 21

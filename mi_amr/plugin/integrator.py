@@ -42,6 +42,7 @@ from mi_amr.plugin import aovs, bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.frame import VolumeFrame
 from mi_amr.plugin.inputs import FLAGS, PHONG, FrameInputs
 from mi_amr.plugin.scene import resolve_data_file
+from mi_amr.plugin.shadow_cache import ShadowCaches
 from mi_amr.plugin.transfer2d import host_transfer2d
 from mi_amr.plugin.twins import FAST, Twins
 from mi_amr.plugin.iso import IsoShader
@@ -75,6 +76,7 @@ class _AMRIso:
         mi.SamplingIntegrator.__init__(self, props)
         self.twins = twins
         self.pixel_orders = wavefront.Orders()
+        self.shadow_caches = ShadowCaches()
         if like is not None:
             self.opt, self.m, self.prep, self.dev = like.opt, like.m, like.prep, like.dev
             self.frame, self.inputs = like.frame, like.inputs
@@ -154,6 +156,9 @@ class _AMRIso:
         (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply (or
         the twins say so)."""
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        # (Caches are built before the frame is traced, so that a frame's program is the
+        # same whether or not it built them.)
+        self.shadow_caches.grids(self, scene)
         args = (self, scene, sensor, seed, spp, develop, evaluate)
         image = wavefront.render(*args, tiled=self.twins.tile_order,
                                  by_sample=self.picks_by_packet()) \
