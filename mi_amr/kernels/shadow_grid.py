@@ -20,6 +20,7 @@ import drjit as dr
 import numpy as np
 
 from mi_amr import tolerances as tol
+from mi_amr.kernels.arrays import device_array
 from mi_amr.kernels.device import opaque_floats, opaque_point
 
 # Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
@@ -86,13 +87,20 @@ def needed_points(grid: GridPlan, tree, leaves) -> np.ndarray:
 def point_positions(m, grid: GridPlan, index) -> Array3f:
     """The positions (volume world) of the grid points at flat indices ``index`` (a device
     ``UInt32``)."""
-    # (The sizes are opaque: a grid of another size compiles nothing.)
-    nx, ny = (dr.opaque(m.UInt32, int(n)) for n in grid.dims[:2])
+    # (The sizes are opaque, each from its own host memory: a grid of another size compiles
+    # nothing, also where two sizes are equal, which as literals would be one variable.)
+    nx, ny = (_opaque_uint(m, n) for n in grid.dims[:2])
     i = index % nx
     j = (index // nx) % ny
     k = index // (nx * ny)
     lo, cell = opaque_point(m, grid.lo), opaque_point(m, grid.cell)
     return dr.fma(m.Array3f(m.Float(i), m.Float(j), m.Float(k)), cell, lo)
+
+
+def _opaque_uint(m, n):
+    v = device_array(m.UInt32, [int(n)], np.uint32)
+    dr.make_opaque(v)
+    return v
 
 
 @dataclass

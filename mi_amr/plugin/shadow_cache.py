@@ -18,6 +18,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_amr.kernels.arrays import device_array
 from mi_amr.kernels.device import opaque_floats
 from mi_amr.kernels.shadow_grid import (GridPlan, TransmittanceGrid, band_leaves,
                                         needed_points, plan, point_positions)
@@ -103,7 +104,8 @@ def _build_all(integ, emitters) -> list:
         empty = TransmittanceGrid.of(m, EMPTY, opaque_floats(m, np.ones(EMPTY.size)))
         return [empty if cacheable(e) else None for e in emitters]
     grid = plan(integ.dev.tree, leaves)
-    index = m.UInt32(needed_points(grid, integ.dev.tree, leaves))
+    # (From aligned memory: the kernel's loads of a misaligned array compile otherwise.)
+    index = device_array(m.UInt32, needed_points(grid, integ.dev.tree, leaves), np.uint32)
     return [_build(integ, e, grid, index) if cacheable(e) else None for e in emitters]
 
 
