@@ -242,3 +242,47 @@ def test05_exact_keeps_no_cache_and_other_lights_keep_exact_rays(variant, folder
 
     with pytest.raises(AMRError, match="volume_shadows"):
         load_scene(bad)
+
+
+def alpha_scene_xml(folder):
+    """The bands of :func:`scene_xml` without a mesh, one ray through each pixel's centre
+    (a stratified sampler without jitter, a box filter) and an alpha channel; each ray's
+    pieces cut only where the value turns relative to a band."""
+    text = scene_xml(folder).read_text()
+    start, end = text.index("<shape"), text.index("</shape>") + len("</shape>")
+    text = text[:start] + text[end:]
+    text = text.replace('<sampler type="independent"><integer name="sample_count" value="1"/>'
+                        '</sampler>',
+                        '<sampler type="stratified"><integer name="sample_count" value="1"/>'
+                        '<boolean name="jitter" value="false"/></sampler>')
+    # (The camera rays' pieces cut as a shadow ray's are: not where the diffuse term turns.)
+    text = text.replace('<integer name="leaf_cells" value="2"/>',
+                        '<integer name="leaf_cells" value="2"/>'
+                        '<boolean name="shading_extrema" value="false"/>')
+    text = text.replace('<string name="pixel_format" value="rgb"/>',
+                        '<string name="pixel_format" value="rgba"/><rfilter type="box"/>')
+    path = folder / "scene_alpha.xml"
+    path.write_text(text)
+    return path
+
+
+def test06_volume_alpha_is_one_minus_the_transmittance(variant, folder):
+    """The alpha channel of a volume frame is the opacity ``1 - T`` of each pixel's ray (the
+    bands' transmittance along it, composited without shading), through the integrator's
+    render loop."""
+    import drjit as dr
+
+    mi = variant
+    from mi_amr.plugin.scene import load_scene
+
+    scene = load_scene(alpha_scene_xml(folder))
+    image = render(mi, scene)
+    sensor = scene.sensors()[0]
+    x, y = np.meshgrid(np.arange(RES) + 0.5, np.arange(RES) + 0.5)
+    pos = mi.Point2f(x.ravel() / RES, y.ravel() / RES)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    T = scene.integrator().iso_transmittance(ray, False, mi.Bool(True))
+    dr.eval(T)
+    alpha = image[..., 3].ravel()
+    assert np.all(alpha > -1e-6) and np.ptp(alpha) > 0.5, "the test needs clear and opaque rays"
+    assert np.max(np.abs(alpha - (1.0 - np.array(T)))) < 1e-5

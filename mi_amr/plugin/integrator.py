@@ -174,7 +174,9 @@ class _AMRIso:
 
     def sample(self, scene, sampler, ray, medium=None, active=True, lanes=None):
         """Mitsuba's ``sample``; ``lanes``: the :class:`~mi_amr.plugin.wavefront.Lanes` of
-        the frame :func:`mi_amr.plugin.wavefront.render` traces (None in Mitsuba's loop)."""
+        the frame :func:`mi_amr.plugin.wavefront.render` traces (None in Mitsuba's loop).
+        Returns ``(L, alpha, aovs)``: ``alpha`` the mask of covered lanes, or in volume mode
+        under :func:`~mi_amr.plugin.wavefront.render` the opacity ``1 - T`` (a Float)."""
         active = mi.Bool(active)
         # Shadow rays see the frame's lanes (their roulette may pick by packet).
         shader = IsoShader(self, functools.partial(self.iso_transmittance, lanes=lanes))
@@ -206,6 +208,10 @@ class _AMRIso:
         # ---- Alpha is the coverage by surfaces (the environment behind counts as empty);
         # with stochastic layers, the share of samples that stop at a layer (1 - T on average).
         covered = active & (si.is_valid() | (T < 1.0))
+        if lanes is not None and self.opt.mode == "volume":
+            # In volume mode the pixel's opacity 1 - T (a mesh behind is opaque), a number
+            # that the render loop this integrator owns writes (Mitsuba's takes a mask).
+            covered = dr.select(active, dr.select(si.is_valid(), 1.0, 1.0 - T), 0.0)
         channels = aovs.iso_aovs(self, ray, o, d, t_mesh, jitter, active) if self.opt.aovs else []
         return L, covered, channels
 
