@@ -106,9 +106,11 @@ CENTROID_ABS = 5e-3
 # ---------------------------------------------------------------------- volume shadows
 
 # points: the most a transmittance cache holds per light (volume_shadows="cache",
-# mi_amr.kernels.shadow_grid), 8 MiB of float32. Beyond it the grid is coarsened evenly; its
-# build is one shadow ray per point, so the cap also bounds the cost of a new light or band.
-SHADOW_CACHE_POINTS = 2 ** 21
+# mi_amr.kernels.shadow_grid), 2 MiB of float32. Beyond it the grid is coarsened evenly. Its
+# build is one exact shadow ray per point, so the cap bounds the first frame and the frame
+# after a new light or band too: at 2^21 the shells scene's build (807k points filled) took
+# longer than an exact frame at 256^2 on two busy cores; 2^19 takes about a quarter of that.
+SHADOW_CACHE_POINTS = 2 ** 19
 # relative RMSE: a volume image shadowed through the transmittance caches against the same
 # image with exact per-piece shadow rays (tests/test_volume_shadows.py: two bands of an
 # ellipsoid field, a directional and a point light, 32^2; measured 0.017, and 0.026 with the

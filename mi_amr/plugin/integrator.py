@@ -156,9 +156,7 @@ class _AMRIso:
         (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply (or
         the twins say so)."""
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-        # (Caches are built before the frame is traced, so that a frame's program is the
-        # same whether or not it built them.)
-        self.shadow_caches.grids(self, scene)
+        self.shadow_caches.grids(self, scene)   # (before the frame's trace: see the module)
         args = (self, scene, sensor, seed, spp, develop, evaluate)
         image = wavefront.render(*args, tiled=self.twins.tile_order,
                                  by_sample=self.picks_by_packet()) \
@@ -205,13 +203,8 @@ class _AMRIso:
         # ---- What lies behind them: a mesh, an emitter, or nothing.
         L += T * shading.mesh_light(scene, sampler, ray, si, self.phong(), active & (T > 0.0),
                                     self.shadows(), shader.transmittance)
-        # ---- Alpha is the coverage by surfaces (the environment behind counts as empty);
-        # with stochastic layers, the share of samples that stop at a layer (1 - T on average).
-        covered = active & (si.is_valid() | (T < 1.0))
-        if lanes is not None and self.opt.mode == "volume":
-            # In volume mode the pixel's opacity 1 - T (a mesh behind is opaque), a number
-            # that the render loop this integrator owns writes (Mitsuba's takes a mask).
-            covered = dr.select(active, dr.select(si.is_valid(), 1.0, 1.0 - T), 0.0)
+        # ---- Alpha: the coverage by surfaces, or volume mode's opacity (aovs.alpha).
+        covered = aovs.alpha(self.opt.mode, si, T, active, lanes)
         channels = aovs.iso_aovs(self, ray, o, d, t_mesh, jitter, active) if self.opt.aovs else []
         return L, covered, channels
 

@@ -10,6 +10,9 @@ function, the volume's placement in the scene, or the light; never for a camera 
 meshes' shadows are not in it: a lit piece still tests them with Mitsuba's shadow ray. Lights
 whose direction depends on the light sample (area lights, environments) have no cache and
 keep exact shadow rays.
+
+The integrator asks for its caches before it traces a frame (``render``), so that a frame's
+program is the same whether or not it built them.
 """
 
 from __future__ import annotations
@@ -76,7 +79,7 @@ def _key(integ, emitters) -> tuple:
     placement, whether shadows are on, and each emitter's parameters."""
     host = integ.inputs.host
     bands = tuple(host[n].tobytes() for n in BAND_INPUTS if n in host)
-    frame = np.array(integ.frame.scene_from_volume.matrix, dtype=np.float64).tobytes()
+    frame = integ.frame.host.tobytes()
     return (id(integ.dev), bands, frame, bool(host["shadows"][0]),
             tuple(_emitter_key(e) for e in emitters))
 
