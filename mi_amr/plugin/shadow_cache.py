@@ -61,6 +61,9 @@ class ShadowCaches:
         if not uses_cache(integ):
             return [None] * len(emitters)
         key = _key(integ, emitters)
+        if key != self._key and dr.flag(dr.JitFlag.SymbolicScope):
+            # (Asked first inside a symbolic loop, where no kernel may run: exact shadows.)
+            return [None] * len(emitters)
         if key != self._key:
             self._grids = _build_all(integ, emitters)
             self._key, self._dev = key, integ.dev
