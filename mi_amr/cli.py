@@ -130,6 +130,9 @@ def _add_bench(sub) -> None:
     s.add_argument("--volume", action="store_true",
                    help="only volume mode: each method and step against exact at 64 spp, "
                         "writes volume.md and volume_chart.png (--quick: 32^2, a smoke test)")
+    s.add_argument("--shadows", action="store_true",
+                   help="with --volume: only the volume shadows (off, cache, exact) on the "
+                        "one- and three-band scenes beside surface mode, writes shadows.md")
     s.add_argument("--movie", action="store_true",
                    help="only the movie frame rates (1 and 2 workers) and one time step's "
                         "cost, writes movie.md")
@@ -309,6 +312,10 @@ def _bench(args) -> None:
         from mi_amr.evaluation.limit_bench import run_limit_bench
 
         run_limit_bench(args.out, variant=args.variant)
+    elif args.volume and args.shadows:
+        from mi_amr.evaluation.shadow_bench import shadow_sweep
+
+        shadow_sweep(args.out, res=64 if args.quick else 256, variant=args.variant)
     elif args.volume:
         from mi_amr.evaluation.volume_bench import volume_sweep
 

@@ -17,6 +17,7 @@ METHODS = ("exact", "bisect", "adaptive", "uniform")
 RECONSTRUCTIONS = ("basis", "finest")
 MODES = ("surface", "volume")
 LAYER_MODES = ("composite", "one_shadow", "stochastic")
+VOLUME_SHADOWS = ("cache", "exact")
 MAX_ISOVALUES = 8
 REQUIRED = object()          # the default of a parameter that must be given
 
@@ -77,6 +78,15 @@ TABLE = (
           lo=1e-4, hi=64.0, traversable=True),
     Param("shadows", "boolean", True, "shadow rays test meshes and isosurfaces",
           traversable=True),
+    Param("volume_shadows", "string", "cache",
+          "volume mode: how a lit piece of the band finds its shadow. ``cache``: one "
+          "trilinear lookup in a grid per directional, point or spot light holding the "
+          "transmittance through the bands towards it, built with the exact shadow "
+          "compositing when the light, the bands or the transfer function change (not when "
+          "the camera moves); meshes still cast theirs by a shadow ray, and other lights "
+          "(area, environment) keep exact shadow rays. ``exact``: a shadow ray per lit piece "
+          "composites the bands on its way to each light (cost grows with the square of the "
+          "pieces a ray meets)", choices=VOLUME_SHADOWS),
     Param("to_world", "transform", None,
           "places the volume's world space in the scene (default: identity)", traversable=True),
     Param("ka", "float", 0.15, "Phong ambient coefficient", lo=0.0, hi=100.0, traversable=True),

@@ -41,6 +41,17 @@ NAMES = ["iso_depth.T", "iso_normal.X", "iso_normal.Y", "iso_normal.Z", "iso_pos
          "iso_pos.Y", "iso_pos.Z", "iso_value.V", "iso_color.V", "iso_level.L", "iso_grid.G"]
 
 
+
+def alpha(mode: str, si, T, active, lanes):
+    """A sample's alpha: the coverage by surfaces (a mask: the environment behind counts as
+    empty; with stochastic layers, the share of samples that stop at a layer, 1 - T on
+    average), or in volume mode under the integrator's own render loop (``lanes`` given) the
+    opacity ``1 - T`` of the bands (a Float; 1 where a mesh lies behind), which that loop
+    writes as it is (Mitsuba's loop takes a mask)."""
+    if lanes is not None and mode == "volume":
+        return dr.select(active, dr.select(si.is_valid(), 1.0, 1.0 - T), 0.0)
+    return active & (si.is_valid() | (T < 1.0))
+
 def iso_aovs(integ, ray, o, d, t_mesh, jitter, active, miss_depth=0.0) -> list:
     """The values of :data:`NAMES` for the rays (Mitsuba floats), from the integrator
     ``integ``'s kernels; ``o``, ``d``: the rays in volume space; ``miss_depth``: the depth

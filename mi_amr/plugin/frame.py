@@ -16,7 +16,8 @@ from mi_amr.plugin import bridge
 class VolumeFrame:
     """``scene_from_volume`` maps the volume's world space into the scene (the value
     ``mi.traverse`` shows as ``integrator.to_world``); ``to_scene`` and ``to_volume`` are the
-    transforms the kernels read, rebuilt from it by :meth:`refresh`."""
+    transforms the kernels read, rebuilt from it by :meth:`refresh`, and ``host`` its matrix
+    (float64, 4 x 4)."""
 
     def __init__(self, to_world=None):
         matrix = np.eye(4) if to_world is None else _host(to_world)
@@ -28,6 +29,8 @@ class VolumeFrame:
         directions from it on the host (float64 inverse), as opaque values. Built the same way
         every time, so the kernels traced with them are the same every time."""
         matrix = _checked(_host(self.scene_from_volume))
+        # (Kept: reading a transform assigned as literals runs a kernel of their values.)
+        self.host = matrix
         self.to_scene = _transform(matrix)
         self.to_volume = _transform(np.linalg.inv(matrix))
 

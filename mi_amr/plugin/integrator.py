@@ -42,6 +42,7 @@ from mi_amr.plugin import aovs, bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.frame import VolumeFrame
 from mi_amr.plugin.inputs import FLAGS, PHONG, FrameInputs
 from mi_amr.plugin.scene import resolve_data_file
+from mi_amr.plugin.shadow_cache import ShadowCaches
 from mi_amr.plugin.transfer2d import host_transfer2d
 from mi_amr.plugin.twins import FAST, Twins
 from mi_amr.plugin.iso import IsoShader
@@ -75,6 +76,7 @@ class _AMRIso:
         mi.SamplingIntegrator.__init__(self, props)
         self.twins = twins
         self.pixel_orders = wavefront.Orders()
+        self.shadow_caches = ShadowCaches()
         if like is not None:
             self.opt, self.m, self.prep, self.dev = like.opt, like.m, like.prep, like.dev
             self.frame, self.inputs = like.frame, like.inputs
@@ -154,6 +156,7 @@ class _AMRIso:
         (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply (or
         the twins say so)."""
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        self.shadow_caches.grids(self, scene)   # (before the frame's trace: see the module)
         args = (self, scene, sensor, seed, spp, develop, evaluate)
         image = wavefront.render(*args, tiled=self.twins.tile_order,
                                  by_sample=self.picks_by_packet()) \
@@ -169,7 +172,9 @@ class _AMRIso:
 
     def sample(self, scene, sampler, ray, medium=None, active=True, lanes=None):
         """Mitsuba's ``sample``; ``lanes``: the :class:`~mi_amr.plugin.wavefront.Lanes` of
-        the frame :func:`mi_amr.plugin.wavefront.render` traces (None in Mitsuba's loop)."""
+        the frame :func:`mi_amr.plugin.wavefront.render` traces (None in Mitsuba's loop).
+        Returns ``(L, alpha, aovs)``: ``alpha`` the mask of covered lanes, or in volume mode
+        under :func:`~mi_amr.plugin.wavefront.render` the opacity ``1 - T`` (a Float)."""
         active = mi.Bool(active)
         # Shadow rays see the frame's lanes (their roulette may pick by packet).
         shader = IsoShader(self, functools.partial(self.iso_transmittance, lanes=lanes))
@@ -198,9 +203,8 @@ class _AMRIso:
         # ---- What lies behind them: a mesh, an emitter, or nothing.
         L += T * shading.mesh_light(scene, sampler, ray, si, self.phong(), active & (T > 0.0),
                                     self.shadows(), shader.transmittance)
-        # ---- Alpha is the coverage by surfaces (the environment behind counts as empty);
-        # with stochastic layers, the share of samples that stop at a layer (1 - T on average).
-        covered = active & (si.is_valid() | (T < 1.0))
+        # ---- Alpha: the coverage by surfaces, or volume mode's opacity (aovs.alpha).
+        covered = aovs.alpha(self.opt.mode, si, T, active, lanes)
         channels = aovs.iso_aovs(self, ray, o, d, t_mesh, jitter, active) if self.opt.aovs else []
         return L, covered, channels
 

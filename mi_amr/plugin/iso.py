@@ -6,7 +6,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_amr.kernels import colormap
+from mi_amr.kernels import colormap, shadow_grid
 from mi_amr.kernels.reconstruct import reconstruct
 from mi_amr.plugin import bridge, shading
 
@@ -94,27 +94,37 @@ class IsoShader:
     def lighting(self, scene, light_u, ray, o, d):
         """The ``lighting`` object of the volume compositing
         (:func:`~mi_amr.kernels.composite.composite`) for the ray ``ray`` (scene) that is
-        ``o + t d`` in the volume."""
-        return VolumeLighting(self, scene, light_u, ray, o, d)
+        ``o + t d`` in the volume; its shadows from the integrator's transmittance caches
+        where it keeps them (:mod:`mi_amr.plugin.shadow_cache`)."""
+        grids = self.integ.shadow_caches.grids(self.integ, scene)
+        return VolumeLighting(self, scene, light_u, ray, (o, d), grids)
 
 
 class VolumeLighting:
     """Light samples, Phong terms and the diffuse term for the volume compositing, at volume
     points ``o + t d`` of one scene ray (kernel types in and out)."""
 
-    def __init__(self, shader: IsoShader, scene, light_u, ray, o, d):
+    def __init__(self, shader: IsoShader, scene, light_u, ray, od, grids):
+        """``od``: the ray ``(o, d)`` in the volume; ``grids``: per emitter its transmittance
+        cache (:class:`~mi_amr.kernels.shadow_grid.TransmittanceGrid`) or None."""
         self.shader, self.scene, self.light_u, self.ray = shader, scene, light_u, ray
-        self.o, self.d = o, d
+        self.o, self.d = od
+        self.grids = grids
         self.m = shader.m
 
     def sample(self, p, lit, visible: bool):
-        """The light samples at volume point ``p``, shadowed where ``visible``."""
+        """The light samples at volume point ``p``, shadowed where ``visible``: through the
+        lights' caches where they have one, else by exact shadow rays."""
         integ = self.shader.integ
         ray_len2 = dr.squared_norm(self.d)
         t = bridge.to_mi(dr.dot(p - self.o, self.d) / ray_len2, mi.Float)
         shadows = integ.shadows() if visible else False
+        cached = [None if g is None or not visible else
+                  bridge.to_mi(shadow_grid.lookup(self.m, g, p, self.m.Bool(lit)), mi.Float)
+                  for g in self.grids]
         return shading.light_samples(self.scene, self.light_u, self.ray, self.ray(t),
-                                     mi.Bool(lit), shadows, self.shader.transmittance)
+                                     mi.Bool(lit), shading.Shadowing(
+                                         shadows, self.shader.transmittance, cached))
 
     def terms(self, samples, grad, lit):
         """``(A, S)`` (kernel ``Array3f``) of a point with volume-space gradient ``grad``."""

@@ -37,6 +37,7 @@ class Options:
     jitter: str
     step_scale: float
     shadows: bool
+    volume_shadows: str
     ka: float
     kd: float
     ks: float

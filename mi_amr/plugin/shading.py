@@ -134,16 +134,31 @@ class LightSample:
     valid: Any
 
 
-def light_samples(scene, light_u, ray, P, active, shadows, iso_transmittance):
+@dataclass
+class Shadowing:
+    """How the light samples of a volume point are shadowed: ``shadows`` (a Mitsuba Bool, or
+    False for no shadow rays at all), ``transmittance(ray, from_iso, active)`` (the exact
+    shadow ray through the isosurfaces or the band) and per emitter ``cached``, the
+    transmittance at the point from its cache (a Mitsuba Float; its meshes still tested by a
+    shadow ray), or None for the exact shadow ray."""
+
+    shadows: Any
+    transmittance: Callable
+    cached: list
+
+
+def light_samples(scene, light_u, ray, P, active, shadowing: Shadowing):
     """One :class:`LightSample` per emitter at the scene point ``P`` (a point inside the
-    volume band, lit from every side); shadowed by meshes and isosurfaces where ``shadows``
-    (a Mitsuba Bool, or False for no shadow rays at all)."""
+    volume band, lit from every side); shadowed by meshes and isosurfaces (or the band) as
+    ``shadowing`` says."""
     out = []
-    for emitter, u in zip(scene.emitters(), light_u):
+    for emitter, u, cached in zip(scene.emitters(), light_u, shadowing.cached):
         ds, w = _sample_emitter(emitter, u, ray, P, active)
         valid = active & (ds.pdf > 0.0)
-        if shadows is not False:
-            w = w * visibility(scene, P, ds, valid, shadows, iso_transmittance, from_iso=True)
+        if shadowing.shadows is not False:
+            through = shadowing.transmittance if cached is None else \
+                (lambda _ray, _from_iso, _active, T=cached: T)
+            w = w * visibility(scene, P, ds, valid, shadowing.shadows, through, from_iso=True)
         out.append(LightSample(to_light=ds.d, radiance=w, valid=valid))
     return out
 

@@ -223,7 +223,9 @@ def _render_lanes(integrator, scene, sensor, sampler, block, lanes: Lanes, width
     L, valid, aovs = integrator.sample(scene, sampler, ray, None, True, lanes=lanes)
     rgb = weight * L
     if mi.has_flag(film.flags(), mi.FilmFlags.Alpha):
-        values = [rgb.x, rgb.y, rgb.z, dr.select(valid, 1.0, 0.0), mi.Float(1.0)]
+        # (a mask, as Mitsuba's loop takes, or the sample's opacity: volume mode's 1 - T)
+        alpha = dr.select(valid, 1.0, 0.0) if dr.is_mask_v(valid) else mi.Float(valid)
+        values = [rgb.x, rgb.y, rgb.z, alpha, mi.Float(1.0)]
     else:
         values = [rgb.x, rgb.y, rgb.z, mi.Float(1.0)]
     box = film.rfilter().is_box_filter()

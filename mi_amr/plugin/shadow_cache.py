@@ -1,0 +1,146 @@
+"""Volume mode's transmittance caches (``volume_shadows="cache"``): per directional, point or
+spot light of the scene, a grid (:mod:`mi_amr.kernels.shadow_grid`) of the transmittance
+through the bands from each grid point towards the light.
+
+A cache is filled with the same exact compositing that a per-piece shadow ray runs
+(:meth:`~mi_amr.plugin.integrator._AMRIso.iso_transmittance`, ``composite`` without shading),
+one wavefront of rays from the grid's points. It is built again when what it depends on
+changes: the volume, the bands (isovalues, widths, supports, peaks) or the 2D transfer
+function, the volume's placement in the scene, or the light; never for a camera move. The
+meshes' shadows are not in it: a lit piece still tests them with Mitsuba's shadow ray. Lights
+whose direction depends on the light sample (area lights, environments) have no cache and
+keep exact shadow rays.
+
+The integrator asks for its caches before it traces a frame (``render``), so that a frame's
+program is the same whether or not it built them.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mi_amr.kernels.arrays import device_array
+from mi_amr.kernels.device import opaque_floats
+from mi_amr.kernels.shadow_grid import (GridPlan, TransmittanceGrid, band_leaves,
+                                        needed_points, plan, point_positions)
+from mi_amr.plugin import bridge, shading
+
+# The inputs whose values a cache depends on (besides the volume, its placement, the lights).
+BAND_INPUTS = ("isovalue", "band_width", "band_offsets", "band_peak", "transfer2d_table",
+               "transfer2d_range")
+# A grid that holds no shadow: where shadows are off or no leaf holds opacity (the frame's
+# program stays the same, the lookups are masked or find 1).
+EMPTY = GridPlan(lo=np.zeros(3), cell=np.ones(3), dims=np.array([2, 2, 2]))
+
+
+def cacheable(emitter) -> bool:
+    """Does ``emitter`` send its light from one direction or one point (directional, point,
+    spot), the same for every light sample at a point?"""
+    flags = emitter.flags()
+    return mi.has_flag(flags, mi.EmitterFlags.DeltaDirection) or \
+        mi.has_flag(flags, mi.EmitterFlags.DeltaPosition)
+
+
+class ShadowCaches:
+    """The caches of one integrator, for the last scene and inputs it rendered
+    (:meth:`grids`); ``builds`` counts how often they were filled."""
+
+    def __init__(self):
+        self._key = None
+        self._grids = []
+        self._dev = None     # the device volume the key names (kept, so its id stays its own)
+        self.builds = 0
+
+    def grids(self, integ, scene) -> list:
+        """Per emitter of ``scene``, its :class:`TransmittanceGrid`, or None where it keeps
+        exact shadow rays (every emitter where ``integ`` does not cache: surface mode,
+        ``volume_shadows="exact"``, scalar variants). Built again where the key changed."""
+        emitters = scene.emitters()
+        if not uses_cache(integ):
+            return [None] * len(emitters)
+        key = _key(integ, emitters)
+        if key != self._key and dr.flag(dr.JitFlag.SymbolicScope):
+            # (Asked first inside a symbolic loop, where no kernel may run: exact shadows.)
+            return [None] * len(emitters)
+        if key != self._key:
+            self._grids = _build_all(integ, emitters)
+            self._key, self._dev = key, integ.dev
+            self.builds += 1
+        return self._grids
+
+
+def uses_cache(integ) -> bool:
+    """Does ``integ`` light its band through transmittance caches?"""
+    opt = integ.opt
+    return bridge.vectorised() and opt.mode == "volume" and opt.volume_shadows == "cache"
+
+
+def _key(integ, emitters) -> tuple:
+    """What the caches depend on, as bytes: the device volume, the band inputs, the
+    placement, whether shadows are on, and each emitter's parameters."""
+    host = integ.inputs.host
+    bands = tuple(host[n].tobytes() for n in BAND_INPUTS if n in host)
+    frame = integ.frame.host.tobytes()
+    return (id(integ.dev), bands, frame, bool(host["shadows"][0]),
+            tuple(_emitter_key(e) for e in emitters))
+
+
+def _emitter_key(emitter) -> tuple:
+    """An emitter's traversable values as bytes (its direction, position, radiance ...)."""
+    params = mi.traverse(emitter)
+    out = []
+    for name in sorted(params.keys()):
+        value = params[name]
+        value = value.matrix if isinstance(value, mi.Transform4f) else value
+        try:
+            out.append((name, np.asarray(value, dtype=np.float64).tobytes()))
+        except (TypeError, ValueError):
+            out.append((name, repr(value)))
+    return tuple(out)
+
+
+def _build_all(integ, emitters) -> list:
+    """Fill one grid per cacheable emitter (None for the others)."""
+    m = integ.m
+    leaves = _opacity_leaves(integ)
+    shadows = bool(integ.inputs.host["shadows"][0])
+    if not shadows or len(leaves) == 0:
+        empty = TransmittanceGrid.of(m, EMPTY, opaque_floats(m, np.ones(EMPTY.size)))
+        return [empty if cacheable(e) else None for e in emitters]
+    grid = plan(integ.dev.tree, leaves)
+    # (From aligned memory: the kernel's loads of a misaligned array compile otherwise.)
+    index = device_array(m.UInt32, needed_points(grid, integ.dev.tree, leaves), np.uint32)
+    return [_build(integ, e, grid, index) if cacheable(e) else None for e in emitters]
+
+
+def _opacity_leaves(integ) -> np.ndarray:
+    """The kd leaves where the bands (or the 2D transfer function) may have opacity."""
+    inputs, dev = integ.inputs, integ.dev
+    host = inputs.host
+    if inputs.transfer2d is not None:
+        bands = [inputs.transfer2d_host.value_support()]
+    else:
+        offsets = host["band_offsets"].reshape(-1, 2)
+        bands = [(iso + lo, iso + hi) for iso, (lo, hi) in zip(host["isovalue"], offsets)]
+    ranges = dev.node_ranges(integ.opt.reconstruction == "basis")
+    return band_leaves(dev.tree, ranges, bands)
+
+
+def _build(integ, emitter, grid: GridPlan, index) -> TransmittanceGrid:
+    """The transmittance from each needed point (flat ``index``) of ``grid`` towards
+    ``emitter``: the exact shadow ray of a lit piece there (its mesh test aside), one
+    wavefront. The other points hold 1 (no lookup reads them)."""
+    m = integ.m
+    p = point_positions(m, grid, index)
+    P = integ.frame.to_scene @ bridge.to_mi3(p, mi.Point3f)
+    it = dr.zeros(mi.Interaction3f, dr.width(index))
+    it.p = P
+    ds, _ = emitter.sample_direction(it, mi.Point2f(0.5), True)
+    lit = ds.pdf > 0.0
+    T = integ.iso_transmittance(shading.shadow_ray(P, ds), True, lit)
+    values = dr.full(m.Float, 1.0, grid.size)
+    dr.scatter(values, bridge.to_kernel(m, dr.select(lit, T, 1.0)), index)
+    dr.eval(values)
+    return TransmittanceGrid.of(m, grid, values)

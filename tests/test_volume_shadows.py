@@ -1,0 +1,288 @@
+"""Volume mode's transmittance caches (``volume_shadows="cache"``,
+:mod:`mi_amr.plugin.shadow_cache`) against their slow twin, the exact shadow ray per lit piece
+(``volume_shadows="exact"``): the same image within
+:data:`~mi_amr.tolerances.SHADOW_CACHE_REL_RMSE`, the same transmittance at the grid's points
+and within :data:`~mi_amr.tolerances.SHADOW_CACHE_MEAN_ABS` between them; built again for a
+new band or light, not for a camera move, and a new light direction compiles nothing.
+"""
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from conftest import kernels_compiled
+from mi_amr import tolerances as tol
+from mi_amr.synthetic import datasets
+
+RES = 32
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _variant(variant):
+    yield
+
+
+def scene_xml(folder, volume_shadows="cache"):
+    """Two bands (0.3 and 0.4) of the ellipsoid field of :func:`ellipsoid`, a ball below, a
+    directional and a point light."""
+    text = f"""
+    <scene version="3.0.0">
+        <integrator type="amr_iso" id="integrator">
+            <string name="filename" value="a.npz"/>
+            <string name="field" value="f"/>
+            <string name="isovalue" value="0.3, 0.4"/>
+            <string name="iso_color" value="0.9 0.5 0.2; 0.2 0.6 1.0"/>
+            <string name="mode" value="volume"/>
+            <string name="band_width" value="0.02"/>
+            <string name="band_peak" value="0.5"/>
+            <string name="volume_shadows" value="{volume_shadows}"/>
+            <integer name="leaf_cells" value="2"/>
+        </integrator>
+        <sensor type="perspective" id="sensor">
+            <float name="fov" value="30"/>
+            <transform name="to_world">
+                <lookat origin="1.6, -0.9, 1.4" target="0.5, 0.5, 0.5" up="0, 0, 1"/>
+            </transform>
+            <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
+            <film type="hdrfilm">
+                <integer name="width" value="{RES}"/><integer name="height" value="{RES}"/>
+                <string name="pixel_format" value="rgb"/>
+            </film>
+        </sensor>
+        <emitter type="directional" id="light">
+            <vector name="direction" value="-0.4, 0.5, -1.0"/>
+            <rgb name="irradiance" value="2.0"/>
+        </emitter>
+        <emitter type="point" id="lamp">
+            <point name="position" value="1.4, 0.2, 1.5"/>
+            <rgb name="intensity" value="1.5"/>
+        </emitter>
+        <shape type="sphere" id="ball">
+            <point name="center" value="0.5, 0.5, -0.6"/><float name="radius" value="0.3"/>
+        </shape>
+    </scene>"""
+    path = folder / f"scene_{volume_shadows}.xml"
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def ellipsoid():
+    """``f = |(p - c) / (1, 0.8, 0.5)|`` on the analytic datasets' two levels: the bands'
+    leaves (of 2 cells) span a box of three different sides (so a grid axis mixed up shows)."""
+    scale = np.array([1.0, 0.8, 0.5])
+    return datasets.two_levels(lambda p, level: np.linalg.norm((p - 0.5) / scale, axis=-1))
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("volume_shadows")
+    ellipsoid().save(folder / "a.npz")
+    return folder
+
+
+def load(folder, volume_shadows="cache"):
+    from mi_amr.plugin.scene import load_scene
+
+    return load_scene(scene_xml(folder, volume_shadows))
+
+
+def render(mi, scene):
+    import drjit as dr
+
+    img = mi.render(scene, seed=0)
+    dr.eval(img)
+    return np.array(img)
+
+
+def rel_rmse(a, b):
+    return float(np.sqrt(np.mean((a - b) ** 2)) / np.sqrt(np.mean(b ** 2)))
+
+
+@pytest.fixture(scope="module")
+def cached(variant, folder):
+    """The scene with caches, after its first frame (and that frame)."""
+    scene = load(folder)
+    return scene, render(variant, scene)
+
+
+def test01_the_cached_image_matches_exact_shadow_rays(variant, folder, cached):
+    scene, image = cached
+    exact = render(variant, load(folder, "exact"))
+    assert scene.integrator().shadow_caches.builds == 1
+    err = rel_rmse(image, exact)
+    assert err < tol.SHADOW_CACHE_REL_RMSE, f"relative RMSE {err:.4f} against exact shadows"
+    # (the shadows show: without them the image differs far more)
+    assert rel_rmse(image, exact * 0 + image.mean()) > 5 * err
+
+
+def _exact_transmittance(mi, integ, emitter, p, active):
+    """The exact shadow compositing from volume points ``p`` towards ``emitter`` (what a lit
+    piece's shadow ray sees, its mesh test aside)."""
+    import drjit as dr
+
+    from mi_amr.plugin import bridge, shading
+
+    P = integ.frame.to_scene @ bridge.to_mi3(p, mi.Point3f)
+    it = dr.zeros(mi.Interaction3f, dr.width(p.x))
+    it.p = P
+    ds, _ = emitter.sample_direction(it, mi.Point2f(0.5), True)
+    return np.array(integ.iso_transmittance(shading.shadow_ray(P, ds), True, active))
+
+
+def _lookups(mi, scene, points):
+    """Per emitter: (cached, exact) transmittance at the volume points ``points`` (n x 3)."""
+    from mi_amr.kernels import shadow_grid
+
+    integ = scene.integrator()
+    m = integ.m
+    p = m.Array3f(*(m.Float(points[:, a]) for a in range(3)))
+    active = m.Bool(np.ones(len(points), dtype=bool))
+    out = []
+    for emitter, grid in zip(scene.emitters(), integ.shadow_caches.grids(integ, scene)):
+        out.append((np.array(shadow_grid.lookup(m, grid, p, active)),
+                    _exact_transmittance(mi, integ, emitter, p, active)))
+    return out
+
+
+def _band_points(integ, rng, n):
+    """``n`` random points (volume world) of the leaves that hold band opacity, and the
+    cache's plan."""
+    from mi_amr.kernels import shadow_grid
+    from mi_amr.plugin.shadow_cache import _opacity_leaves
+
+    tree = integ.dev.tree
+    leaves = _opacity_leaves(integ)
+    pick = rng.choice(leaves, n)
+    pts = tree.leaf_lo[pick] + rng.random((n, 3)) * (tree.leaf_hi[pick] - tree.leaf_lo[pick])
+    return pts, shadow_grid.plan(tree, leaves), leaves
+
+
+def test02_lookups_match_the_exact_transmittance(variant, cached):
+    """At the grid's own points the lookup is the exact transmittance (to float rounding);
+    at random points of the leaves with opacity it is within the interpolation's error."""
+    scene, _ = cached
+    from mi_amr.kernels import shadow_grid
+
+    integ = scene.integrator()
+    rng = np.random.default_rng(7)
+    pts, grid, leaves = _band_points(integ, rng, 2000)
+    assert len(set(grid.dims.tolist())) > 1, "the test grid must not be a cube"
+    needed = shadow_grid.needed_points(grid, integ.dev.tree, leaves)
+    index = rng.choice(needed, 500)
+    i, j, k = index % grid.dims[0], (index // grid.dims[0]) % grid.dims[1], \
+        index // (grid.dims[0] * grid.dims[1])
+    at_nodes = grid.lo + np.stack([i, j, k], axis=1) * grid.cell
+    for cached_T, exact_T in _lookups(variant, scene, at_nodes):
+        assert np.max(np.abs(cached_T - exact_T)) < 1e-5
+    for cached_T, exact_T in _lookups(variant, scene, pts):
+        assert np.any(exact_T < 0.9), "the points must see some shadow"
+        assert np.mean(np.abs(cached_T - exact_T)) < tol.SHADOW_CACHE_MEAN_ABS
+
+
+def test03_a_camera_move_does_not_build_again(variant, cached):
+    mi = variant
+    scene, image = cached
+    caches = scene.integrator().shadow_caches
+    builds = caches.builds
+    p = mi.traverse(scene)
+    before = mi.Transform4f(p["sensor.to_world"])
+    p["sensor.to_world"] = mi.Transform4f().look_at(origin=[1.5, -1.1, 1.2],
+                                                    target=[0.5, 0.5, 0.5], up=[0, 0, 1])
+    p.update()
+    moved = render(mi, scene)
+    assert caches.builds == builds
+    assert not np.allclose(moved, image)
+    p["sensor.to_world"] = before
+    p.update()
+    assert np.allclose(render(mi, scene), image)
+    assert caches.builds == builds
+
+
+def test04_a_new_band_or_light_builds_again_and_compiles_nothing(variant, folder, cached):
+    """Each change builds the caches again, renders what a scene loaded with the new value
+    renders, and compiles no kernel (the build's and the frame's programs do not depend on
+    the values, nor on the grid's size)."""
+    mi = variant
+    scene, _ = cached
+    caches = scene.integrator().shadow_caches
+    p = mi.traverse(scene)
+    changes = [("integrator.isovalue", mi.Float([0.28, 0.41])),
+               ("integrator.band_width", mi.Float([0.03, 0.015])),
+               ("light.to_world", mi.Transform4f().look_at(origin=[0, 0, 0],
+                                                           target=[0.5, -0.3, -1.0],
+                                                           up=[0, 1, 0])),
+               ("lamp.position", mi.Point3f(0.2, 1.3, 1.4))]
+    before = render(mi, scene)
+    for key, value in changes:
+        builds = caches.builds
+        p[key] = value
+        p.update()
+        image, compiled = kernels_compiled(lambda: render(mi, scene))
+        assert caches.builds == builds + 1, key
+        assert compiled == 0, f"changing {key} compiled {compiled} kernel(s)"
+        assert not np.allclose(image, before), key
+        before = image
+
+
+def test05_exact_keeps_no_cache_and_other_lights_keep_exact_rays(variant, folder):
+    mi = variant
+    from mi_amr import params
+    from mi_amr.errors import AMRError
+    from mi_amr.plugin.shadow_cache import cacheable
+
+    assert params.default("volume_shadows") == "cache"
+    scene = load(folder, "exact")
+    assert scene.integrator().shadow_caches.grids(scene.integrator(), scene) == [None, None]
+    assert [cacheable(mi.load_dict({"type": t})) for t in ("directional", "point",
+                                                              "constant")] == \
+        [True, True, False]
+    bad = scene_xml(folder, "maybe")
+    from mi_amr.plugin.scene import load_scene
+
+    with pytest.raises(AMRError, match="volume_shadows"):
+        load_scene(bad)
+
+
+def alpha_scene_xml(folder):
+    """The bands of :func:`scene_xml` without a mesh, one ray through each pixel's centre
+    (a stratified sampler without jitter, a box filter) and an alpha channel; each ray's
+    pieces cut only where the value turns relative to a band."""
+    text = scene_xml(folder).read_text()
+    start, end = text.index("<shape"), text.index("</shape>") + len("</shape>")
+    text = text[:start] + text[end:]
+    text = text.replace('<sampler type="independent"><integer name="sample_count" value="1"/>'
+                        '</sampler>',
+                        '<sampler type="stratified"><integer name="sample_count" value="1"/>'
+                        '<boolean name="jitter" value="false"/></sampler>')
+    # (The camera rays' pieces cut as a shadow ray's are: not where the diffuse term turns.)
+    text = text.replace('<integer name="leaf_cells" value="2"/>',
+                        '<integer name="leaf_cells" value="2"/>'
+                        '<boolean name="shading_extrema" value="false"/>')
+    text = text.replace('<string name="pixel_format" value="rgb"/>',
+                        '<string name="pixel_format" value="rgba"/><rfilter type="box"/>')
+    path = folder / "scene_alpha.xml"
+    path.write_text(text)
+    return path
+
+
+def test06_volume_alpha_is_one_minus_the_transmittance(variant, folder):
+    """The alpha channel of a volume frame is the opacity ``1 - T`` of each pixel's ray (the
+    bands' transmittance along it, composited without shading), through the integrator's
+    render loop."""
+    import drjit as dr
+
+    mi = variant
+    from mi_amr.plugin.scene import load_scene
+
+    scene = load_scene(alpha_scene_xml(folder))
+    image = render(mi, scene)
+    sensor = scene.sensors()[0]
+    x, y = np.meshgrid(np.arange(RES) + 0.5, np.arange(RES) + 0.5)
+    pos = mi.Point2f(x.ravel() / RES, y.ravel() / RES)
+    ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+    T = scene.integrator().iso_transmittance(ray, False, mi.Bool(True))
+    dr.eval(T)
+    alpha = image[..., 3].ravel()
+    assert np.all(alpha > -1e-6) and np.ptp(alpha) > 0.5, "the test needs clear and opaque rays"
+    assert np.max(np.abs(alpha - (1.0 - np.array(T)))) < 1e-5
