@@ -149,10 +149,10 @@ def _band_points(integ, rng, n):
     """``n`` random points (volume world) of the leaves that hold band opacity, and the
     cache's plan."""
     from mi_amr.kernels import shadow_grid
-    from mi_amr.plugin.shadow_cache import _opacity_leaves
+    from mi_amr.plugin.shadow_cache import opacity_leaves
 
     tree = integ.dev.tree
-    leaves = _opacity_leaves(integ)
+    leaves = opacity_leaves(integ)
     pick = rng.choice(leaves, n)
     pts = tree.leaf_lo[pick] + rng.random((n, 3)) * (tree.leaf_hi[pick] - tree.leaf_lo[pick])
     return pts, shadow_grid.plan(tree, leaves), leaves

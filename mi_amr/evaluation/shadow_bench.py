@@ -50,10 +50,10 @@ def _build(scene) -> dict:
 
     integ = scene.integrator()
     t0 = time.perf_counter()
-    shadow_cache._build_all(integ, scene.emitters())
+    shadow_cache.build_all(integ, scene.emitters())
     dr.sync_thread()
     seconds = time.perf_counter() - t0
-    leaves = shadow_cache._opacity_leaves(integ)
+    leaves = shadow_cache.opacity_leaves(integ)
     grid = shadow_grid.plan(integ.dev.tree, leaves)
     points = len(shadow_grid.needed_points(grid, integ.dev.tree, leaves))
     return {"build_s": seconds, "grid": "x".join(map(str, grid.dims)), "points": points}

@@ -65,7 +65,7 @@ class ShadowCaches:
             # (Asked first inside a symbolic loop, where no kernel may run: exact shadows.)
             return [None] * len(emitters)
         if key != self._key:
-            self._grids = _build_all(integ, emitters)
+            self._grids = build_all(integ, emitters)
             self._key, self._dev = key, integ.dev
             self.builds += 1
         return self._grids
@@ -101,10 +101,10 @@ def _emitter_key(emitter) -> tuple:
     return tuple(out)
 
 
-def _build_all(integ, emitters) -> list:
+def build_all(integ, emitters) -> list:
     """Fill one grid per cacheable emitter (None for the others)."""
     m = integ.m
-    leaves = _opacity_leaves(integ)
+    leaves = opacity_leaves(integ)
     shadows = bool(integ.inputs.host["shadows"][0])
     if not shadows or len(leaves) == 0:
         empty = TransmittanceGrid.of(m, EMPTY, opaque_floats(m, np.ones(EMPTY.size)))
@@ -115,7 +115,7 @@ def _build_all(integ, emitters) -> list:
     return [_build(integ, e, grid, index) if cacheable(e) else None for e in emitters]
 
 
-def _opacity_leaves(integ) -> np.ndarray:
+def opacity_leaves(integ) -> np.ndarray:
     """The kd leaves where the bands (or the 2D transfer function) may have opacity."""
     inputs, dev = integ.inputs, integ.dev
     host = inputs.host
