@@ -148,6 +148,7 @@ def test_kernels_write_the_host_buffers_or_are_copied_over(how):
     values = np.arange(sum(sizes), dtype=np.float32) * 0.5 - 7.0
     dr.scatter(target, m.Float32(values), dr.arange(m.UInt32, len(values)))
     dr.eval(target)
+    dr.sync_thread()            # the LLVM backend runs the scatter asynchronously
     if how == "mapped":
         np.testing.assert_array_equal(np.concatenate(parts), values)
     device_derive._settle(m, target, record)
