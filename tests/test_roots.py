@@ -80,3 +80,42 @@ def test03_a_tangent_at_the_intervals_end_is_a_root(backend):
     p = poly(0.5, -2.0, 1.0, TINY)
     found, root, *_ = first_root(backend, p, L=0.5)
     assert found and root == np.float32(0.5)
+
+
+def _rational_cases(n=200, seed=4):
+    """``n`` pieces ``N / D`` on ``[0, 1]``: ``N`` with extrema at two random places, ``D`` a
+    positive cubic that varies by up to a third (a basis reconstruction's weight sum)."""
+    rng = np.random.default_rng(seed)
+    e = np.sort(rng.uniform(0.1, 0.9, (n, 2)), axis=1)
+    num = np.stack([rng.uniform(-1, 1, n), 3 * e[:, 0] * e[:, 1], -1.5 * e.sum(1),
+                    np.ones(n)], axis=1)
+    den = np.concatenate([np.ones((n, 1)), rng.uniform(-0.1, 0.1, (n, 3))], axis=1)
+    return num, den
+
+
+def _true_extrema(num, den):
+    """The roots of ``N' D - N D'`` in ``(0, 1)``, float64."""
+    P = np.polynomial.polynomial
+    q = P.polysub(P.polymul(P.polyder(num), den), P.polymul(num, P.polyder(den)))
+    r = P.polyroots(q)
+    r = np.sort(r[(np.abs(r.imag) < 1e-9) & (r.real > 0.0) & (r.real < 1.0)].real)
+    return r
+
+
+def test04_a_rational_pieces_extrema_are_where_its_value_turns(backend):
+    """:func:`roots.rational_extrema` against the float64 roots of ``N' D - N D'``, on
+    pieces whose denominator varies (where it is constant the first step is exact): each
+    within 1e-5 of the interval, a missing one at ``L``."""
+    num, den = _rational_cases()
+    m = backend
+    c_num = [m.Float(num[:, i].astype(np.float32)) for i in range(4)]
+    c_den = [m.Float(den[:, i].astype(np.float32)) for i in range(4)]
+    r1, r2 = roots.rational_extrema(c_num, c_den, m.Float(1.0))
+    got = np.stack([np.array(r1), np.array(r2)], axis=1)
+    inside = 0
+    for i in range(len(num)):
+        want = _true_extrema(num[i].astype(np.float32), den[i].astype(np.float32))
+        inside += len(want)
+        want = np.concatenate([want, np.ones(2 - len(want))])
+        assert np.abs(got[i] - want).max() < 1e-5, (i, got[i], want)
+    assert inside > 1.5 * len(num)      # the cases have extrema to find

@@ -35,6 +35,10 @@ from mi_amr.kernels.traverse import CubicPiece, Lattice, March, Walk, cubic_piec
 # (Dr.Jit reads a dataclass's annotations but converts nothing by them).
 from drjit.llvm.ad import Array3f, Bool, Float, UInt32
 
+# Fixed-point iterations of a piece's value extrema (roots.rational_extrema): each squares the
+# error, and the basis reconstruction's denominator varies slowly along a piece.
+EXTREMUM_ITERATIONS = 2
+
 
 @dataclass
 class Composite:
@@ -80,9 +84,8 @@ def composite(ray: RayContext, jitter, shading: Optional[Shading] = None) -> Com
     (the Phong terms), and ``lambert(ctx, gradient)``, the first light's unnormalised diffuse
     term (linear in the gradient).
 
-    ``exact``: each cubic piece is cut where the reconstructed value can turn relative to a
-    band (at the extrema of ``N - v D`` for each band's low end, centre and high end) and
-    where the diffuse term turns (Marchesin et al. 2009, sections 3.1-3.2); on each resulting
+    ``exact``: each cubic piece is cut where the reconstructed value turns (the extrema of
+    ``N / D``, one search for all bands) and where the diffuse term turns (Marchesin et al. 2009, sections 3.1-3.2); on each resulting
     sub-piece the value is taken as a linear ramp, its opacity is each band's integral over
     it, and its light the opacity times the shaded colour at the centroid of its most opaque
     band (exact where the shaded colour runs linearly along it), the bands met in the ramp's
@@ -117,12 +120,6 @@ def _bands(dev, cfg):
     bands = [(c + cfg.band.get(m, "lo", k), c + cfg.band.get(m, "hi", k))
              for k, c in enumerate(centres)]
     return centres, bands
-
-
-def _marks(centres, bands):
-    """Each band's low end, centre and high end: where a piece is cut at the extrema of
-    ``N - v D`` (a dr.syntax function may not unpack in a comprehension)."""
-    return [v for lo_hi, c in zip(bands, centres) for v in (lo_hi[0], c, lo_hi[1])]
 
 
 def _dominant(points, shares):
@@ -168,14 +165,13 @@ class Piece:
         return roots.cubic(self.cnum, s) / roots.cubic(self.den, s), self.gradient(s)
 
 
-def _split(cp: CubicPiece, marks, extra):
-    """Cut a cubic piece where the value can turn relative to a band (the extrema of
-    ``N - v D`` for each of ``marks``) and at ``extra``."""
-    num, den, length = cp.num, cp.den, cp.length
-    cuts = list(extra)
-    for v in marks:
-        cuts += list(roots.extrema([num[i] - v * den[i] for i in range(4)], length))
-    return [0.0 * length] + _sort(cuts) + [length]
+def _split(cp: CubicPiece, extra):
+    """Cut a cubic piece where its value turns (:func:`~mi_amr.kernels.roots.rational_extrema`)
+    and at ``extra``: on each part the value is monotone, so it meets each end of each band at
+    most once, whatever the number of bands."""
+    cuts = list(roots.rational_extrema(cp.num, cp.den, cp.length, EXTREMUM_ITERATIONS))
+    cuts += list(extra)
+    return [0.0 * cp.length] + _sort(cuts) + [cp.length]
 
 
 @dataclass
@@ -336,7 +332,7 @@ def _one_hot(n, k):
     return [1.0 if j == k else 0.0 for j in range(n)]
 
 
-def _piece(ray: RayContext, cp: CubicPiece, leaf, marks, lighting, have):
+def _piece(ray: RayContext, cp: CubicPiece, leaf, lighting, have):
     """The cubic piece ``cp`` (in kd leaf ``leaf``) split for compositing: where the value can
     turn relative to a band and, where it is shaded with ``cfg.shading_extrema``, where the
     first light's diffuse term turns (Marchesin et al. 2009, section 3.2; that term is a
@@ -362,22 +358,20 @@ def _piece(ray: RayContext, cp: CubicPiece, leaf, marks, lighting, have):
         ctx = lighting.sample(ray.at(cp.t + 0.5 * length), have, False)
         extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], length)]
 
-    s_pts = _split(cp, marks, extra)
+    s_pts = _split(cp, extra)
     values = [roots.cubic(cp.num, s) / roots.cubic(cp.den, s) for s in s_pts]
     if lighting is None:
         return Piece(s_pts=s_pts, values=values, gradient=gradient)
     return Piece(s_pts=s_pts, values=values, cnum=cp.nums[1], den=cp.den, gradient=gradient)
 
 
-def _exact_marks(dev, cfg):
-    """The bands' centres and the values a piece is cut at the extrema relative to: each
-    band's ends and centre; for a 2D transfer function its value support's ends and middle."""
+def _centres(dev, cfg):
+    """The bands' centres (the isovalues); for a 2D transfer function its value support's
+    middle."""
     tf = cfg.transfer2d
     if tf is None:
-        centres, bands = _bands(dev, cfg)
-        return centres, _marks(centres, bands)
-    lo, hi = tf.get(dev.m, SUPPORT_LO), tf.get(dev.m, SUPPORT_HI)
-    return [0.5 * (lo + hi)], [lo, 0.5 * (lo + hi), hi]
+        return _bands(dev, cfg)[0]
+    return [0.5 * (tf.get(dev.m, SUPPORT_LO) + tf.get(dev.m, SUPPORT_HI))]
 
 
 @dr.syntax
@@ -386,7 +380,7 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
     shade = shading is not None
     lighting = shading.lighting if shade else None
     arrays = ray.dev.arrays(cfg.basis, color=True)
-    centres, marks = _exact_marks(ray.dev, cfg)
+    centres = _centres(ray.dev, cfg)
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     # Each leaf search whole: this march's pieces cost far more than search steps.
@@ -405,7 +399,7 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
         # (The middle's weight alone: a piece that ends at missing data still has its band's
         # opacity up to there.)
         have = cp.defined(work, cp.mid()[1], ends=False)
-        piece = _piece(ray, cp, march.walk.leaf, marks, lighting, have)
+        piece = _piece(ray, cp, march.walk.leaf, lighting, have)
         subs = _sub_pieces(ray, piece, have, centres)
 
         # --- Light once per piece of the ray, where it is most opaque; shade at every cut.

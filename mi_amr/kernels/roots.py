@@ -42,6 +42,25 @@ def extrema(c, L):
     return dr.minimum(r1, r2), dr.maximum(r1, r2)
 
 
+def rational_extrema(num, den, L, iterations=2):
+    """Where ``f = num / den`` (two cubics, ``den > 0``) turns in ``[0, L]``: the roots of
+    ``num' den - num den'``, found as the fixed points of ``v -> f(s_v)``, ``s_v`` an extremum
+    of the cubic ``num - v den`` (at a fixed point ``num' = v den'`` with ``v = f``). The map's
+    slope is ``f'`` there, zero at the answer, so each iteration squares the error; where
+    ``den`` is constant the first one is exact. Returns ``(r1, r2)`` as :func:`extrema` does:
+    sorted, a missing one at ``L``."""
+    def shifted(v):
+        return [num[i] - v * den[i] for i in range(4)]
+
+    mid = 0.5 * L
+    v = cubic(num, mid) / cubic(den, mid)
+    r1, r2 = extrema(shifted(v), L)
+    for _ in range(iterations):
+        r1 = extrema(shifted(cubic(num, r1) / cubic(den, r1)), L)[0]
+        r2 = extrema(shifted(cubic(num, r2) / cubic(den, r2)), L)[1]
+    return dr.minimum(r1, r2), dr.maximum(r1, r2)
+
+
 def first_root_bracket(c, L, scale, rel_tol=2e-6):
     """Locate the first root of the cubic ``c`` in ``[0, L]``.
 
