@@ -165,13 +165,27 @@ class Piece:
         return roots.cubic(self.cnum, s) / roots.cubic(self.den, s), self.gradient(s)
 
 
-def _split(cp: CubicPiece, extra):
-    """Cut a cubic piece where its value turns (:func:`~mi_amr.kernels.roots.rational_extrema`)
-    and at ``extra``: on each part the value is monotone, so it meets each end of each band at
-    most once, whatever the number of bands."""
-    cuts = list(roots.rational_extrema(cp.num, cp.den, cp.length, EXTREMUM_ITERATIONS))
-    cuts += list(extra)
-    return [0.0 * cp.length] + _sort(cuts) + [cp.length]
+def _value_cuts(cp: CubicPiece):
+    """Where the value of the cubic piece ``cp`` turns
+    (:func:`~mi_amr.kernels.roots.rational_extrema`), and the piece's points ``0``, those and
+    ``length`` with the values there: on each part the value is monotone, so it meets each end
+    of each band at most once whatever the number of bands, and the values give the piece's
+    value range exactly."""
+    turns = list(roots.rational_extrema(cp.num, cp.den, cp.length, EXTREMUM_ITERATIONS))
+    s_pts = [0.0 * cp.length] + turns + [cp.length]
+    return turns, [roots.cubic(cp.num, s) / roots.cubic(cp.den, s) for s in s_pts]
+
+
+def _meets(values, supports):
+    """Whether a piece whose values at its cuts are ``values`` (monotone between them) meets
+    the value support ``(lo, hi)`` of one of ``supports``."""
+    v_lo, v_hi = values[0], values[0]
+    for v in values[1:]:
+        v_lo, v_hi = dr.minimum(v_lo, v), dr.maximum(v_hi, v)
+    met = (v_hi >= supports[0][0]) & (v_lo <= supports[0][1])
+    for lo, hi in supports[1:]:
+        met |= (v_hi >= lo) & (v_lo <= hi)
+    return met
 
 
 @dataclass
@@ -332,9 +346,9 @@ def _one_hot(n, k):
     return [1.0 if j == k else 0.0 for j in range(n)]
 
 
-def _piece(ray: RayContext, cp: CubicPiece, leaf, lighting, have):
-    """The cubic piece ``cp`` (in kd leaf ``leaf``) split for compositing: where the value can
-    turn relative to a band and, where it is shaded with ``cfg.shading_extrema``, where the
+def _piece(ray: RayContext, cp: CubicPiece, leaf, turns, lighting, have):
+    """The cubic piece ``cp`` (in kd leaf ``leaf``) split for compositing: where the value
+    turns (``turns``, from :func:`_value_cuts`) and, where it is shaded with ``cfg.shading_extrema``, where the
     first light's diffuse term turns (Marchesin et al. 2009, section 3.2; that term is a
     quadratic in ``t`` inside a trilinear cell, and so is the gradient, which is then taken at
     the piece's front, middle and back and interpolated, as it is for a 2D transfer function;
@@ -358,29 +372,57 @@ def _piece(ray: RayContext, cp: CubicPiece, leaf, lighting, have):
         ctx = lighting.sample(ray.at(cp.t + 0.5 * length), have, False)
         extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], length)]
 
-    s_pts = _split(cp, extra)
+    s_pts = [0.0 * length] + _sort(list(turns) + extra) + [length]
     values = [roots.cubic(cp.num, s) / roots.cubic(cp.den, s) for s in s_pts]
     if lighting is None:
         return Piece(s_pts=s_pts, values=values, gradient=gradient)
     return Piece(s_pts=s_pts, values=values, cnum=cp.nums[1], den=cp.den, gradient=gradient)
 
 
-def _centres(dev, cfg):
-    """The bands' centres (the isovalues); for a 2D transfer function its value support's
-    middle."""
-    tf = cfg.transfer2d
-    if tf is None:
-        return _bands(dev, cfg)[0]
-    return [0.5 * (tf.get(dev.m, SUPPORT_LO) + tf.get(dev.m, SUPPORT_HI))]
+@dataclass
+class Bands:
+    """What the exact march composites: the bands' centres (the isovalues; for a 2D transfer
+    function its value support's middle), their value supports ``(lo, hi)``, and the
+    ``shading`` (None: the transmittance alone)."""
+
+    centres: list
+    supports: list
+    shading: Optional[Shading]
+
+    @staticmethod
+    def of(ray: RayContext, shading: Optional[Shading]) -> "Bands":
+        tf, m = ray.cfg.transfer2d, ray.m
+        if tf is None:
+            return Bands(*_bands(ray.dev, ray.cfg), shading)
+        lo, hi = tf.get(m, SUPPORT_LO), tf.get(m, SUPPORT_HI)
+        return Bands([0.5 * (lo + hi)], [(lo, hi)], shading)
+
+
+def _piece_colour(ray: RayContext, cp: CubicPiece, leaf, turns, have, bands: Bands):
+    """The light (premultiplied) and transmittance of the cubic piece ``cp`` (in kd leaf
+    ``leaf``, its value turning at ``turns``): split, each part's opacity pre-integrated and,
+    where it is shaded, lit once where the piece has made half its opacity and shaded at its
+    two most opaque parts."""
+    m, shading = ray.m, bands.shading
+    lighting = shading.lighting if shading is not None else None
+    piece = _piece(ray, cp, leaf, turns, lighting, have)
+    subs = _sub_pieces(ray, piece, have, bands.centres)
+    if shading is None:
+        T_p = m.Float(1.0)
+        for sub in subs:
+            T_p *= 1.0 - sub.alpha
+        return m.Array3f(0.0), T_p
+    s_best, best_alpha = _light_place(ray, piece, subs, bands.centres)
+    lit = have & (best_alpha > tol.ALPHA_LIT)
+    ctx = lighting.sample(ray.at(cp.t + s_best), lit, True)
+    return _piece_light(ray, piece, subs, Lit(shading, ctx, lit, bands.centres))
 
 
 @dr.syntax
 def _composite_exact(ray: RayContext, shading: Optional[Shading]):
     m, cfg = ray.m, ray.cfg
-    shade = shading is not None
-    lighting = shading.lighting if shade else None
     arrays = ray.dev.arrays(cfg.basis, color=True)
-    centres = _centres(ray.dev, cfg)
+    bands = Bands.of(ray, shading)
     C = m.Array3f(0.0)
     T = m.Float(1.0)
     # Each leaf search whole: this march's pieces cost far more than search steps.
@@ -399,21 +441,16 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
         # (The middle's weight alone: a piece that ends at missing data still has its band's
         # opacity up to there.)
         have = cp.defined(work, cp.mid()[1], ends=False)
-        piece = _piece(ray, cp, march.walk.leaf, lighting, have)
-        subs = _sub_pieces(ray, piece, have, centres)
+        turns, values = _value_cuts(cp)
 
-        # --- Light once per piece of the ray, where it is most opaque; shade at every cut.
-        if dr.hint(shade, mode="scalar"):
-            s_best, best_alpha = _light_place(ray, piece, subs, centres)
-            lit = have & (best_alpha > tol.ALPHA_LIT)
-            ctx = lighting.sample(ray.at(cp.t + s_best), lit, True)
-            C_p, T_p = _piece_light(ray, piece, subs, Lit(shading, ctx, lit, centres))
-            C += dr.select(work, T * C_p, 0.0)
-            T = dr.select(work, T * T_p, T)
-        else:
-            for sub in subs:
-                for a in sub.alphas:
-                    T = dr.select(work, T * (1.0 - a), T)
+        # --- Only a piece whose values meet a band is split, integrated and lit (a leaf's
+        # range holds a band's values, most of its pieces' do not).
+        near = have & _meets(values, bands.supports)
+        C_p, T_p = m.Array3f(0.0), m.Float(1.0)
+        if near:
+            C_p, T_p = _piece_colour(ray, cp, march.walk.leaf, turns, near, bands)
+        C += T * C_p
+        T *= T_p
 
         march.walk.t = dr.select(work, cp.end, march.walk.t)
         active &= (march.walk.t < ray.t1) & (T > tol.T_MIN)
