@@ -128,8 +128,12 @@ def _add_bench(sub) -> None:
                    help="only the frame against a mesh of the same surface (4 sizes) and the "
                         "load against a raw read of the file, writes limit.md")
     s.add_argument("--volume", action="store_true",
-                   help="only volume mode: each method and step against exact at 64 spp, "
-                        "writes volume.md and volume_chart.png (--quick: 32^2, a smoke test)")
+                   help="only volume mode: its frames beside surface mode's and yt's "
+                        "(volume_speed.md), then each method and step against exact at 64 spp "
+                        "(volume.md, volume_chart.png); --quick: 32^2, a smoke test")
+    s.add_argument("--speed", action="store_true",
+                   help="with --volume: only the frames beside surface mode's and yt's at "
+                        "256^2 and 1024^2, writes volume_speed.md")
     s.add_argument("--shadows", action="store_true",
                    help="with --volume: only the volume shadows (off, cache, exact) on the "
                         "one- and three-band scenes beside surface mode, writes shadows.md")
@@ -303,6 +307,10 @@ def _bench(args) -> None:
     from mi_amr.evaluation.bench import run_frames, scaling, sweep
     from mi_amr.workflows import project
 
+    if (args.shadows or args.speed) and not args.volume:
+        raise AMRError("bench: --shadows and --speed choose a part of --volume; add --volume")
+    if args.shadows and args.speed:
+        raise AMRError("bench: --shadows and --speed are two parts of --volume; pick one")
     _bench_folder(Path(args.out))
     project.ensure_scene_data()
     # Loads are timed as first loads: no snapshot read or written, here or in the processes
@@ -318,8 +326,11 @@ def _bench(args) -> None:
         shadow_sweep(args.out, res=64 if args.quick else 256, variant=args.variant)
     elif args.volume:
         from mi_amr.evaluation.volume_bench import volume_sweep
+        from mi_amr.evaluation.volume_speed import volume_speed
 
-        volume_sweep(args.out, quick=args.quick, variant=args.variant)
+        volume_speed(args.out, quick=args.quick, variant=args.variant)
+        if not args.speed:
+            volume_sweep(args.out, quick=args.quick, variant=args.variant)
     elif args.movie:
         from mi_amr.evaluation.movie_bench import run_movie_bench
 

@@ -60,3 +60,45 @@ def test04_a_results_folder_that_is_a_file_is_refused_before_any_work(tmp_path, 
     assert main(["bench", "--volume", "--quick", "--out", str(afile)]) == 2
     assert f"--out {afile} is a file, not a folder" in capsys.readouterr().err
     assert afile.read_text() == "mine"
+
+
+def test05_the_speed_table_times_every_scene_beside_surface_mode_and_yt(tmp_path,
+                                                                         scene_data_ready):
+    """``bench --volume --speed --quick``: every scene timed at the quick size, each frame
+    related to surface mode's and the one band's, yt beside the three bands (when installed),
+    both files written."""
+    import json
+
+    from mi_amr.evaluation import volume_speed as vs
+
+    rows = vs.volume_speed(tmp_path, quick=True, progress=False)
+    ours = [r for r in rows if r["renderer"] == "mi_amr"]
+    assert [r["scene"] for r in ours] == [label for label, _, _ in vs.SCENES]
+    for r in ours:
+        assert r["frame_s"] > 0 and r["first_s"] > 0, r
+        assert r["x_surface"] == pytest.approx(r["frame_s"] / ours[0]["frame_s"])
+        assert r["x_one_band"] == pytest.approx(r["frame_s"] / ours[1]["frame_s"])
+    yt_rows = [r for r in rows if r["renderer"] == "yt"]
+    assert [r["scene"] for r in yt_rows] == list(vs.QUICK["yt_scenes"])
+    try:
+        import yt  # noqa: F401
+    except ImportError:
+        assert all("skipped" in r for r in yt_rows)
+    else:
+        shells = next(r for r in ours if r["scene"] == "3 bands")
+        for r in yt_rows:
+            assert r["frame_s"] > 0 and r["opaque_pixels"] > 0, r     # yt drew the bands
+            assert r["mi_amr_over_yt"] == pytest.approx(shells["frame_s"] / r["frame_s"])
+    table = (tmp_path / "volume_speed.md").read_text()
+    assert table.count("| mi_amr |") == len(ours) and table.count("| yt |") == len(yt_rows)
+    assert json.loads((tmp_path / "volume_speed.json").read_text())[0]["scene"] == "surface mode"
+
+
+def test06_speed_or_shadows_without_volume_is_a_cli_error(tmp_path, capsys):
+    from mi_amr.cli import main
+
+    assert main(["bench", "--speed", "--out", str(tmp_path)]) == 2
+    assert "--volume" in capsys.readouterr().err
+    assert main(["bench", "--volume", "--speed", "--shadows", "--out", str(tmp_path)]) == 2
+    assert "pick one" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []

@@ -285,7 +285,7 @@ def route_scene(scene_name: str) -> RouteScene:
     vol = integ.prep.volume
     return RouteScene(scene=scene, ref_hits=ref_hits, integ=integ, vol=vol,
                        field=integ.prep.field, iso=float(integ.opt.isovalues[0]),
-                       to_world=_matrix(integ.frame.to_scene))
+                       to_world=matrix(integ.frame.to_scene))
 
 
 def _ray_arrays(ray, h, w):
@@ -302,7 +302,7 @@ def _occluder_t(scene, ray):
     return np.asarray(dr.select(si.is_valid(), si.t, dr.inf).numpy(), dtype=np.float64)
 
 
-def _matrix(transform) -> np.ndarray:
+def matrix(transform) -> np.ndarray:
     return np.array(transform.matrix, dtype=np.float64).reshape(4, 4)
 
 
@@ -400,14 +400,14 @@ def _scored_row(scene_name, peer, time_s, detail, hits, scene, *, notes=""):
     w, h = sensor.film().crop_size()
     o, d = _ray_arrays(pixel_rays(sensor), h, w)
     vol = integ.prep.volume
-    gaps = _gaps(vol, _matrix(integ.frame.to_scene), ref_hits, hits, o, d, _finest_spacing(vol))
+    gaps = _gaps(vol, matrix(integ.frame.to_scene), ref_hits, hits, o, d, _finest_spacing(vol))
     scored = ref.score(hits, ref_hits).as_dict()
     return _row(scene_name, peer, time_s, detail, scored, cracks=gaps["near"] / hits.hit.size,
                 notes=f"{notes}; {_gap_note(gaps)}" if notes else _gap_note(gaps))
 
 
 @contextmanager
-def _quiet_yt():
+def quiet_yt():
     """yt logs every step at INFO; keep the run's output readable and restore the level."""
     from yt.utilities.logger import ytLogger
 
@@ -807,10 +807,10 @@ def yt_volume_route(scene_name: str, *, ghost_zones: bool = False) -> dict:
 
     rs = route_scene(scene_name)
     view = _yt_view(rs)
-    with _quiet_yt():
+    with quiet_yt():
         # ---- Dataset.
         t0 = time.perf_counter()
-        ds = _yt_dataset(yt, rs.vol, rs.field)
+        ds = yt_dataset(yt, rs.vol, rs.field)
         if ghost_zones:
             # yt will not fill ghost zones past the faces of a non-periodic domain; its error
             # message advises this (the wrapped values touch only the outermost cells).
@@ -869,7 +869,7 @@ def _yt_view(rs: RouteScene) -> _YtView:
 @dataclass
 class _YtSetup:
     """yt's scene ``sc`` ready to render: its volume ``source``, the camera ``cam``, the
-    camera's ``frame`` (see :func:`_yt_camera`), the Gaussian's ``height`` (opacity per unit of
+    camera's ``frame`` (see :func:`yt_camera`), the Gaussian's ``height`` (opacity per unit of
     yt's ray parameter) and the depth buffer of the scene's other shapes."""
 
     sc: object
@@ -882,14 +882,14 @@ class _YtSetup:
 
 def _yt_setup(yt, ColorTransferFunction, ZBuffer, ds, rs, view, ghost_zones) -> _YtSetup:
     """yt's scene for dataset ``ds``: a perspective lens on the scene's field (linear, with
-    ``ghost_zones`` or not), the Mitsuba camera rebuilt (:func:`_yt_camera`), the Gaussian
+    ``ghost_zones`` or not), the Mitsuba camera rebuilt (:func:`yt_camera`), the Gaussian
     transfer function at the isovalue and the scene's other shapes as a depth buffer."""
     sc = yt.create_scene(ds, field=("stream", rs.field), lens_type="perspective")
     source = sc.get_source(0)
     source.log_field = False
     source.set_use_ghost_zones(ghost_zones)
     cam = sc.camera
-    frame = _yt_camera(ds, cam, view.sensor, rs.to_world, view.w, view.h)
+    frame = yt_camera(ds, cam, view.sensor, rs.to_world, view.w, view.h)
     # Optical depth across the band (head on, gradient gmed): A * sigma sqrt(2 pi) / gmed
     # over the ray's parameter length |vp_dir|, which the sampler's dt is a share of.
     ray_len = float(np.median(np.linalg.norm(frame["vp_dir"], axis=-1)))
@@ -976,7 +976,7 @@ def _median_gradient(vol, field, iso) -> float:
     return float(np.median(np.concatenate(mags)))
 
 
-def _yt_dataset(yt, vol, field):
+def yt_dataset(yt, vol, field):
     lo, hi = vol.bounds
     h0 = vol.level_spacing(0)
     if len(set(vol.ratios)) > 1:
@@ -991,11 +991,11 @@ def _yt_dataset(yt, vol, field):
                              periodicity=(False, False, False), length_unit=1.0)
 
 
-def _yt_camera(ds, cam, sensor, to_world, w, h) -> dict:
+def yt_camera(ds, cam, sensor, to_world, w, h) -> dict:
     """Set yt's perspective camera from Mitsuba's sensor; returns the ray directions yt will
     cast (``vp_dir``, ``[i, j]`` = east, north), the maps between yt's ``(W, H)`` images and
     Mitsuba's ``(H, W)`` ones and the largest angle between matched rays."""
-    m = _matrix(sensor.world_transform())
+    m = matrix(sensor.world_transform())
     inv = np.linalg.inv(to_world)
     # Mitsuba's camera frame: columns left, up, forward, origin.
     left, up, forward, origin = m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3]
