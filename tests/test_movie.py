@@ -554,3 +554,80 @@ def test18_the_next_time_step_is_prepared_while_a_frame_renders(series, tmp_path
         assert r.prefetch.finished() == files[1]
     finally:
         preps.report = old
+
+
+def test19_a_movie_whose_cluster_loses_every_worker_stops_with_one_error(series, tmp_path):
+    """The movie's own LocalCluster of 2 workers; once a frame is written the cluster is
+    scaled to no worker (as when every worker dies and none comes back). The movie stops with
+    one AMRError after ``worker_wait`` instead of waiting for ever, and keeps the frames it
+    wrote, whole."""
+    from distributed import default_client
+
+    from mi_amr.workflows.movie import render_movie
+
+    out = tmp_path / "orphaned"
+    result = {}
+
+    def run():
+        try:
+            result["s"] = render_movie(series / "scene.xml", out, files=str(series / "step*.npz"),
+                                       frames=400, workers=2, worker_wait=3.0, progress=False)
+        except AMRError as e:
+            result["error"] = str(e)
+
+    thread = threading.Thread(target=run, daemon=True)   # (a hang must not hang pytest)
+    thread.start()
+    deadline = time.time() + 120
+    while not (out.exists() and frames_in(out)):
+        assert time.time() < deadline and thread.is_alive(), "no frame arrived"
+        time.sleep(0.05)
+    default_client().cluster.scale(0)
+    thread.join(60)
+    assert not thread.is_alive(), "the movie waited for workers that cannot come back"
+    assert "every Dask worker" in result.get("error", ""), result
+    assert "run the movie again" in result["error"]
+    written = frames_in(out)
+    assert 0 < len(written) < 400
+    assert all(read(p).shape == (32, 32, 4) for p in written)
+    assert not [p for p in out.iterdir() if ".tmp-" in p.name]
+
+
+def test20_a_named_scheduler_without_workers_is_told_once_and_waited_for(series, tmp_path,
+                                                                           capsys):
+    """A cluster the user names (``scheduler``) scaled to no worker after the first frame: the
+    movie says so once on stderr after ``worker_wait`` and keeps waiting; once workers are back
+    every frame arrives."""
+    from dask.distributed import LocalCluster
+
+    from mi_amr.workflows.movie import render_movie
+
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                           dashboard_address=None, silence_logs=50)
+    out = tmp_path / "queued"
+    result = {}
+
+    def run():
+        result["s"] = render_movie(series / "scene.xml", out, files=str(series / "step*.npz"),
+                                   frames=40, scheduler=cluster.scheduler_address,
+                                   worker_wait=1.0, progress=False)
+
+    thread = threading.Thread(target=run, daemon=True)
+    try:
+        thread.start()
+        deadline = time.time() + 120
+        while not (out.exists() and frames_in(out)):
+            assert time.time() < deadline and thread.is_alive(), "no frame arrived"
+            time.sleep(0.05)
+        cluster.scale(0)
+        while "no Dask worker" not in capsys.readouterr().err:
+            assert time.time() < deadline and thread.is_alive(), "the user was not told"
+            time.sleep(0.1)
+        assert thread.is_alive()
+        cluster.scale(1)
+        thread.join(120)
+        assert not thread.is_alive()
+    finally:
+        cluster.close()
+    assert not result["s"].failed
+    assert len(frames_in(out)) == 40
+    assert capsys.readouterr().err.count("no Dask worker") == 0     # told once

@@ -17,7 +17,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from mi_amr.errors import AMRError
-from mi_amr.workflows.movie.farm import Summary, jobs_for, run_jobs
+from mi_amr.workflows.movie.farm import WORKER_WAIT, Summary, jobs_for, run_jobs
 from mi_amr.workflows.movie.output import (FORMATS, check_out_dir, existing_frames,
                                            frame_path, image_size)
 from mi_amr.workflows.movie.spec import (FrameSpec, Plan, append_keyframe, check_frames,
@@ -105,11 +105,14 @@ def _check_fields(files, scene_path, defines):
 def render_movie(scene, out, *, frames=None, files=None, orbit=None, isovalues=None,
                  keyframes=None, color_range=None, resolution=None, spp=None, fmt="png",
                  workers: int = 1, scheduler=None, mp4=None, fps: int = 24, force=False,
-                 defines=None, variant="llvm_ad_rgb", specs=None, progress=True) -> Summary:
+                 defines=None, variant="llvm_ad_rgb", specs=None, progress=True,
+                 worker_wait: float = WORKER_WAIT) -> Summary:
     """Render a movie of ``scene`` into the folder ``out`` (``frame_00000.png`` ...) and return
     what happened. ``color_range``: ``(lo, hi)``, ``"series"`` (one range over all ``files``;
     the default for a time series) or None (the scene's). See the module docstring and
-    ``python -m mi_amr movie --help`` for the rest."""
+    ``python -m mi_amr movie --help`` for the rest; ``worker_wait``: seconds the Dask cluster
+    may have no worker with frames left before the movie's own cluster gives up (AMRError) or
+    a ``scheduler``'s user is told (see :func:`~mi_amr.workflows.movie.farm.run_jobs`)."""
     t0 = time.perf_counter()
     scene = Path(scene)
     if not scene.is_file():
@@ -136,7 +139,8 @@ def render_movie(scene, out, *, frames=None, files=None, orbit=None, isovalues=N
     summary = Summary(skipped=sorted(existing))
     try:
         for r in run_jobs(jobs, workers=workers, scheduler=scheduler, progress=progress,
-                          variant=variant, total=len(specs) - len(existing)):
+                          variant=variant, total=len(specs) - len(existing),
+                          worker_wait=worker_wait):
             (summary.failed if "error" in r else summary.rendered).append(r)
     finally:
         # A worker killed while writing leaves its temporary file (never a frame's name).

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import os
+import sys
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -25,6 +26,8 @@ from mi_amr.workflows.movie.spec import FrameSpec
 CONNECT_TIMEOUT = "10s"
 RETRIES = 2
 QUEUED = 4          # frames submitted ahead per worker
+WORKER_WAIT = 120.0  # seconds a cluster may have no worker, with frames left, before it is told
+POLL = 0.05          # seconds between looks while no frame finishes (the worker count read is local)
 
 
 @dataclass
@@ -160,10 +163,14 @@ def _told(job: Job, following: Job) -> Job:
 
 
 def run_jobs(jobs, *, workers: int = 1, scheduler: str | None = None, progress: bool = True,
-             variant: str = "llvm_ad_rgb", total: int | None = None):
+             variant: str = "llvm_ad_rgb", total: int | None = None,
+             worker_wait: float = WORKER_WAIT):
     """Run ``jobs`` (an iterable, taken as it goes): in this process with one worker and no
     scheduler, else on Dask. Yields the tasks' results as they finish; the progress bar
-    (``total`` jobs) moves from the first frame."""
+    (``total`` jobs) moves from the first frame. When the cluster has had no worker for
+    ``worker_wait`` seconds with frames left, the movie's own cluster raises
+    :class:`AMRError` (its workers died and none came back) and a scheduler the user named
+    gets one line on stderr (its workers may still be queued)."""
     from tqdm import tqdm
 
     bar = tqdm(total=total, unit="frame", disable=not progress, smoothing=0.1)
@@ -174,7 +181,7 @@ def run_jobs(jobs, *, workers: int = 1, scheduler: str | None = None, progress: 
                 yield render_task(job, renderers)
                 bar.update(1)
         else:
-            yield from _run_dask(jobs, workers, scheduler, bar, variant)
+            yield from _run_dask(jobs, (workers, scheduler), bar, variant, worker_wait)
     finally:
         bar.close()
 
@@ -209,11 +216,13 @@ def _connect(workers, scheduler, variant):
     return Client(cluster), cluster, threads
 
 
-def _run_dask(jobs, workers, scheduler, bar, variant):
-    """Yield the results of ``jobs`` run on Dask, with at most :data:`QUEUED` tasks a worker
-    submitted at a time (a long movie is not planned up front)."""
+def _run_dask(jobs, where, bar, variant, worker_wait):
+    """Yield the results of ``jobs`` run on Dask (``where``: the worker count and the
+    scheduler's address, None for a cluster of our own), with at most :data:`QUEUED` tasks a
+    worker submitted at a time (a long movie is not planned up front)."""
     from dask.distributed import as_completed
 
+    workers, scheduler = where
     client, cluster, threads = _connect(workers, scheduler, variant)
     try:
         client.register_plugin(_worker_plugin(variant, threads))
@@ -230,7 +239,8 @@ def _run_dask(jobs, workers, scheduler, bar, variant):
                 running.add(future)
 
         submit(queued)
-        for future in running:
+        watch = _Watch(client, scheduler, worker_wait)
+        for future in watch.finished(running):
             job = pending.pop(future)
             try:
                 yield future.result()
@@ -244,6 +254,52 @@ def _run_dask(jobs, workers, scheduler, bar, variant):
         client.close()
         if cluster is not None:
             cluster.close()
+
+
+@dataclass
+class _Watch:
+    """Hands out the finished futures of a Dask run, and watches that the cluster still has a
+    worker while none finishes (see :func:`run_jobs`)."""
+
+    client: object
+    scheduler: str | None
+    worker_wait: float
+    told: bool = False
+
+    def finished(self, running):
+        """The futures of the ``as_completed`` set ``running`` as they finish."""
+        since = None
+        while not running.is_empty():
+            batch = running.next_batch(block=False)
+            if batch:
+                since = None
+                yield from batch
+                continue
+            if self._workers() > 0:
+                since = None
+            else:
+                since = time.monotonic() if since is None else since
+                if time.monotonic() - since > self.worker_wait:
+                    self._no_workers(running.count())
+            time.sleep(POLL)
+
+    def _workers(self) -> int:
+        try:
+            return len(self.client.scheduler_info().get("workers", {}))
+        except Exception:   # noqa: BLE001 -- the scheduler is busy or gone: no answer yet
+            return 0
+
+    def _no_workers(self, left: int) -> None:
+        wait = f"{self.worker_wait:g} s"
+        if self.scheduler is None:
+            raise AMRError(f"movie: every Dask worker of the movie's cluster is gone and none "
+                           f"came back within {wait} ({left} frame(s) unfinished); the frames "
+                           f"written are kept: run the movie again to render the rest")
+        if not self.told:
+            self.told = True
+            print(f"movie: no Dask worker at --scheduler {self.scheduler} for {wait} with "
+                  f"{left} frame(s) unfinished; still waiting (Ctrl-C stops; the frames "
+                  f"written are kept)", file=sys.stderr, flush=True)
 
 
 def _worker_plugin(variant, threads):
