@@ -326,7 +326,7 @@ def _bench(args) -> None:
         shadow_sweep(args.out, res=64 if args.quick else 256, variant=args.variant)
     elif args.volume:
         from mi_amr.evaluation.volume_bench import volume_sweep
-        from mi_amr.evaluation.volume_speed import volume_speed
+        from mi_amr.evaluation.volume_speed_bench import volume_speed
 
         volume_speed(args.out, quick=args.quick, variant=args.variant)
         if not args.speed:

@@ -69,7 +69,7 @@ def test05_the_speed_table_times_every_scene_beside_surface_mode_and_yt(tmp_path
     both files written."""
     import json
 
-    from mi_amr.evaluation import volume_speed as vs
+    from mi_amr.evaluation import volume_speed_bench as vs
 
     rows = vs.volume_speed(tmp_path, quick=True, progress=False)
     ours = [r for r in rows if r["renderer"] == "mi_amr"]
