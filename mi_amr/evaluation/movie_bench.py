@@ -1,7 +1,7 @@
 """``python -m mi_amr bench --movie``: frames per second of the three kinds of movie (an orbit
-on one file, an isovalue sweep, a 3-file time series of ``sphere_wake``) with 1 and 2 Dask
-workers at 512 x 512, the cost of one new time step broken down, and an estimate for a long
-series of big files from the measured per-cell costs. Writes ``movie.md`` (and
+on one file, an isovalue sweep, a time series of ``sphere_wake`` with one file per frame) with
+1 and 2 Dask workers at 512 x 512, the cost of one new time step broken down, and an estimate
+for a long series of big files from the measured per-cell costs. Writes ``movie.md`` (and
 ``movie.json``) and a strip of four frames, ``movie_strip.png``."""
 
 from __future__ import annotations
@@ -17,12 +17,13 @@ from mi_amr.workflows import project
 
 RESOLUTION = (512, 512)
 FRAMES = 12
-STEPS = 3
+STEPS = FRAMES      # a time series with one file per frame: each frame loads a new step
 SERIES_SIZE = "default"
 
 
 def _series(folder: Path) -> list:
-    """``sphere_wake`` with seeds 0, 1, 2 (made once, kept beside the scenes' data)."""
+    """``sphere_wake`` with seeds 0 to ``STEPS - 1`` (made once, kept beside the scenes'
+    data)."""
     from mi_amr.synthetic import datasets
 
     folder.mkdir(parents=True, exist_ok=True)
