@@ -100,3 +100,24 @@ def test_quick_benchmark(tmp_path):
     back = bench.read_csv(tmp_path / "sweep.csv")
     assert [r["method"] for r in back] == [r["method"] for r in rows]
     assert "| analytic_spike | exact |" in (tmp_path / "sweep.md").read_text()
+
+
+def test_write_exr_round_trips_and_a_failed_write_keeps_the_old_file(tmp_path, monkeypatch):
+    """``write_exr`` writes through a temporary file: the image reads back as written, and a
+    write that fails leaves the reference that was there and no temporary file."""
+    mi.set_variant(VARIANT)
+    path = tmp_path / "ref.exr"
+    old = np.full((4, 5, 3), 0.25, dtype=np.float32)
+    ref.write_exr(path, old)
+    np.testing.assert_array_equal(ref.read_exr(path), old)
+
+    def broken(self, where, *args, **kwargs):     # a write cut off half way
+        Path(where).write_bytes(b"v/1\x01 half an EXR")
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(mi.Bitmap, "write", broken)
+    with pytest.raises(RuntimeError):
+        ref.write_exr(path, np.zeros((4, 5, 3), dtype=np.float32))
+    monkeypatch.undo()
+    np.testing.assert_array_equal(ref.read_exr(path), old)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["ref.exr"]

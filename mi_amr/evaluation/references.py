@@ -145,10 +145,16 @@ def score(buffers: HitBuffers, ref: HitBuffers, image=None, ref_image=None) -> S
 
 
 def write_exr(path, image):
+    """Write ``image`` (``(H, W, 3)``, linear RGB) as an EXR, atomically: a failed write leaves
+    the reference that was there."""
     import mitsuba as mi
 
-    mi.Bitmap(np.asarray(image, dtype=np.float32), pixel_format=mi.Bitmap.PixelFormat.RGB) \
-        .write(str(path))
+    from mi_amr.core.atomic import replacing
+
+    bitmap = mi.Bitmap(np.asarray(image, dtype=np.float32),
+                       pixel_format=mi.Bitmap.PixelFormat.RGB)
+    with replacing(path) as tmp:
+        bitmap.write(str(tmp))
 
 
 def read_exr(path) -> np.ndarray:
