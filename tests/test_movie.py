@@ -631,3 +631,44 @@ def test20_a_named_scheduler_without_workers_is_told_once_and_waited_for(series,
     assert not result["s"].failed
     assert len(frames_in(out)) == 40
     assert capsys.readouterr().err.count("no Dask worker") == 0     # told once
+
+
+def test21_a_result_lost_with_its_worker_is_watched_too():
+    """A frame can finish, then lose its result with its worker before the client fetches it
+    (the race of test19 when the cluster shrinks between the frame's file and its result): the
+    fetch waits for a new worker, and with none for ``worker_wait`` it is the movie's one
+    AMRError. A task's own TimeoutError is its error, not a wait."""
+    from mi_amr.workflows.movie.farm import _Watch
+
+    class NoWorkers:
+        def scheduler_info(self):
+            return {"workers": {}}
+
+    class Lost:
+        def __init__(self, done):
+            self.finished = done
+
+        def result(self, timeout):
+            time.sleep(min(timeout, 0.02))
+            raise TimeoutError("its own" if self.finished else "")
+
+        def done(self):
+            return self.finished
+
+    def fetch(done):
+        raised = []
+
+        def run():
+            try:
+                _Watch(NoWorkers(), None, worker_wait=0.3).result(Lost(done), 5)
+            except Exception as e:      # noqa: BLE001 -- what the fetch raised, checked below
+                raised.append(e)
+
+        thread = threading.Thread(target=run, daemon=True)   # (a hang must not hang pytest)
+        thread.start()
+        thread.join(10)
+        assert not thread.is_alive(), "the fetch waited for a worker that never comes"
+        return raised[0]
+
+    assert isinstance(fetch(False), AMRError) and "every Dask worker" in str(fetch(False))
+    assert isinstance(fetch(True), TimeoutError) and "its own" in str(fetch(True))

@@ -28,6 +28,7 @@ RETRIES = 2
 QUEUED = 4          # frames submitted ahead per worker
 WORKER_WAIT = 120.0  # seconds a cluster may have no worker, with frames left, before it is told
 POLL = 0.05          # seconds between looks while no frame finishes (the worker count read is local)
+RESULT_WAIT = 1.0    # seconds between looks while a finished frame's result is fetched
 
 
 @dataclass
@@ -243,7 +244,9 @@ def _run_dask(jobs, where, bar, variant, worker_wait):
         for future in watch.finished(running):
             job = pending.pop(future)
             try:
-                yield future.result()
+                yield watch.result(future, len(pending) + 1)
+            except AMRError:
+                raise                   # the cluster has no worker left: the whole movie
             except Exception as e:      # noqa: BLE001 -- a task lost after its retries
                 spec = job.spec
                 yield {"index": spec["index"], "file": spec.get("file"), "path": job.path,
@@ -258,30 +261,45 @@ def _run_dask(jobs, where, bar, variant, worker_wait):
 
 @dataclass
 class _Watch:
-    """Hands out the finished futures of a Dask run, and watches that the cluster still has a
-    worker while none finishes (see :func:`run_jobs`)."""
+    """Hands out the finished futures of a Dask run and their results, and watches that the
+    cluster still has a worker while it waits (see :func:`run_jobs`). A finished frame's
+    result can be lost with its worker and wait for a new one, so its fetch is watched too."""
 
     client: object
     scheduler: str | None
     worker_wait: float
     told: bool = False
+    since: float | None = None     # when the cluster was first seen without a worker
 
     def finished(self, running):
         """The futures of the ``as_completed`` set ``running`` as they finish."""
-        since = None
         while not running.is_empty():
             batch = running.next_batch(block=False)
             if batch:
-                since = None
+                self.since = None
                 yield from batch
                 continue
-            if self._workers() > 0:
-                since = None
-            else:
-                since = time.monotonic() if since is None else since
-                if time.monotonic() - since > self.worker_wait:
-                    self._no_workers(running.count())
+            self._look(running.count())
             time.sleep(POLL)
+
+    def result(self, future, left: int):
+        """``future.result()``, watching the workers while it waits (``left``: the frames
+        unfinished, for the message)."""
+        while True:
+            try:
+                return future.result(timeout=RESULT_WAIT)
+            except TimeoutError:
+                if future.done():       # the task's own TimeoutError, not the wait's
+                    raise
+                self._look(left)
+
+    def _look(self, left: int) -> None:
+        if self._workers() > 0:
+            self.since = None
+            return
+        self.since = time.monotonic() if self.since is None else self.since
+        if time.monotonic() - self.since > self.worker_wait:
+            self._no_workers(left)
 
     def _workers(self) -> int:
         try:
