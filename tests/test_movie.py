@@ -171,6 +171,17 @@ def frames_in(folder):
     return sorted(p for p in folder.iterdir() if p.name.startswith("frame_"))
 
 
+def wait_for_frames(out, count, thread=None, seconds=120):
+    """Wait until ``count`` frames are in ``out`` (while ``thread``, the movie, runs); returns
+    the deadline, for the waits after it."""
+    deadline = time.time() + seconds
+    while len(frames_in(out)) < count if out.exists() else True:
+        assert time.time() < deadline, "no frames arrived"
+        assert thread is None or thread.is_alive(), "the movie ended before its frames"
+        time.sleep(0.05)
+    return deadline
+
+
 def test06_a_time_series_on_two_dask_workers_equals_the_serial_render(series, tmp_path):
     """3 files, 6 frames on a LocalCluster of 2 worker processes; the same frames rendered in
     this process, one worker; a second run skips every frame (files untouched); ``force``
@@ -223,10 +234,7 @@ def test07_a_worker_killed_mid_run_loses_no_frame(series, tmp_path):
     thread = threading.Thread(target=run)
     try:
         thread.start()
-        deadline = time.time() + 120
-        while len(frames_in(out)) < 2 if out.exists() else True:
-            assert time.time() < deadline, "no frames arrived"
-            time.sleep(0.05)
+        wait_for_frames(out, 2)
         victim = next(iter(cluster.workers.values()))
         os.kill(victim.process.process.pid, signal.SIGKILL)
         thread.join(240)
@@ -577,10 +585,7 @@ def test19_a_movie_whose_cluster_loses_every_worker_stops_with_one_error(series,
 
     thread = threading.Thread(target=run, daemon=True)   # (a hang must not hang pytest)
     thread.start()
-    deadline = time.time() + 120
-    while not (out.exists() and frames_in(out)):
-        assert time.time() < deadline and thread.is_alive(), "no frame arrived"
-        time.sleep(0.05)
+    wait_for_frames(out, 1, thread)
     default_client().cluster.scale(0)
     thread.join(60)
     assert not thread.is_alive(), "the movie waited for workers that cannot come back"
@@ -614,10 +619,7 @@ def test20_a_named_scheduler_without_workers_is_told_once_and_waited_for(series,
     thread = threading.Thread(target=run, daemon=True)
     try:
         thread.start()
-        deadline = time.time() + 120
-        while not (out.exists() and frames_in(out)):
-            assert time.time() < deadline and thread.is_alive(), "no frame arrived"
-            time.sleep(0.05)
+        deadline = wait_for_frames(out, 1, thread)
         cluster.scale(0)
         while "no Dask worker" not in capsys.readouterr().err:
             assert time.time() < deadline and thread.is_alive(), "the user was not told"

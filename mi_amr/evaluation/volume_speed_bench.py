@@ -9,8 +9,8 @@ multiple of surface mode's frame and of the one-band frame at the same size.
 yt's volume renderer (when yt is installed; ``yt.create_scene`` with a perspective lens, as yt's
 users set it up) renders the same grids of the same field from the same camera at the same
 size, with one Gaussian per band of the scene (the band's isovalue, width and colour; its height
-the band's peak extinction over the ray's length), no lighting and no other shapes. Its first render builds yt's bricks; the
-second is its warm frame. Compare ratios within one run only.
+the band's peak extinction over the ray's length), no lighting and no other shapes. Its first
+render builds yt's bricks; the second is its warm frame. Compare ratios within one run only.
 
 Writes ``volume_speed.md`` and ``volume_speed.json``.
 """
@@ -50,10 +50,11 @@ def volume_speed(out_dir="out/bench", *, quick: bool = False, variant: str = "ll
                  progress: bool = True) -> list:
     """Time every scene at every size, yt beside (see the module docstring); write
     ``volume_speed.md`` and ``volume_speed.json`` into ``out_dir`` and return the rows."""
-    import mitsuba as mi
     from tqdm import tqdm
 
-    mi.set_variant(variant)
+    from mi_amr.plugin.scene import use_variant
+
+    use_variant(variant)
     from mi_amr.plugin.integrator import register
 
     register()
@@ -196,9 +197,10 @@ def write_results(rows, out: Path, frames: int = FRAMES) -> None:
     from mi_amr.core.atomic import replacing
 
     out.mkdir(parents=True, exist_ok=True)
+    plural = "s" if frames > 1 else ""
     text = (f"Volume mode's warm frames beside surface mode's and yt's, 1 spp, median of "
-            f"{frames} warm frame{'s' if frames > 1 else ''}, one run; written by `python -m mi_amr bench --volume "
-            f"--speed`.\n\n" + speed_table(rows) + "\n")
+            f"{frames} warm frame{plural}, one run; written by "
+            f"`python -m mi_amr bench --volume --speed`.\n\n" + speed_table(rows) + "\n")
     with replacing(out / "volume_speed.md") as tmp:
         tmp.write_text(text)
     with replacing(out / "volume_speed.json") as tmp:

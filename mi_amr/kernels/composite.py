@@ -23,7 +23,7 @@ from mi_amr.kernels import roots
 from mi_amr.kernels.band import (Ramp, alpha, combine, corrected, cut_point, depth_fraction,
                                  flat_centroid, in_order, optical_depth, segment_alpha,
                                  segment_alpha_and_centroid, segment_alpha_and_point)
-from mi_amr.kernels.config import bisect_depth
+from mi_amr.kernels.config import bisect_depth, holds
 from mi_amr.kernels.device import lnot
 from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
@@ -70,12 +70,12 @@ class Shading:
 
 def composite(ray: RayContext, jitter, shading: Optional[Shading] = None) -> Composite:
     """Front-to-back compositing of the opacity bands ``cfg.band`` (one around each isovalue)
-    or of the 2D transfer function ``cfg.transfer2d`` along the ray, with early termination when less than :data:`~mi_amr.tolerances.T_MIN` of
-    the light gets through.
+    or of the 2D transfer function ``cfg.transfer2d`` along the ray, with early termination
+    when less than :data:`~mi_amr.tolerances.T_MIN` of the light gets through.
 
     ``shading`` (None for shadow rays: only the transmittance is computed):
-    ``shading.color_of(shares, value)`` gives the colour (``m.Array3f``) of a stretch where the bands
-    hold ``shares`` of the optical depth (a list, one per band) and the colour field is
+    ``shading.color_of(shares, value)`` gives the colour (``m.Array3f``) of a stretch where the
+    bands hold ``shares`` of the optical depth (a list, one per band) and the colour field is
     ``value``; an attribute ``same_for_all_bands`` says it ignores ``shares``.
     ``shading.lighting`` has
     ``sample(p, lit, visible)``, the light samples at volume point ``p`` (with shadow rays
@@ -85,7 +85,9 @@ def composite(ray: RayContext, jitter, shading: Optional[Shading] = None) -> Com
     term (linear in the gradient).
 
     ``exact``: each cubic piece is cut where the reconstructed value turns (the extrema of
-    ``N / D``, one search for all bands) and where the diffuse term turns (Marchesin et al. 2009, sections 3.1-3.2); on each resulting
+    ``N / D``, one search for all bands) and where the diffuse term turns (Marchesin et al.
+    2009, sections 3.1-3.2); a piece whose value range cannot hold band opacity
+    (:func:`~mi_amr.kernels.config.holds`, the walk's own test) costs no more; on each resulting
     sub-piece the value is taken as a linear ramp, its opacity is each band's integral over
     it, and its light the opacity times the shaded colour at the centroid of its most opaque
     band (exact where the shaded colour runs linearly along it), the bands met in the ramp's
@@ -176,16 +178,13 @@ def _value_cuts(cp: CubicPiece):
     return turns, [roots.cubic(cp.num, s) / roots.cubic(cp.den, s) for s in s_pts]
 
 
-def _meets(values, supports):
-    """Whether a piece whose values at its cuts are ``values`` (monotone between them) meets
-    the value support ``(lo, hi)`` of one of ``supports``."""
+def _value_range(values):
+    """The range ``(lo, hi)`` of a piece whose values at its cuts are ``values`` (monotone
+    between them)."""
     v_lo, v_hi = values[0], values[0]
     for v in values[1:]:
         v_lo, v_hi = dr.minimum(v_lo, v), dr.maximum(v_hi, v)
-    met = (v_hi >= supports[0][0]) & (v_lo <= supports[0][1])
-    for lo, hi in supports[1:]:
-        met |= (v_hi >= lo) & (v_lo <= hi)
-    return met
+    return v_lo, v_hi
 
 
 @dataclass
@@ -348,11 +347,11 @@ def _one_hot(n, k):
 
 def _piece(ray: RayContext, cp: CubicPiece, leaf, turns, lighting, have):
     """The cubic piece ``cp`` (in kd leaf ``leaf``) split for compositing: where the value
-    turns (``turns``, from :func:`_value_cuts`) and, where it is shaded with ``cfg.shading_extrema``, where the
-    first light's diffuse term turns (Marchesin et al. 2009, section 3.2; that term is a
-    quadratic in ``t`` inside a trilinear cell, and so is the gradient, which is then taken at
-    the piece's front, middle and back and interpolated, as it is for a 2D transfer function;
-    otherwise it is reconstructed where it is needed)."""
+    turns (``turns``, from :func:`_value_cuts`) and, where it is shaded with
+    ``cfg.shading_extrema``, where the first light's diffuse term turns (Marchesin et al. 2009,
+    section 3.2; that term is a quadratic in ``t`` inside a trilinear cell, and so is the
+    gradient, which is then taken at the piece's front, middle and back and interpolated, as it
+    is for a 2D transfer function; otherwise it is reconstructed where it is needed)."""
     cfg, length = ray.cfg, cp.length
     arrays = ray.dev.arrays(cfg.basis, color=True)
 
@@ -382,20 +381,18 @@ def _piece(ray: RayContext, cp: CubicPiece, leaf, turns, lighting, have):
 @dataclass
 class Bands:
     """What the exact march composites: the bands' centres (the isovalues; for a 2D transfer
-    function its value support's middle), their value supports ``(lo, hi)``, and the
-    ``shading`` (None: the transmittance alone)."""
+    function its value support's middle) and the ``shading`` (None: the transmittance
+    alone)."""
 
     centres: list
-    supports: list
     shading: Optional[Shading]
 
     @staticmethod
     def of(ray: RayContext, shading: Optional[Shading]) -> "Bands":
         tf, m = ray.cfg.transfer2d, ray.m
         if tf is None:
-            return Bands(*_bands(ray.dev, ray.cfg), shading)
-        lo, hi = tf.get(m, SUPPORT_LO), tf.get(m, SUPPORT_HI)
-        return Bands([0.5 * (lo + hi)], [(lo, hi)], shading)
+            return Bands(_bands(ray.dev, ray.cfg)[0], shading)
+        return Bands([0.5 * (tf.get(m, SUPPORT_LO) + tf.get(m, SUPPORT_HI))], shading)
 
 
 def _piece_colour(ray: RayContext, cp: CubicPiece, leaf, turns, have, bands: Bands):
@@ -445,7 +442,7 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
 
         # --- Only a piece whose values meet a band is split, integrated and lit (a leaf's
         # range holds a band's values, most of its pieces' do not).
-        near = have & _meets(values, bands.supports)
+        near = have & holds(ray.dev, cfg, *_value_range(values))
         C_p, T_p = m.Array3f(0.0), m.Float(1.0)
         if near:
             C_p, T_p = _piece_colour(ray, cp, march.walk.leaf, turns, near, bands)

@@ -27,7 +27,7 @@ CONNECT_TIMEOUT = "10s"
 RETRIES = 2
 QUEUED = 4          # frames submitted ahead per worker
 WORKER_WAIT = 120.0  # seconds a cluster may have no worker, with frames left, before it is told
-POLL = 0.05          # seconds between looks while no frame finishes (the worker count read is local)
+POLL = 0.05          # seconds between looks while no frame finishes (a local read)
 RESULT_WAIT = 1.0    # seconds between looks while a finished frame's result is fetched
 
 
@@ -182,7 +182,7 @@ def run_jobs(jobs, *, workers: int = 1, scheduler: str | None = None, progress: 
                 yield render_task(job, renderers)
                 bar.update(1)
         else:
-            yield from _run_dask(jobs, (workers, scheduler), bar, variant, worker_wait)
+            yield from _run_dask(jobs, workers, scheduler, bar, variant, worker_wait)
     finally:
         bar.close()
 
@@ -217,13 +217,12 @@ def _connect(workers, scheduler, variant):
     return Client(cluster), cluster, threads
 
 
-def _run_dask(jobs, where, bar, variant, worker_wait):
-    """Yield the results of ``jobs`` run on Dask (``where``: the worker count and the
-    scheduler's address, None for a cluster of our own), with at most :data:`QUEUED` tasks a
-    worker submitted at a time (a long movie is not planned up front)."""
+def _run_dask(jobs, workers, scheduler, bar, variant, worker_wait):
+    """Yield the results of ``jobs`` run on Dask (``scheduler`` None: a cluster of our own of
+    ``workers``), with at most :data:`QUEUED` tasks a worker submitted at a time (a long movie
+    is not planned up front)."""
     from dask.distributed import as_completed
 
-    workers, scheduler = where
     client, cluster, threads = _connect(workers, scheduler, variant)
     try:
         client.register_plugin(_worker_plugin(variant, threads))
