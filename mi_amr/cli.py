@@ -323,7 +323,8 @@ def _bench(args) -> None:
     elif args.volume and args.shadows:
         from mi_amr.evaluation.shadow_bench import shadow_sweep
 
-        shadow_sweep(args.out, res=64 if args.quick else 256, variant=args.variant)
+        quick = {"res": 64, "frames": 1, "accuracy": (32, 2, 4)} if args.quick else {}
+        shadow_sweep(args.out, variant=args.variant, **quick)
     elif args.volume:
         from mi_amr.evaluation.volume_bench import volume_sweep
         from mi_amr.evaluation.volume_speed_bench import volume_speed
@@ -342,7 +343,7 @@ def _bench(args) -> None:
     elif args.viewer:
         from mi_amr.evaluation.bench import run_viewer
 
-        run_viewer(args.out, variant=args.variant)
+        run_viewer(args.out, scene=_viewer_scene(args.scene), variant=args.variant)
     elif args.frames:
         run_frames(args.out, resolution=tuple(args.resolution), variant=args.variant)
     elif args.scaling:
@@ -395,11 +396,29 @@ def _demo(args) -> None:
     render_file(project.scenes_dir() / "sphere_wake.xml", args.output, overwrite=True)
 
 
+def _viewer_scene(names):
+    """``bench --viewer --scene NAME``: the one scene of ``scenes_xml/`` (a file name, with or
+    without ``.xml``) or scene file to time; None: the default scene."""
+    from mi_amr.workflows import project
+
+    if not names:
+        return None
+    if len(names) > 1:
+        raise AMRError(f"bench --viewer: give one --scene, got {len(names)}")
+    name = names[0]
+    for path in (Path(name), project.scenes_dir() / name, project.scenes_dir() / f"{name}.xml"):
+        if path.is_file():
+            return path
+    raise AMRError(f"bench --viewer: scene {name!r} is neither a file nor a scene of "
+                   f"{project.scenes_dir()}")
+
+
 def _add_view(sub) -> None:
     """``view``, and ``bench --viewer`` (kept here so the viewer's options sit together)."""
     sub.choices["bench"].add_argument(
         "--viewer", action="store_true",
-        help="only the viewer's slider-to-image round trip in a browser (512^2)")
+        help="only the viewer's slider-to-image round trip in a browser (512^2; the "
+             "default scene, or --scene NAME of scenes_xml/ or a scene file)")
     s = sub.add_parser("view", help="explore a scene in the browser: isovalues, method, "
                                     "colours, camera, light; save images, scenes, keyframes")
     s.add_argument("scene", help="Mitsuba scene XML rendered by amr_iso, or a data file")

@@ -17,7 +17,7 @@ METHODS = ("exact", "bisect", "adaptive", "uniform")
 RECONSTRUCTIONS = ("basis", "finest")
 MODES = ("surface", "volume")
 LAYER_MODES = ("composite", "one_shadow", "stochastic")
-VOLUME_SHADOWS = ("cache", "exact")
+VOLUME_SHADOWS = ("cache", "corrected", "exact")
 MAX_ISOVALUES = 8
 REQUIRED = object()          # the default of a parameter that must be given
 
@@ -84,7 +84,10 @@ TABLE = (
           "transmittance through the bands towards it, built with the exact shadow "
           "compositing when the light, the bands or the transfer function change (not when "
           "the camera moves); meshes still cast theirs by a shadow ray, and other lights "
-          "(area, environment) keep exact shadow rays. ``exact``: a shadow ray per lit piece "
+          "(area, environment) keep exact shadow rays. ``corrected``: the "
+          "cache, and per camera sample one exact shadow ray from one lit piece (or sample), "
+          "picked by its light, that corrects the cache's error: unbiased, its noise going down with "
+          "the samples per pixel. ``exact``: a shadow ray per lit piece "
           "composites the bands on its way to each light (cost grows with the square of the "
           "pieces a ray meets)", choices=VOLUME_SHADOWS),
     Param("to_world", "transform", None,

@@ -122,3 +122,8 @@ SHADOW_CACHE_REL_RMSE = 0.022
 # trilinear interpolation inside a cache cell, where the band's shadow on itself changes
 # fastest.
 SHADOW_CACHE_MEAN_ABS = 0.03
+# relative RMSE: a volume image with corrected shadows (volume_shadows="corrected": the cache
+# and one exact shadow ray per camera sample) against the exact image of the same seed, at
+# 64 spp (same scene; measured 0.0037 with method exact and 0.0041 with adaptive, where the
+# cache alone gives 0.015; its noise falls as 1 / sqrt(spp): 0.0082 at 16 spp, 0.0020 at 256).
+SHADOW_CORRECTED_REL_RMSE = 0.006

@@ -40,6 +40,8 @@ class FlatLight:
     """A lighting object of the compositing that shades every point with ``A = 1, S = 0``, so
     a point's shaded colour is its band colour."""
 
+    corrects = False
+
     def sample(self, p, lit, visible):
         return None
 

@@ -102,3 +102,47 @@ def test06_speed_or_shadows_without_volume_is_a_cli_error(tmp_path, capsys):
     assert main(["bench", "--volume", "--speed", "--shadows", "--out", str(tmp_path)]) == 2
     assert "pick one" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test07_the_shadow_bench_times_and_scores_every_design(tmp_path, scene_data_ready):
+    """``bench --volume --shadows`` (tiny): a speed row per scene and design, and an accuracy
+    row per scene and design, ``exact`` against itself at the same samples being 0."""
+    from mi_amr.evaluation import shadow_bench as sb
+
+    rows = sb.shadow_sweep(tmp_path, res=16, frames=1, accuracy=(16, 2, 4), progress=False)
+    speed = [r for r in rows if "frame_s" in r]
+    scored = [r for r in rows if "spp" in r]
+    assert [(r["scene"], r["shadows"]) for r in speed[1:]] == \
+        [(s, d) for s in sb.SCENES for d in sb.DESIGNS]
+    assert all(r["frame_s"] > 0 for r in speed)
+    for r in speed:
+        assert ("rel_rmse_exact" in r) == (r["shadows"] in ("cache", "corrected")), r
+        assert ("build_s" in r) == (r["shadows"] in ("cache", "corrected")), r
+    assert [(r["scene"], r["shadows"]) for r in scored] == \
+        [(s, d) for s in sb.SCENES for d in ("exact", "cache", "corrected")]
+    for r in scored:
+        assert np.isfinite(r["rel_rmse_reference"]) and r["rel_rmse_reference"] > 0, r
+        assert (r["rel_rmse_same_seed"] == 0.0) == (r["shadows"] == "exact"), r
+    table = (tmp_path / "shadows.md").read_text()
+    assert table.count("| sphere_wake_shells |") == len(sb.DESIGNS) + 3
+    assert (tmp_path / "shadows.csv").read_text().count("\n") == len(rows) + 1
+
+
+def test08_bench_viewer_takes_one_scene(tmp_path, capsys):
+    """``bench --viewer --scene``: a scene of ``scenes_xml/`` by name (with or without
+    ``.xml``) or a file; anything else, or two, is one CLI error before a browser starts."""
+    from mi_amr import cli
+    from mi_amr.workflows import project
+
+    shells = project.scenes_dir() / "sphere_wake_shells.xml"
+    assert cli._viewer_scene(None) is None
+    assert cli._viewer_scene(["sphere_wake_shells"]) == shells
+    assert cli._viewer_scene(["sphere_wake_shells.xml"]) == shells
+    assert cli._viewer_scene([str(shells)]) == shells
+    for scenes, message in ((["no_such_scene"], "'no_such_scene' is neither"),
+                            (["sphere_wake", "sphere_wake_shells"], "give one --scene")):
+        args = ["bench", "--viewer", "--out", str(tmp_path)]
+        for s in scenes:
+            args += ["--scene", s]
+        assert cli.main(args) == 2
+        assert message in capsys.readouterr().err

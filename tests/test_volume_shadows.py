@@ -4,6 +4,8 @@
 :data:`~mi_amr.tolerances.SHADOW_CACHE_REL_RMSE`, the same transmittance at the grid's points
 and within :data:`~mi_amr.tolerances.SHADOW_CACHE_MEAN_ABS` between them; built again for a
 new band or light, not for a camera move, and a new light direction compiles nothing.
+``volume_shadows="corrected"`` (the cache and one exact shadow ray per camera sample)
+converges to the exact image as the samples grow.
 """
 
 import textwrap
@@ -23,9 +25,9 @@ def _variant(variant):
     yield
 
 
-def scene_xml(folder, volume_shadows="cache"):
+def scene_xml(folder, volume_shadows="cache", method="exact"):
     """Two bands (0.3 and 0.4) of the ellipsoid field of :func:`ellipsoid`, a ball below, a
-    directional and a point light."""
+    directional and a point light; the compositing ``method``."""
     text = f"""
     <scene version="3.0.0">
         <integrator type="amr_iso" id="integrator">
@@ -37,6 +39,7 @@ def scene_xml(folder, volume_shadows="cache"):
             <string name="band_width" value="0.02"/>
             <string name="band_peak" value="0.5"/>
             <string name="volume_shadows" value="{volume_shadows}"/>
+            <string name="method" value="{method}"/>
             <integer name="leaf_cells" value="2"/>
         </integrator>
         <sensor type="perspective" id="sensor">
@@ -62,7 +65,7 @@ def scene_xml(folder, volume_shadows="cache"):
             <point name="center" value="0.5, 0.5, -0.6"/><float name="radius" value="0.3"/>
         </shape>
     </scene>"""
-    path = folder / f"scene_{volume_shadows}.xml"
+    path = folder / f"scene_{volume_shadows}_{method}.xml"
     path.write_text(textwrap.dedent(text))
     return path
 
@@ -81,10 +84,10 @@ def folder(tmp_path_factory):
     return folder
 
 
-def load(folder, volume_shadows="cache"):
+def load(folder, volume_shadows="cache", method="exact"):
     from mi_amr.plugin.scene import load_scene
 
-    return load_scene(scene_xml(folder, volume_shadows))
+    return load_scene(scene_xml(folder, volume_shadows, method))
 
 
 def render(mi, scene):
@@ -286,3 +289,24 @@ def test06_volume_alpha_is_one_minus_the_transmittance(variant, folder):
     alpha = image[..., 3].ravel()
     assert np.all(alpha > -1e-6) and np.ptp(alpha) > 0.5, "the test needs clear and opaque rays"
     assert np.max(np.abs(alpha - (1.0 - np.array(T)))) < 1e-5
+
+
+@pytest.mark.parametrize("method", ["exact", "adaptive"])
+def test07_corrected_shadows_converge_to_the_exact_ones(variant, folder, method):
+    """``volume_shadows="corrected"``: the cache plus, per camera sample, one exact shadow
+    ray from a lit piece (or sample) picked by its light (either of the two lights), weighted
+    so that it is unbiased. Against the exact image of the same seed and samples its error
+    is noise: it goes down as ``1 / sqrt(spp)`` and falls well below the cache's own, which
+    stays."""
+    mi = variant
+    images = {}
+    for spp in (16, 64):
+        for shadows in ("exact", "cache", "corrected"):
+            scene = load(folder, shadows, method)
+            images[shadows, spp] = np.array(mi.render(scene, seed=0, spp=spp))
+    err = {(s, spp): rel_rmse(images[s, spp], images["exact", spp])
+           for s in ("cache", "corrected") for spp in (16, 64)}
+    assert err["cache", 64] > 0.8 * err["cache", 16], err         # (a bias: it stays)
+    assert err["corrected", 64] < 0.65 * err["corrected", 16], err  # (noise: it goes)
+    assert err["corrected", 64] < 0.4 * err["cache", 64], err
+    assert err["corrected", 64] < tol.SHADOW_CORRECTED_REL_RMSE, err

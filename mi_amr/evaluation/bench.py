@@ -560,9 +560,11 @@ def _scene_copy(scene_file, folder, name, make_volume):
     return path
 
 
-def run_viewer(out_dir, variant: str = "llvm_ad_rgb") -> list:
-    """The browser explorer's slider-to-image round trip on the default scene
-    (:mod:`mi_amr.evaluation.viewer_bench`); writes ``viewer.md`` to ``out_dir``."""
+def run_viewer(out_dir, scene=None, variant: str = "llvm_ad_rgb") -> list:
+    """The browser explorer's slider-to-image round trip on ``scene`` (a scene file; None:
+    the default scene) (:mod:`mi_amr.evaluation.viewer_bench`); writes ``viewer.md`` to
+    ``out_dir``."""
     from mi_amr.evaluation import viewer_bench
 
-    return viewer_bench.run(out_dir, project.scenes_dir() / DEFAULT_SCENE, variant=variant)
+    scene = project.scenes_dir() / DEFAULT_SCENE if scene is None else scene
+    return viewer_bench.run(out_dir, scene, variant=variant)

@@ -31,10 +31,15 @@ from mi_amr.workflows import project
 # The shells' lowest band (Q = 0.02) on its own: the three bands' cost against the one that
 # meets the most pieces.
 LOWEST_BAND = {"band_width": "0.002", "band_peak": "0.15", "iso_color": "0.1 0.3 1.0"}
-# (label, scene file stem, <default> values, integrator parameters)
+CORRECTED = {"volume_shadows": "corrected"}
+# (label, scene file stem, <default> values, integrator parameters); the volume scenes with the
+# default shadows (volume_shadows="cache") and with the cache corrected by one exact shadow ray
+# per camera sample
 SCENES = (("surface mode", "sphere_wake", {}, {}),
           ("1 band", "sphere_wake_volume", {}, {}),
+          ("1 band, corrected shadows", "sphere_wake_volume", {}, CORRECTED),
           ("3 bands", "sphere_wake_shells", {}, {}),
+          ("3 bands, corrected shadows", "sphere_wake_shells", {}, CORRECTED),
           ("3 bands' lowest alone", "sphere_wake_shells", {"isovalue": "0.02"}, LOWEST_BAND),
           ("3 bands, shadows off", "sphere_wake_shells", {"shadows": "false"}, {}),
           ("2D transfer function", "sphere_wake_tf2d", {}, {}))

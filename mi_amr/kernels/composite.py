@@ -47,14 +47,91 @@ class Composite:
     C: Array3f
     T: Float
     samples: UInt32
+    pick: Optional["Pick"] = None
+
+
+@dataclass
+class Pick:
+    """The lit piece that a camera ray's correcting shadow ray leaves from (a lighting that
+    ``corrects``, see :func:`composite`): picked among the ray's lit pieces with probability
+    proportional to the luminance of their unshadowed direct light ``T D`` (``T``: the ray's
+    transmittance up to the piece; ``D``: the piece's light from the correcting light when
+    the band casts no shadow on it). ``p``: its lit place (volume world); ``D``: ``T D``
+    divided by that probability (so ``D (V - cached)`` is an unbiased estimate of the
+    ray's sum of ``T D (V - cached)`` over its pieces); ``cached``: the light's cached
+    transmittance there; ``u``: the uniform number left for the next pick; ``total``: the
+    sum of the weights so far; ``picked``: whether a piece was picked."""
+
+    p: Array3f
+    D: Array3f
+    cached: Float
+    u: Float
+    total: Float
+    picked: Bool
+
+    @staticmethod
+    def start(m, u) -> "Pick":
+        return Pick(p=m.Array3f(0.0), D=m.Array3f(0.0), cached=m.Float(0.0), u=m.Float(u),
+                    total=m.Float(0.0), picked=m.Bool(False))
+
+    def offer(self, T, piece: "PieceLight") -> "Pick":
+        """This pick after it is offered the piece ``piece`` behind transmittance ``T``
+        (streaming weighted reservoir sampling with one uniform number: the piece is taken
+        with probability ``w / total``, and the number left is rescaled to stay uniform)."""
+        TD = T * piece.D
+        w = dr.maximum(luminance(TD), 0.0)
+        total = self.total + w
+        share = dr.select(total > 0.0, w / total, 0.0)
+        take = (share > 0.0) & (self.u < share)
+        u = dr.select(take, self.u / dr.maximum(share, tol.NO_WEIGHT),
+                      (self.u - share) / dr.maximum(1.0 - share, tol.NO_WEIGHT))
+        return Pick(p=dr.select(take, piece.p, self.p),
+                    D=dr.select(take, TD / dr.maximum(w, tol.NO_WEIGHT), self.D),
+                    cached=dr.select(take, piece.cached, self.cached),
+                    u=dr.clip(u, 0.0, 1.0), total=total, picked=self.picked | take)
+
+    def estimate_weight(self) -> Array3f:
+        """``D`` of the picked piece as an estimate: its ``T D`` over its probability."""
+        return dr.select(self.picked, self.D * self.total, 0.0)
+
+
+@dataclass
+class PieceLight:
+    """A lit piece's offer to a :class:`Pick`: its lit place ``p`` (volume world), its light
+    ``D`` from the correcting light alone, unshadowed by the band, and that light's cached
+    transmittance ``cached`` there."""
+
+    p: Array3f
+    D: Array3f
+    cached: Float
+
+    @staticmethod
+    def none(m) -> "PieceLight":
+        """The offer of a piece without light: never picked."""
+        return PieceLight(p=m.Array3f(0.0), D=m.Array3f(0.0), cached=m.Float(1.0))
+
+
+def luminance(c):
+    """Rec. 709 luminance of the linear RGB ``c``: the weight by which a pick prefers the
+    pieces that give more light."""
+    return 0.2126 * c.x + 0.7152 * c.y + 0.0722 * c.z
 
 
 class Lighting(Protocol):
-    """What volume mode lights with (see :func:`composite`; the plugin's lighting)."""
+    """What volume mode lights with (see :func:`composite`; the plugin's lighting). Where
+    ``corrects`` is true it also gives, per piece, the correcting light's unshadowed terms
+    (``direct_terms``) and its cached transmittance (``cached``), and ``pick_u``, each ray's
+    uniform number for the pick."""
+
+    corrects: bool
 
     def sample(self, p, lit, visible: bool) -> Any: ...
 
     def terms(self, ctx, gradient, lit) -> tuple: ...
+
+    def direct_terms(self, ctx, gradient, lit) -> tuple: ...
+
+    def cached(self, ctx) -> Float: ...
 
     def lambert(self, ctx, gradient) -> Float: ...
 
@@ -304,9 +381,11 @@ def _light_place(ray: RayContext, piece: Piece, subs, centres):
 def _shaded_colors(ray: RayContext, piece: Piece, subs, i, lit: Lit):
     """Each band's shaded colour ``c * A + S`` at the centroid of sub-piece ``i``'s most opaque
     band (the one-point rule of the sub-piece's light: exact where the shaded colour runs
-    linearly along it, and close where it curves, as a highlight does)."""
+    linearly along it, and close where it curves, as a highlight does). Where the lighting
+    ``corrects``, a second list: the same with the correcting light's unshadowed terms."""
     m, cfg = ray.m, ray.cfg
     color_of = lit.shading.color_of
+    lighting = lit.shading.lighting
     nb = len(lit.centres)
     same = getattr(color_of, "same_for_all_bands", nb == 1)
     a, b, dx, k, c, s0, s1, alpha_i = _pick(piece, subs, ray.dnorm, i)
@@ -315,30 +394,40 @@ def _shaded_colors(ray: RayContext, piece: Piece, subs, i, lit: Lit):
     else:   # (its extinction taken as even along the sub-piece)
         u = flat_centroid(optical_depth(alpha_i))
     cval, grad = piece.shading_inputs(dr.lerp(s0, s1, u))
-    A, S = lit.shading.lighting.terms(lit.ctx, grad, lit.lit)
-    return [color_of(_one_hot(nb, 0 if same else j), cval) * A + S for j in range(nb)]
+    colors = [color_of(_one_hot(nb, 0 if same else j), cval) for j in range(nb)]
+    A, S = lighting.terms(lit.ctx, grad, lit.lit)
+    shaded = [col * A + S for col in colors]
+    if not lighting.corrects:
+        return shaded, None
+    A_d, S_d = lighting.direct_terms(lit.ctx, grad, lit.lit)
+    return shaded, [col * A_d + S_d for col in colors]
 
 
 def _piece_light(ray: RayContext, piece: Piece, subs, lit: Lit):
     """The light and transmittance of a piece, lit by ``lit``: the two most opaque
     sub-pieces are each shaded at their centroid (:func:`_shaded_colors`), the others (a band
     seldom reaches more than two) take the most opaque one's colours; on each the bands are
-    met in the order of the value ramp."""
+    met in the order of the value ramp. Also the piece's light from the correcting light
+    alone, unshadowed by the band (None where the lighting does not correct)."""
     m = ray.m
     i1, i2 = _two_most_opaque(m, subs)
     first = _shaded_colors(ray, piece, subs, i1, lit)
     second = _shaded_colors(ray, piece, subs, i2, lit)
-    C = m.Array3f(0.0)
+    kinds = 1 if first[1] is None else 2
+    C = [m.Array3f(0.0) for _ in range(kinds)]
     T = m.Float(1.0)
     for i, sub in enumerate(subs):
-        colors = [dr.select(i2 == i, e2, e1) for e1, e2 in zip(first, second)]
-        # (no light where a band is not met: the colour of a piece without weight is NaN)
-        lights = [dr.select(a > 0.0, a * e, 0.0) for a, e in zip(sub.alphas, colors)]
         rising = piece.values[i + 1] > piece.values[i]
-        light, trans = in_order(m, sub.alphas, lights, lit.centres, rising)
-        C += T * light
+        for kind in range(kinds):
+            colors = [dr.select(i2 == i, e2, e1)
+                      for e1, e2 in zip(first[kind], second[kind])]
+            # (no light where a band is not met: the colour of a piece without weight is
+            # NaN)
+            lights = [dr.select(a > 0.0, a * e, 0.0) for a, e in zip(sub.alphas, colors)]
+            light, trans = in_order(m, sub.alphas, lights, lit.centres, rising)
+            C[kind] += T * light
         T *= trans
-    return C, T
+    return C[0], T, (C[1] if kinds == 2 else None)
 
 
 def _one_hot(n, k):
@@ -399,7 +488,8 @@ def _piece_colour(ray: RayContext, cp: CubicPiece, leaf, turns, have, bands: Ban
     """The light (premultiplied) and transmittance of the cubic piece ``cp`` (in kd leaf
     ``leaf``, its value turning at ``turns``): split, each part's opacity pre-integrated and,
     where it is shaded, lit once where the piece has made half its opacity and shaded at its
-    two most opaque parts."""
+    two most opaque parts. Third, its :class:`PieceLight` (:meth:`PieceLight.none` where
+    the lighting does not correct)."""
     m, shading = ray.m, bands.shading
     lighting = shading.lighting if shading is not None else None
     piece = _piece(ray, cp, leaf, turns, lighting, have)
@@ -408,11 +498,16 @@ def _piece_colour(ray: RayContext, cp: CubicPiece, leaf, turns, have, bands: Ban
         T_p = m.Float(1.0)
         for sub in subs:
             T_p *= 1.0 - sub.alpha
-        return m.Array3f(0.0), T_p
+        return m.Array3f(0.0), T_p, PieceLight.none(m)
     s_best, best_alpha = _light_place(ray, piece, subs, bands.centres)
     lit = have & (best_alpha > tol.ALPHA_LIT)
-    ctx = lighting.sample(ray.at(cp.t + s_best), lit, True)
-    return _piece_light(ray, piece, subs, Lit(shading, ctx, lit, bands.centres))
+    p_lit = ray.at(cp.t + s_best)
+    ctx = lighting.sample(p_lit, lit, True)
+    C_p, T_p, D_p = _piece_light(ray, piece, subs, Lit(shading, ctx, lit, bands.centres))
+    if D_p is None:
+        return C_p, T_p, PieceLight.none(m)
+    return C_p, T_p, PieceLight(p=p_lit, D=dr.select(lit, D_p, 0.0),
+                                cached=lighting.cached(ctx))
 
 
 @dr.syntax
@@ -420,8 +515,10 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
     m, cfg = ray.m, ray.cfg
     arrays = ray.dev.arrays(cfg.basis, color=True)
     bands = Bands.of(ray, shading)
+    corrects = shading is not None and shading.lighting.corrects
     C = m.Array3f(0.0)
     T = m.Float(1.0)
+    pick = Pick.start(m, shading.lighting.pick_u if corrects else 0.0)
     # Each leaf search whole: this march's pieces cost far more than search steps.
     march = March.start(ray, whole=True)
     samples = m.UInt32(0)
@@ -444,15 +541,18 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
         # range holds a band's values, most of its pieces' do not).
         near = have & holds(ray.dev, cfg, *_value_range(values))
         C_p, T_p = m.Array3f(0.0), m.Float(1.0)
+        offer = PieceLight.none(m)
         if near:
-            C_p, T_p = _piece_colour(ray, cp, march.walk.leaf, turns, near, bands)
+            C_p, T_p, offer = _piece_colour(ray, cp, march.walk.leaf, turns, near, bands)
+        if dr.hint(corrects, mode="scalar"):
+            pick = pick.offer(T, offer)
         C += T * C_p
         T *= T_p
 
         march.walk.t = dr.select(work, cp.end, march.walk.t)
         active &= (march.walk.t < ray.t1) & (T > tol.T_MIN)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
-    return Composite(C=C, T=T, samples=samples)
+    return Composite(C=C, T=T, samples=samples, pick=pick if corrects else None)
 
 
 @dataclass
@@ -571,6 +671,7 @@ def _sampled_bands(dev, cfg):
 def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
     m, cfg = ray.m, ray.cfg
     shade = shading is not None
+    corrects = shade and shading.lighting.corrects
     uniform = cfg.method == "uniform"
     arrays = ray.dev.arrays(cfg.basis, color=True)
     centres, bands = _sampled_bands(ray.dev, cfg)
@@ -583,6 +684,7 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
     prev = Previous(t=m.Float(ray.t0), v=m.Float(dr.nan))
     C = m.Array3f(0.0)
     T = m.Float(1.0)
+    pick = Pick.start(m, shading.lighting.pick_u if corrects else 0.0)
     samples = m.UInt32(0)
     active = m.Bool(ray.active)
     while dr.hint(active, label="composite_sampled"):
@@ -606,16 +708,23 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
         if dr.hint(shade, mode="scalar"):
             lighting = shading.lighting
             lit = smp.take & (a > tol.ALPHA_LIT)
-            ctx = lighting.sample(ray.at(t_light), lit, True)
+            p_lit = ray.at(t_light)
+            ctx = lighting.sample(p_lit, lit, True)
             A, S = lighting.terms(ctx, smp.grad, lit)
-            C += dr.select(lit, T * a * (shading.color_of(shares, smp.cval) * A + S), 0.0)
+            color = shading.color_of(shares, smp.cval)
+            C += dr.select(lit, T * a * (color * A + S), 0.0)
+            if dr.hint(corrects, mode="scalar"):
+                A_d, S_d = lighting.direct_terms(ctx, smp.grad, lit)
+                pick = pick.offer(T, PieceLight(p=p_lit, D=dr.select(lit, a * (color * A_d + S_d),
+                                                                     0.0),
+                                                cached=lighting.cached(ctx)))
         T = dr.select(work, T * (1.0 - a), T)
         prev = dr.select(smp.take, Previous(t=smp.t_s, v=smp.v), prev)
 
         march.walk.t = dr.select(work, smp.b, march.walk.t)
         active &= (march.walk.t < ray.t1) & (T > tol.T_MIN)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
-    return Composite(C=C, T=T, samples=samples)
+    return Composite(C=C, T=T, samples=samples, pick=pick if corrects else None)
 
 
 @dr.syntax

@@ -32,7 +32,7 @@ import mitsuba as mi
 
 from mi_amr import params
 from mi_amr.errors import AMRError
-from mi_amr.kernels.composite import Shading, composite
+from mi_amr.kernels.composite import composite
 from mi_amr.kernels.config import MarchConfig, SearchPlan, clips
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
@@ -199,7 +199,11 @@ class _AMRIso:
             L, T = surfaces.surfaces(shader, scene, light_u, ray, o, d, t_mesh, jitter, u,
                                      active)
         else:
-            L, T = self._volume(shader, scene, light_u, ray, o, d, t_mesh, jitter, active)
+            # (The correcting pick's numbers too are drawn before the loops, as the jitter.)
+            pick_u = [self._jitter(sampler.next_1d(active), ray, lanes, salt)
+                      for salt in (1, 2)] if self.opt.volume_shadows == "corrected" else None
+            L, T = shader.volume(scene, light_u, ray, (o, d, t_mesh), (jitter, pick_u),
+                                 active)
         # ---- What lies behind them: a mesh, an emitter, or nothing.
         L += T * shading.mesh_light(scene, sampler, ray, si, self.phong(), active & (T > 0.0),
                                     self.shadows(), shader.transmittance)
@@ -211,13 +215,14 @@ class _AMRIso:
     def aov_names(self):
         return list(aovs.NAMES) if self.opt.aovs else []
 
-    def _jitter(self, u, ray, lanes):
-        """The sampling methods' step offset: ``u`` from the sampler, or (``jitter="stable"``)
-        a hash of the lane -- pixel and sample index of Mitsuba's wavefront, ``lanes`` -- the
-        same every frame."""
+    def _jitter(self, u, ray, lanes, salt: int = 0):
+        """A number in ``[0, 1)`` per ray (the sampling methods' step offset; ``salt`` 1, 2:
+        the correcting shadow ray's pick): ``u`` from the sampler, or (``jitter="stable"``)
+        a hash of the lane (pixel and sample index of the wavefront ``lanes``) and ``salt``,
+        the same every frame."""
         if self.opt.jitter == "random" or not bridge.vectorised():
             return bridge.to_kernel(self.m, u)
-        return stable_jitter(self.m, self.m.UInt32(wavefront.lane_index(lanes, ray)))
+        return stable_jitter(self.m, self.m.UInt32(wavefront.lane_index(lanes, ray)), salt)
 
     def iso_transmittance(self, ray, from_iso, active, lanes=None):
         """Light passing the isosurfaces (or the band) along a scene ray up to ``ray.maxt``;
@@ -235,12 +240,3 @@ class _AMRIso:
         # the walks stop (the packet's lanes together); else None, the exact transmittance.
         u = wavefront.packet_u(m, lanes, ray, salt=1)
         return surfaces.transmittance(self, self.config(), o, d, t0, t1, active, u)
-
-    def _volume(self, shader, scene, light_u, ray, o, d, t_mesh, jitter, active):
-        """Front-to-back compositing of the opacity band up to the mesh hit."""
-        m = self.m
-        ray_v = RayContext(self.dev, self.config(), o, d, m.Float(0.0), m.Float(t_mesh),
-                           m.Bool(active))
-        res = composite(ray_v, jitter, Shading(shader.band_colors(),
-                                               shader.lighting(scene, light_u, ray, o, d)))
-        return mi.Spectrum(res.C.x, res.C.y, res.C.z), mi.Float(res.T)

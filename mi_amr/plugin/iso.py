@@ -7,6 +7,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mi_amr.kernels import colormap, shadow_grid
+from mi_amr.kernels.composite import Shading, composite
+from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.reconstruct import reconstruct
 from mi_amr.plugin import bridge, shading
 
@@ -91,33 +93,65 @@ class IsoShader:
         return shading.facing_normal(self.integ.frame.to_scene,
                                      bridge.to_mi3(grad, mi.Normal3f), ray.d)
 
-    def lighting(self, scene, light_u, ray, o, d):
+    def volume(self, scene, light_u, ray, od_mesh, numbers, active):
+        """Front-to-back compositing of the opacity band along the scene ray ``ray``, which
+        is ``o + t d`` in the volume (``od_mesh``: ``(o, d, t_mesh)``), up to its mesh hit
+        ``t_mesh``; ``numbers``: ``(jitter, pick_u)``, the sampling methods' step offset and,
+        where one lit piece's cached shadow is corrected, that pick's two numbers (else
+        None). Returns the light (a Mitsuba ``Spectrum``) and the transmittance."""
+        m, integ = self.m, self.integ
+        o, d, t_mesh = od_mesh
+        jitter, pick_u = numbers
+        ray_v = RayContext(integ.dev, integ.config(), o, d, m.Float(0.0), m.Float(t_mesh),
+                           m.Bool(active))
+        lighting = self.lighting(scene, light_u, ray, o, d, pick_u)
+        res = composite(ray_v, jitter, Shading(self.band_colors(), lighting))
+        L = mi.Spectrum(res.C.x, res.C.y, res.C.z)
+        L += lighting.correction(res.pick) if res.pick is not None else 0.0
+        return L, mi.Float(res.T)
+
+    def lighting(self, scene, light_u, ray, o, d, pick_u=None):
         """The ``lighting`` object of the volume compositing
         (:func:`~mi_amr.kernels.composite.composite`) for the ray ``ray`` (scene) that is
         ``o + t d`` in the volume; its shadows from the integrator's transmittance caches
-        where it keeps them (:mod:`mi_amr.plugin.shadow_cache`)."""
+        where it keeps them (:mod:`mi_amr.plugin.shadow_cache`). ``pick_u``: two uniform
+        numbers per ray (kernel Floats) where one lit piece's cached shadow is corrected by
+        an exact shadow ray (``volume_shadows="corrected"``), else None."""
         grids = self.integ.shadow_caches.grids(self.integ, scene)
-        return VolumeLighting(self, scene, light_u, ray, (o, d), grids)
+        return VolumeLighting(self, scene, light_u, ray, (o, d), grids, pick_u)
 
 
 class VolumeLighting:
     """Light samples, Phong terms and the diffuse term for the volume compositing, at volume
     points ``o + t d`` of one scene ray (kernel types in and out)."""
 
-    def __init__(self, shader: IsoShader, scene, light_u, ray, od, grids):
+    def __init__(self, shader: IsoShader, scene, light_u, ray, od, grids, pick_u=None):
         """``od``: the ray ``(o, d)`` in the volume; ``grids``: per emitter its transmittance
-        cache (:class:`~mi_amr.kernels.shadow_grid.TransmittanceGrid`) or None."""
+        cache (:class:`~mi_amr.kernels.shadow_grid.TransmittanceGrid`) or None; ``pick_u``:
+        see :meth:`IsoShader.lighting`. Where it is given and a light has a cache, the
+        lighting ``corrects``: each ray picks one cached light (``pick_u[0]``) whose shadow
+        it corrects, and ``pick_u[1]`` picks the piece
+        (:class:`~mi_amr.kernels.composite.Pick`)."""
         self.shader, self.scene, self.light_u, self.ray = shader, scene, light_u, ray
         self.o, self.d = od
         self.grids = grids
         self.m = shader.m
+        self.cached_lights = [i for i, g in enumerate(grids) if g is not None]
+        self.corrects = pick_u is not None and bool(self.cached_lights)
+        if self.corrects:
+            n = len(self.cached_lights)
+            self.choice = dr.minimum(mi.UInt32(bridge.to_mi(pick_u[0], mi.Float) * n), n - 1)
+            self.pick_u = pick_u[1]
+
+    def _t(self, p):
+        """The scene ray's parameter at the volume point ``p`` (a Mitsuba Float)."""
+        return bridge.to_mi(dr.dot(p - self.o, self.d) / dr.squared_norm(self.d), mi.Float)
 
     def sample(self, p, lit, visible: bool):
         """The light samples at volume point ``p``, shadowed where ``visible``: through the
         lights' caches where they have one, else by exact shadow rays."""
         integ = self.shader.integ
-        ray_len2 = dr.squared_norm(self.d)
-        t = bridge.to_mi(dr.dot(p - self.o, self.d) / ray_len2, mi.Float)
+        t = self._t(p)
         shadows = integ.shadows() if visible else False
         cached = [None if g is None or not visible else
                   bridge.to_mi(shadow_grid.lookup(self.m, g, p, self.m.Bool(lit)), mi.Float)
@@ -133,6 +167,51 @@ class VolumeLighting:
                                   self.ray.d)
         A, S = shading.volume_terms(samples, integ.phong(), n, -self.ray.d, mi.Bool(lit))
         return self.m.Array3f(A.x, A.y, A.z), self.m.Array3f(S.x, S.y, S.z)
+
+    def direct_terms(self, samples, grad, lit):
+        """``(A, S)`` (kernel ``Array3f``) of the ray's correcting light alone, with its
+        light past the meshes but not the band (``open``), times the number of cached lights
+        (the ray picks one of them)."""
+        integ = self.shader.integ
+        n = shading.facing_normal(integ.frame.to_scene, bridge.to_mi3(grad, mi.Normal3f),
+                                  self.ray.d)
+        A, S = mi.Spectrum(0.0), mi.Spectrum(0.0)
+        for pos, i in enumerate(self.cached_lights):
+            smp = samples[i]
+            diffuse, specular = shading.phong_terms(integ.phong(), n, smp.to_light,
+                                                    -self.ray.d, smp.open)
+            on = mi.Bool(lit) & smp.valid & (dr.dot(n, smp.to_light) > 0.0) & \
+                (self.choice == pos)
+            A += dr.select(on, diffuse, 0.0)
+            S += dr.select(on, specular, 0.0)
+        k = float(len(self.cached_lights))
+        return self.m.Array3f(A.x, A.y, A.z) * k, self.m.Array3f(S.x, S.y, S.z) * k
+
+    def cached(self, samples):
+        """The band's cached transmittance (kernel ``Float``) towards the ray's correcting
+        light."""
+        out = mi.Float(0.0)
+        for pos, i in enumerate(self.cached_lights):
+            out = dr.select(self.choice == pos, samples[i].cached, out)
+        return bridge.to_kernel(self.m, out)
+
+    def correction(self, pick):
+        """The light that the exact shadow ray from the picked piece adds to the ray (a
+        Mitsuba ``Spectrum``, either sign): the pick's estimate times the exact transmittance
+        of the band towards the correcting light minus the cached one."""
+        integ = self.shader.integ
+        P = self.ray(self._t(pick.p))
+        picked = mi.Bool(pick.picked)
+        exact = mi.Float(0.0)
+        for pos, i in enumerate(self.cached_lights):
+            emitter = self.scene.emitters()[i]
+            on = picked & (self.choice == pos)
+            ds, _ = shading.sample_emitter(emitter, self.light_u[i], self.ray, P, on)
+            T = self.shader.transmittance(shading.shadow_ray(P, ds), True, on)
+            exact = dr.select(on, T, exact)
+        exact = dr.select(integ.shadows(), exact, 1.0)
+        D = bridge.to_mi3(pick.estimate_weight(), mi.Color3f)
+        return dr.select(picked, D * (exact - bridge.to_mi(pick.cached, mi.Float)), 0.0)
 
     def lambert(self, samples, grad):
         """The first light's unnormalised diffuse term: the gradient taken to the scene (as a

@@ -80,7 +80,7 @@ def iso_light(scene, light_u, ray, P, n, phong: Phong, active, shadows, iso_tran
     A = mi.Spectrum(phong.ka * phong.ambient)
     S = mi.Spectrum(0.0)
     for emitter, u in zip(scene.emitters(), light_u):
-        ds, w = _sample_emitter(emitter, u, ray, P, active)
+        ds, w = sample_emitter(emitter, u, ray, P, active)
         lit = active & (ds.pdf > 0.0) & (dr.dot(n, ds.d) > 0.0)
         vis = visibility(scene, P, ds, lit, shadows, iso_transmittance, from_iso=True)
         diffuse, specular = phong_terms(phong, n, ds.d, -ray.d, w * vis)
@@ -106,7 +106,7 @@ def iso_light_parts(scene, light_u, ray, P, n, phong: Phong, active):
     ``A0 + sum(diffuse * V)``, ``sum(specular * V)`` with each part's visibility ``V``."""
     parts = []
     for emitter, u in zip(scene.emitters(), light_u):
-        ds, w = _sample_emitter(emitter, u, ray, P, active)
+        ds, w = sample_emitter(emitter, u, ray, P, active)
         lit = active & (ds.pdf > 0.0) & (dr.dot(n, ds.d) > 0.0)
         diffuse, specular = phong_terms(phong, n, ds.d, -ray.d, w)
         parts.append(LightPart(diffuse=dr.select(lit, diffuse, 0.0),
@@ -115,7 +115,7 @@ def iso_light_parts(scene, light_u, ray, P, n, phong: Phong, active):
     return mi.Spectrum(phong.ka * phong.ambient), parts
 
 
-def _sample_emitter(emitter, u, ray, P, active):
+def sample_emitter(emitter, u, ray, P, active):
     """``emitter``'s direction sample and weight at the point ``P`` of the ray ``ray``."""
     it = dr.zeros(mi.Interaction3f)
     it.p = P
@@ -127,11 +127,16 @@ def _sample_emitter(emitter, u, ray, P, active):
 @dataclass
 class LightSample:
     """One emitter's light at a point: the unit direction to it (scene space), the radiance
-    arriving (shadowed where asked) and where the sample is valid."""
+    arriving (shadowed where asked) and where the sample is valid; for an emitter shadowed
+    through its cache, also the radiance ``open`` that arrives past the meshes (the band's
+    shadow left out) and the ``cached`` transmittance of the band (1 where shadows are off),
+    so that ``radiance = open * cached``."""
 
     to_light: Any
     radiance: Any
     valid: Any
+    open: Any = None
+    cached: Any = None
 
 
 @dataclass
@@ -153,14 +158,25 @@ def light_samples(scene, light_u, ray, P, active, shadowing: Shadowing):
     ``shadowing`` says."""
     out = []
     for emitter, u, cached in zip(scene.emitters(), light_u, shadowing.cached):
-        ds, w = _sample_emitter(emitter, u, ray, P, active)
+        ds, w = sample_emitter(emitter, u, ray, P, active)
         valid = active & (ds.pdf > 0.0)
-        if shadowing.shadows is not False:
-            through = shadowing.transmittance if cached is None else \
-                (lambda _ray, _from_iso, _active, T=cached: T)
-            w = w * visibility(scene, P, ds, valid, shadowing.shadows, through, from_iso=True)
-        out.append(LightSample(to_light=ds.d, radiance=w, valid=valid))
+        if shadowing.shadows is False:
+            out.append(LightSample(to_light=ds.d, radiance=w, valid=valid))
+        elif cached is None:
+            w = w * visibility(scene, P, ds, valid, shadowing.shadows, shadowing.transmittance,
+                               from_iso=True)
+            out.append(LightSample(to_light=ds.d, radiance=w, valid=valid))
+        else:
+            w = w * visibility(scene, P, ds, valid, shadowing.shadows, _clear, from_iso=True)
+            band = dr.select(shadowing.shadows, cached, 1.0)
+            out.append(LightSample(to_light=ds.d, radiance=w * band, valid=valid, open=w,
+                                   cached=band))
     return out
+
+
+def _clear(_ray, _from_iso, _active):
+    """The isosurfaces' transmittance where it is looked up elsewhere: 1."""
+    return mi.Float(1.0)
 
 
 def volume_terms(samples, phong: Phong, n, to_eye, active):

@@ -74,7 +74,8 @@ class ShadowCaches:
 def uses_cache(integ) -> bool:
     """Does ``integ`` light its band through transmittance caches?"""
     opt = integ.opt
-    return bridge.vectorised() and opt.mode == "volume" and opt.volume_shadows == "cache"
+    return bridge.vectorised() and opt.mode == "volume" and \
+        opt.volume_shadows in ("cache", "corrected")
 
 
 def _key(integ, emitters) -> tuple:
