@@ -6,6 +6,7 @@ Every user mistake ends as one line ``error: ...`` on stderr and exit status 2, 
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -443,6 +444,10 @@ def _add_view(sub) -> None:
                    help="samples per pixel of the refined image (default 4)")
     s.add_argument("--preview-scale", type=int, default=2,
                    help="while a control moves, 1 spp at 1/N of the size (default 2)")
+    s.add_argument("--preview-budget", type=float, default=None, metavar="SECONDS",
+                   help="a preview slower than this makes the next ones half the side, down "
+                        "to 1/8 (one faster than a sixth of it, twice the side again; "
+                        "default 0.25; 0: the previews keep --preview-scale)")
     s.add_argument("--variant", default="llvm_ad_rgb")
     _add_data_scene(s)
     s.set_defaults(run=_view)
@@ -453,8 +458,11 @@ def _view(args) -> None:
 
     if args.spp < 1 or args.preview_scale < 1 or (args.resolution and min(args.resolution) < 1):
         raise AMRError("view: --spp, --preview-scale and --resolution must be positive")
+    budget = args.preview_budget
+    if budget is not None and not (math.isfinite(budget) and budget >= 0):
+        raise AMRError(f"view: --preview-budget must be 0 or more seconds, got {budget:g}")
     with _data_scene(args, args.scene) as scene:
         serve(scene, host=args.host, port=args.port, open_browser=not args.no_browser,
               out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,
               preview_scale=args.preview_scale, variant=args.variant,
-              allow_hosts=args.allow_host)
+              allow_hosts=args.allow_host, preview_budget_s=budget)

@@ -111,6 +111,10 @@ CENTROID_ABS = 5e-3
 # after a new light or band too: at 2^21 the shells scene's build (807k points filled) took
 # longer than an exact frame at 256^2 on two busy cores; 2^19 takes about a quarter of that.
 SHADOW_CACHE_POINTS = 2 ** 19
+# points: the cache of the viewer's previews (mi_amr.workflows.viewer), a 64th of the full one:
+# a slider that moves a band builds the cache again for each preview, and at the full size that
+# build (1.7 s for the shells scene) would be most of the preview.
+PREVIEW_SHADOW_CACHE_POINTS = 2 ** 13
 # relative RMSE: a volume image shadowed through the transmittance caches against the same
 # image with exact per-piece shadow rays (tests/test_volume_shadows.py: two bands of an
 # ellipsoid field, a directional and a point light, 32^2; measured 0.017, and 0.026 with the

@@ -488,18 +488,12 @@ def test11_only_the_loopback_by_default():
     assert "warning" in host_warning("0.0.0.0")
 
 
-def test12_the_newest_request_wins(variant):
-    """The render thread alone, with a slow stand-in scene: requests that arrive while a frame
-    renders replace each other, so the stale ones are never rendered (not queued), and the
-    stale frame is not refined."""
-    import threading
-    import time
-
+def plain_state():
+    """A view state of a stand-in scene (the render thread's tests)."""
     from mi_amr.plugin.camera import Camera
     from mi_amr.workflows.viewer.state import ViewState
-    from mi_amr.workflows.viewer.worker import RenderWorker
 
-    base = ViewState(data_file="a.npz", field="f", color_field=None, colormap=None,
+    return ViewState(data_file="a.npz", field="f", color_field=None, colormap=None,
                      color_range=None, isovalues=(0.3,), iso_colors=((1.0, 1.0, 1.0),),
                      iso_opacity=(1.0,), mode="surface", method="exact", reconstruction="basis",
                      layers="composite",
@@ -508,10 +502,22 @@ def test12_the_newest_request_wins(variant):
                      camera=Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0), 30.0),
                      light_direction=None, light_irradiance=None, spp=2)
 
+
+def test12_the_newest_request_wins(variant):
+    """The render thread alone, with a slow stand-in scene: requests that arrive while a frame
+    renders replace each other, so the stale ones are never rendered (not queued), and the
+    stale frame is not refined."""
+    import threading
+    import time
+
+    from mi_amr.workflows.viewer.worker import RenderWorker
+
+    base = plain_state()
+
     class SlowScene:
         resolution = (8, 8)
         compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
-                    "steps": 0}
+                    "steps": 0, "preview_sizes": 0}
 
         def __init__(self):
             self.state, self.applied = base, []
@@ -521,7 +527,7 @@ def test12_the_newest_request_wins(variant):
             self.state = state
             return "traverse", state
 
-        def render(self, size, spp, seed=0):
+        def render(self, size, spp, seed=0, preview=False):
             time.sleep(0.2)
             return np.zeros((size[1], size[0], 3), dtype=np.float32)
 
@@ -555,6 +561,72 @@ def test12_the_newest_request_wins(variant):
     assert frames == [(1, "preview"), (5, "preview"), (5, "refined")]
     assert worker.session.applied == [0.1, pytest.approx(0.5)]
     assert worker.dropped == 3
+
+
+def test12b_slow_previews_get_smaller_and_grow_back(variant):
+    """The render thread alone, with a stand-in scene whose frames take time in proportion
+    to their pixels: a preview over the budget makes the next ones half the side (each size
+    counted once under ``preview_sizes``), one under a sixth of it twice the side again, never
+    beyond the ``preview_scale`` asked for; with a budget of 0 the scale stays."""
+    import threading
+    import time
+
+    from mi_amr.workflows.viewer.worker import PREVIEW_BUDGET_S, RenderWorker
+
+    class Scene:
+        resolution = (64, 64)
+        per_pixel = 0.6 / 32 ** 2           # a 32 x 32 preview: 0.6 s
+        state = plain_state()
+
+        def __init__(self):
+            self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0,
+                             "saves": 0, "steps": 0, "preview_sizes": 0}
+
+        def apply(self, state):
+            self.state = state
+            return "traverse", state
+
+        def render(self, size, spp, seed=0, preview=False):
+            time.sleep(self.per_pixel * size[0] * size[1])
+            return np.zeros((size[1], size[0], 3), dtype=np.float32)
+
+        def render_refined(self, size, spp, before_pass=None):
+            return np.zeros((size[1], size[0], 3), dtype=np.float32)
+
+        def prefetch_next(self):
+            pass
+
+        def close(self):
+            pass
+
+    def run(budget, moves):
+        sizes, shown = [], threading.Event()
+
+        def publish(kind, payload, data):
+            if kind == "frame" and payload["quality"] == "preview":
+                sizes.append(payload["width"])
+                shown.set()
+
+        worker = RenderWorker(Scene, publish, idle_s=60.0, preview_budget_s=budget)
+        worker.start()
+        try:
+            for version, fast in enumerate(moves):
+                if fast:
+                    worker.session.per_pixel = 1e-7
+                shown.clear()
+                worker.submit(plain_state().replace(step_scale=0.1 + 0.1 * version), version)
+                assert shown.wait(10)
+        finally:
+            worker.stop()
+        return sizes, worker
+
+    sizes, worker = run(PREVIEW_BUDGET_S, [False, False, False, True, True, True])
+    # 32 (0.6 s: over budget) -> 16 (0.15 s: within) stays -> fast at 16, so 32 next, and
+    # 32 again (never 64, beyond the preview scale asked for)
+    assert sizes == [32, 16, 16, 16, 32, 32], sizes
+    assert worker.session.compiled == dict.fromkeys(worker.session.compiled, 0)
+    sizes, worker = run(0.0, [False, False])
+    assert sizes == [32, 32] and worker.scale == worker.preview_scale == 2
 
 
 def test13_a_frame_ready_before_the_server_runs_is_kept(tmp_path):

@@ -310,3 +310,20 @@ def test07_corrected_shadows_converge_to_the_exact_ones(variant, folder, method)
     assert err["corrected", 64] < 0.65 * err["corrected", 16], err  # (noise: it goes)
     assert err["corrected", 64] < 0.4 * err["cache", 64], err
     assert err["corrected", 64] < tol.SHADOW_CORRECTED_REL_RMSE, err
+
+
+def test08_needed_points_match_their_box_by_box_twin(variant, cached):
+    """The grid points a cache fills (one pass of running sums over the leaves' boxes) are
+    those that marking each leaf's box grown by one cell finds, at the full and at a coarse
+    (the viewer's preview) size."""
+    from mi_amr.kernels import shadow_grid
+    from mi_amr.plugin.shadow_cache import opacity_leaves
+
+    scene, _ = cached
+    integ = scene.integrator()
+    tree, leaves = integ.dev.tree, opacity_leaves(integ)
+    for points in (tol.SHADOW_CACHE_POINTS, tol.PREVIEW_SHADOW_CACHE_POINTS, 64):
+        grid = shadow_grid.plan(tree, leaves, points)
+        fast = shadow_grid.needed_points(grid, tree, leaves)
+        assert 0 < len(fast) <= grid.size
+        assert np.array_equal(fast, shadow_grid.needed_points_by_box(grid, tree, leaves)), points

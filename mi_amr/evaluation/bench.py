@@ -562,9 +562,10 @@ def _scene_copy(scene_file, folder, name, make_volume):
 
 def run_viewer(out_dir, scene=None, variant: str = "llvm_ad_rgb") -> list:
     """The browser explorer's slider-to-image round trip on ``scene`` (a scene file; None:
-    the default scene) (:mod:`mi_amr.evaluation.viewer_bench`); writes ``viewer.md`` to
-    ``out_dir``."""
+    the default scene) (:mod:`mi_amr.evaluation.viewer_bench`); writes ``viewer.md`` (for
+    another scene ``viewer_<stem>.md``) to ``out_dir``."""
     from mi_amr.evaluation import viewer_bench
 
-    scene = project.scenes_dir() / DEFAULT_SCENE if scene is None else scene
-    return viewer_bench.run(out_dir, scene, variant=variant)
+    if scene is None:
+        return viewer_bench.run(out_dir, project.scenes_dir() / DEFAULT_SCENE, variant=variant)
+    return viewer_bench.run(out_dir, scene, variant=variant, name=f"viewer_{Path(scene).stem}")

@@ -21,6 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_amr import tolerances as tol
 from mi_amr.kernels.arrays import device_array
 from mi_amr.kernels.device import opaque_floats
 from mi_amr.kernels.shadow_grid import (GridPlan, TransmittanceGrid, band_leaves,
@@ -45,13 +46,16 @@ def cacheable(emitter) -> bool:
 
 class ShadowCaches:
     """The caches of one integrator, for the last scene and inputs it rendered
-    (:meth:`grids`); ``builds`` counts how often they were filled."""
+    (:meth:`grids`); ``builds`` counts how often they were filled; ``max_points``: the most
+    points a cache holds (a coarser cache for a quick preview: the next frame builds it at the
+    new size)."""
 
     def __init__(self):
         self._key = None
         self._grids = []
         self._dev = None     # the device volume the key names (kept, so its id stays its own)
         self.builds = 0
+        self.max_points = tol.SHADOW_CACHE_POINTS
 
     def grids(self, integ, scene) -> list:
         """Per emitter of ``scene``, its :class:`TransmittanceGrid`, or None where it keeps
@@ -60,12 +64,12 @@ class ShadowCaches:
         emitters = scene.emitters()
         if not uses_cache(integ):
             return [None] * len(emitters)
-        key = _key(integ, emitters)
+        key = (_key(integ, emitters), self.max_points)
         if key != self._key and dr.flag(dr.JitFlag.SymbolicScope):
             # (Asked first inside a symbolic loop, where no kernel may run: exact shadows.)
             return [None] * len(emitters)
         if key != self._key:
-            self._grids = build_all(integ, emitters)
+            self._grids = build_all(integ, emitters, self.max_points)
             self._key, self._dev = key, integ.dev
             self.builds += 1
         return self._grids
@@ -102,15 +106,16 @@ def _emitter_key(emitter) -> tuple:
     return tuple(out)
 
 
-def build_all(integ, emitters) -> list:
-    """Fill one grid per cacheable emitter (None for the others)."""
+def build_all(integ, emitters, max_points: int = tol.SHADOW_CACHE_POINTS) -> list:
+    """Fill one grid per cacheable emitter (None for the others), each of at most
+    ``max_points`` points."""
     m = integ.m
     leaves = opacity_leaves(integ)
     shadows = bool(integ.inputs.host["shadows"][0])
     if not shadows or len(leaves) == 0:
         empty = TransmittanceGrid.of(m, EMPTY, opaque_floats(m, np.ones(EMPTY.size)))
         return [empty if cacheable(e) else None for e in emitters]
-    grid = plan(integ.dev.tree, leaves)
+    grid = plan(integ.dev.tree, leaves, max_points)
     # (From aligned memory: the kernel's loads of a misaligned array compile otherwise.)
     index = device_array(m.UInt32, needed_points(grid, integ.dev.tree, leaves), np.uint32)
     return [_build(integ, e, grid, index) if cacheable(e) else None for e in emitters]

@@ -24,7 +24,7 @@ from mi_amr.workflows.viewer.paths import FileRules
 from mi_amr.workflows.viewer.sceneio import MARK, scene_text, write_table
 from mi_amr.workflows.viewer.series import step as step_to
 from mi_amr.workflows.viewer.state import Session, structure
-from mi_amr.workflows.viewer.worker import RenderWorker
+from mi_amr.workflows.viewer.worker import PREVIEW_BUDGET_S, RenderWorker
 
 CHANGES = ("set", "camera", "add_isovalue", "remove_isovalue", "reset_color_range")
 # The transfer-function editor's requests (volume mode: bands, the 2D transfer function).
@@ -104,13 +104,15 @@ class Hub:
     """The viewer of ``scene_path``: file rules, the render thread, the shared state."""
 
     def __init__(self, scene_path, *, out_dir="out", files=(), resolution=None, spp: int = 4,
-                 preview_scale: int = 2, idle_s: float = 0.3, series=()):
+                 preview_scale: int = 2, idle_s: float = 0.3, series=(),
+                 preview_budget_s: float = PREVIEW_BUDGET_S):
         self.rules = FileRules(scene_path, files, out_dir)
         self.series = [str(f) for f in series]
         self.series_spec = ""           # the series as given on the command line (for hints)
         self.worker = RenderWorker(lambda: Session(scene_path, resolution=resolution, spp=spp,
                                                    series=self.series),
-                                   self.from_worker, preview_scale=preview_scale, idle_s=idle_s)
+                                   self.from_worker, preview_scale=preview_scale, idle_s=idle_s,
+                                   preview_budget_s=preview_budget_s)
         self.clients = set()
         self.loop = None
         self._early = []                # reports that came before the event loop ran
@@ -173,6 +175,7 @@ class Hub:
     def status(self) -> dict:
         session = self.worker.session
         return {"version": self.version, "compiled": dict(session.compiled),
+                "preview_scale": self.worker.scale,
                 "frames": dict(self.worker.frames), "dropped": self.worker.dropped,
                 "clients": len(self.clients), "resolution": list(session.resolution),
                 "prepared": session.prefetch.finished()}

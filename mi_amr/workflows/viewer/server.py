@@ -239,12 +239,13 @@ def bind(host: str, port: int) -> socket.socket:
 
 def serve(scene, *, host: str = "127.0.0.1", port: int = 8080, open_browser: bool = True,
           out_dir="out", files=(), resolution=None, spp: int = 4, preview_scale: int = 2,
-          variant: str = "llvm_ad_rgb", allow_hosts=()) -> None:
+          variant: str = "llvm_ad_rgb", allow_hosts=(), preview_budget_s=None) -> None:
     """``python -m mi_amr view``: load ``scene``, serve the page until interrupted, to
     requests that name an allowed host (:func:`allowed_hosts`; ``allow_hosts``: the names
     given with ``--allow-host``). ``files``: globs or paths
     (:func:`~mi_amr.workflows.movie.spec.expand_files`) the page may open; their data files are
-    the time steps of the scene (:mod:`.series`)."""
+    the time steps of the scene (:mod:`.series`). ``preview_budget_s``: see
+    :meth:`~mi_amr.workflows.viewer.worker.RenderWorker.adapt_preview` (None: its default)."""
     import mitsuba as mi
     import uvicorn
 
@@ -270,8 +271,9 @@ def serve(scene, *, host: str = "127.0.0.1", port: int = 8080, open_browser: boo
               file=sys.stderr, flush=True)
     listed = expand_files(list(files)) if files else []
     sock = bind(host, port)
+    budget = {} if preview_budget_s is None else {"preview_budget_s": preview_budget_s}
     hub = Hub(scene, out_dir=out_dir, files=listed, resolution=resolution, spp=spp,
-              preview_scale=preview_scale, series=expand_series(listed))
+              preview_scale=preview_scale, series=expand_series(listed), **budget)
     hub.series_spec = ",".join(str(f) for f in files)
     print(f"loading {scene} ...", flush=True)
     hub.start()

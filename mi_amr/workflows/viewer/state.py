@@ -43,6 +43,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from mi_amr import tolerances as tol
 from mi_amr.errors import AMRError
 from mi_amr.plugin.camera import Camera, scene_camera, sensor_key, set_camera
 from mi_amr.plugin.inputs import colormap_table
@@ -112,7 +113,7 @@ class Session:
 
         self.workdir = Path(tempfile.mkdtemp(prefix="mi_amr-view-"))
         self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
-                         "steps": 0}
+                         "steps": 0, "preview_sizes": 0}
         self._reload_count = 0
         self.series = [str(f) for f in series]
         self.prefetch = Prefetcher()
@@ -396,14 +397,21 @@ class Session:
         return values[np.isfinite(values)]
 
     # ------------------------------------------------------------------ rendering
-    def render(self, size, spp: int, seed: int = 0) -> np.ndarray:
+    def render(self, size, spp: int, seed: int = 0, preview: bool = False) -> np.ndarray:
         """One ``mi.render`` of the current state at ``size`` pixels ``(width, height)``: a
-        linear RGBA float32 array ``(height, width, 4)`` (alpha: coverage by surfaces)."""
+        linear RGBA float32 array ``(height, width, 4)`` (alpha: coverage by surfaces).
+        ``preview``: volume mode's shadow caches at
+        :data:`~mi_amr.tolerances.PREVIEW_SHADOW_CACHE_POINTS` (built again for the next
+        frame that is not a preview)."""
         size = (int(size[0]), int(size[1]))
         if size != self._film:
             self._write_sensor(self.state.camera, size)
             self.params.update()
             self._film = size
+        caches = getattr(self.scene.integrator(), "shadow_caches", None)
+        if caches is not None:
+            caches.max_points = tol.PREVIEW_SHADOW_CACHE_POINTS if preview else \
+                tol.SHADOW_CACHE_POINTS
         image = mi.render(self.scene, spp=spp, seed=seed)
         dr.eval(image)
         dr.sync_thread()

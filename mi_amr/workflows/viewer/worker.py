@@ -4,7 +4,9 @@ time series is prepared meanwhile in a thread of its own, :mod:`.series`).
 It shows the newest state only. A request that arrives while a frame renders replaces any
 request still waiting (stale requests are dropped, never queued); the refinement of an image
 stops at the next pass when a newer request arrives. Each new state is shown first as a fast
-preview (1 spp at ``1 / preview_scale`` of the view's size), then, once no request has come
+preview (1 spp at ``1 / scale`` of the view's size: ``preview_scale`` to start with, doubled
+while a preview takes longer than ``preview_budget_s`` and halved back while one takes under a
+sixth of it, see :meth:`RenderWorker.adapt_preview`), then, once no request has come
 for ``idle_s`` seconds after the preview went out, refined to the state's ``spp`` at the view's
 size in the passes ``python -m mi_amr render`` uses (so a saved scene renders the same pixels).
 
@@ -12,7 +14,8 @@ Compiled kernels are counted per cause (``Session.compiled``): ``warmup`` (the f
 and refined frames), ``reloads`` (a new structure, up to its first refined frame),
 ``steps`` (a time step: another data file of the same fields, up to its first refined frame;
 it stays 0),
-``quality`` (a new refined sample count: Mitsuba's render loop specialises on it), ``saves``
+``quality`` (a new refined sample count: Mitsuba's render loop specialises on it),
+``preview_sizes`` (the first preview at a size the previews adapted to), ``saves``
 (images saved: it stays 0, they are rendered in tiles of the view's film size) and
 ``controls`` (everything else: it stays 0).
 """
@@ -29,6 +32,12 @@ import numpy as np
 
 from mi_amr.errors import AMRError
 from mi_amr.workflows.viewer.state import structure
+
+# seconds: the longest a preview may take before the next ones are made smaller (the default of
+# ``view --preview-budget``; a slider that answers within about this feels direct).
+PREVIEW_BUDGET_S = 0.25
+# the smallest preview: 1/8 of the view's side
+MAX_PREVIEW_SCALE = 8
 
 
 def png_bytes(image) -> bytes:
@@ -53,9 +62,15 @@ class RenderWorker:
     """Runs ``make_session()`` and every render in one thread; ``publish(kind, payload,
     data)`` reports to the server (called from the render thread)."""
 
-    def __init__(self, make_session, publish, *, preview_scale: int = 2, idle_s: float = 0.3):
+    def __init__(self, make_session, publish, *, preview_scale: int = 2, idle_s: float = 0.3,
+                 preview_budget_s: float = PREVIEW_BUDGET_S):
+        """``preview_budget_s``: see :meth:`adapt_preview` (0: the previews keep
+        ``preview_scale``)."""
         self._make_session, self.publish = make_session, publish
         self.preview_scale, self.idle_s = max(1, int(preview_scale)), float(idle_s)
+        self.preview_budget_s = float(preview_budget_s)
+        self.scale = self.preview_scale         # the previews' scale now
+        self._sizes = set()                     # the preview sizes rendered so far
         self._cond = threading.Condition()
         self._pending = None            # (state, version): the newest request not yet shown
         self._jobs = []
@@ -166,7 +181,19 @@ class RenderWorker:
 
     def preview_size(self) -> tuple:
         w, h = self.session.resolution
-        return max(1, w // self.preview_scale), max(1, h // self.preview_scale)
+        return max(1, w // self.scale), max(1, h // self.scale)
+
+    def adapt_preview(self, seconds: float) -> None:
+        """The next previews' scale after a preview that rendered in ``seconds`` (compiling
+        nothing): doubled, up to :data:`MAX_PREVIEW_SCALE`, where it took longer than the
+        budget; halved, down to ``preview_scale``, where it took under a sixth of it (a
+        quarter of the pixels takes about a quarter of the time, so it does not swing back)."""
+        if self.preview_budget_s <= 0:
+            return
+        if seconds > self.preview_budget_s:
+            self.scale = min(2 * self.scale, MAX_PREVIEW_SCALE)
+        elif seconds < self.preview_budget_s / 6:
+            self.scale = max(self.scale // 2, self.preview_scale)
 
     def fresh(self, bucket: str) -> None:
         """Count what compiles from now until the next refined image under ``bucket``: the
@@ -200,7 +227,13 @@ class RenderWorker:
         if shown != state:
             self.publish("corrected", {"state": shown, "version": version}, None)
         size = self.preview_size()
-        image = self.counted(self._bucket(), lambda: s.render(size, 1))
+        bucket = self._bucket() if self._fresh or size in self._sizes else "preview_sizes"
+        compiled = sum(s.compiled.values())
+        t_render = time.perf_counter()
+        image = self.counted(bucket, lambda: s.render(size, 1, preview=True))
+        if sum(s.compiled.values()) == compiled:
+            self.adapt_preview(time.perf_counter() - t_render)
+        self._sizes.add(size)
         self._send(image, version, "preview", 1, time.perf_counter() - t0)
         if reload or step:              # after the frame: a step's image comes first
             self.publish("info", {"how": how, "info": s.describe()}, None)
