@@ -169,6 +169,7 @@ class Hub:
                 "modes": params.MODES, "colormaps": COLORMAPS, "files": self.rules.listing(),
                 "out_dir": str(self.rules.out_dir), "resolution": i["resolution"],
                 "preview_scale": self.worker.preview_scale,
+                "preview_budget_s": self.worker.preview_budget_s,
                 "max_isovalues": params.MAX_ISOVALUES,
                 "series": [self._shown_path(f) for f in self.series]}
 

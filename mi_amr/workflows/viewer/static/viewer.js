@@ -130,8 +130,10 @@ function applyInfo(m) {
   if (state && !sliderHeld) $("isovalue").value = toSlider(state.isovalues[active]);
   $("range-lo").textContent = fmt(lo, 4);
   $("range-hi").textContent = fmt(hi, 4);
+  const smaller = m.preview_budget_s > 0 ?
+    ` (smaller while a preview takes over ${m.preview_budget_s} s)` : "";
   $("quality-note").textContent = `While a control moves: 1 spp at 1/${m.preview_scale} of ` +
-    `the size; when idle: refined to the samples per pixel above.`;
+    `the size${smaller}; when idle: refined to the samples per pixel above.`;
   drawHistogram();
   hooks.info.forEach((f) => f(m));
 }
