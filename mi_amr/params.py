@@ -86,8 +86,8 @@ TABLE = (
           "the camera moves); meshes still cast theirs by a shadow ray, and other lights "
           "(area, environment) keep exact shadow rays. ``corrected``: the "
           "cache, and per camera sample one exact shadow ray from one lit piece (or sample), "
-          "picked by its light, that corrects the cache's error: unbiased, its noise going down with "
-          "the samples per pixel. ``exact``: a shadow ray per lit piece "
+          "picked by its light, that corrects the cache's error: unbiased, its noise going "
+          "down with the samples per pixel. ``exact``: a shadow ray per lit piece "
           "composites the bands on its way to each light (cost grows with the square of the "
           "pieces a ray meets)", choices=VOLUME_SHADOWS),
     Param("to_world", "transform", None,

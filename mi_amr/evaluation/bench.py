@@ -566,6 +566,6 @@ def run_viewer(out_dir, scene=None, variant: str = "llvm_ad_rgb") -> list:
     another scene ``viewer_<stem>.md``) to ``out_dir``."""
     from mi_amr.evaluation import viewer_bench
 
-    if scene is None:
-        return viewer_bench.run(out_dir, project.scenes_dir() / DEFAULT_SCENE, variant=variant)
-    return viewer_bench.run(out_dir, scene, variant=variant, name=f"viewer_{Path(scene).stem}")
+    name = "viewer" if scene is None else f"viewer_{Path(scene).stem}"
+    scene = project.scenes_dir() / DEFAULT_SCENE if scene is None else scene
+    return viewer_bench.run(out_dir, scene, variant=variant, name=name)

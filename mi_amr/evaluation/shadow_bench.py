@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_amr.evaluation.volume_bench import rmse
 from mi_amr.workflows import project
 
 SCENES = ("sphere_wake_volume", "sphere_wake_shells")
@@ -49,10 +50,6 @@ def _frame(scene, spp=1, seed=0):
     dr.eval(img)
     dr.sync_thread()
     return time.perf_counter() - t0, np.array(img)
-
-
-def _rel_rmse(image, reference) -> float:
-    return float(np.sqrt(np.mean((image - reference) ** 2)) / np.sqrt(np.mean(reference ** 2)))
 
 
 def _build(scene) -> dict:
@@ -111,8 +108,8 @@ def _accuracy(name, res, spp, ref_spp) -> list:
     for shadows in ("exact", "cache", "corrected"):
         image = same if shadows == "exact" else _frame(_load(name, shadows, res), spp, 2)[1]
         rows.append({"scene": name, "shadows": shadows, "spp": spp,
-                     "rel_rmse_reference": _rel_rmse(image, reference),
-                     "rel_rmse_same_seed": _rel_rmse(image, same)})
+                     "rel_rmse_reference": rmse(image, reference)[1],
+                     "rel_rmse_same_seed": rmse(image, same)[1]})
     return rows
 
 
@@ -138,7 +135,7 @@ def shadow_sweep(out_dir="out/bench", *, res: int = RESOLUTION, frames: int = FR
             if progress:
                 print(_line(named[shadows]), flush=True)
         for shadows in ("cache", "corrected"):
-            named[shadows]["rel_rmse_exact"] = _rel_rmse(images[shadows], images["exact"])
+            named[shadows]["rel_rmse_exact"] = rmse(images[shadows], images["exact"])[1]
     scored = []
     for name in SCENES:
         scored += _accuracy(name, *accuracy)

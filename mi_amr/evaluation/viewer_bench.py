@@ -1,14 +1,14 @@
 """``python -m mi_amr bench --viewer``: how fast the browser explorer answers a slider.
 
-The viewer runs as a user runs it (``python -m mi_amr view ... --no-browser``, its own
-process) on ``sphere_wake`` (or ``bench --viewer --scene NAME``) at 512 x 512; Debian's
-chromium, driven by Playwright, opens the page. The slider moves the scene's last isovalue
-(with several bands, the highest, which has room above it). Each of 50 moves sets the slider
-one step further and fires its ``input`` event, as a drag does, and the time is taken in the page from that event to the moment the
-new image is decoded and shown (``performance.now()``): the whole round trip (WebSocket,
-``mi.traverse`` update, render, PNG, back, decode). The next move starts when the image is
-shown. Kernels are counted in the viewer's process (``GET /api/status``) from the first
-refined frame on.
+The viewer runs as a user runs it (``python -m mi_amr view ... --no-browser``, its own process)
+on ``sphere_wake`` (or ``bench --viewer --scene NAME``) at 512 x 512; Debian's chromium, driven
+by Playwright, opens the page. The slider moves the scene's last isovalue (with several bands,
+the highest, which has room above it). Each of 50 moves sets the slider one step further and
+fires its ``input`` event, as a drag does, and the time is taken in the page from that event to
+the moment the new image is decoded and shown (``performance.now()``): the whole round trip
+(WebSocket, ``mi.traverse`` update, render, PNG, back, decode). The next move starts when the
+image is shown. Kernels are counted in the viewer's process (``GET /api/status``) from the
+first refined frame on.
 
 Two previews are measured: 1 spp at the full 512 x 512 (``--preview-scale 1
 --preview-budget 0``) and the default, 1 spp at 256 x 256 shown at 512 x 512

@@ -162,30 +162,23 @@ class VolumeLighting:
 
     def terms(self, samples, grad, lit):
         """``(A, S)`` (kernel ``Array3f``) of a point with volume-space gradient ``grad``."""
-        integ = self.shader.integ
-        n = shading.facing_normal(integ.frame.to_scene, bridge.to_mi3(grad, mi.Normal3f),
-                                  self.ray.d)
-        A, S = shading.volume_terms(samples, integ.phong(), n, -self.ray.d, mi.Bool(lit))
+        n = self.shader.normal(grad, self.ray)
+        A, S = shading.volume_terms(samples, self.shader.integ.phong(), n, -self.ray.d,
+                                    mi.Bool(lit))
         return self.m.Array3f(A.x, A.y, A.z), self.m.Array3f(S.x, S.y, S.z)
 
     def direct_terms(self, samples, grad, lit):
         """``(A, S)`` (kernel ``Array3f``) of the ray's correcting light alone, with its
         light past the meshes but not the band (``open``), times the number of cached lights
         (the ray picks one of them)."""
-        integ = self.shader.integ
-        n = shading.facing_normal(integ.frame.to_scene, bridge.to_mi3(grad, mi.Normal3f),
-                                  self.ray.d)
-        A, S = mi.Spectrum(0.0), mi.Spectrum(0.0)
-        for pos, i in enumerate(self.cached_lights):
-            smp = samples[i]
-            diffuse, specular = shading.phong_terms(integ.phong(), n, smp.to_light,
-                                                    -self.ray.d, smp.open)
-            on = mi.Bool(lit) & smp.valid & (dr.dot(n, smp.to_light) > 0.0) & \
-                (self.choice == pos)
-            A += dr.select(on, diffuse, 0.0)
-            S += dr.select(on, specular, 0.0)
         k = float(len(self.cached_lights))
-        return self.m.Array3f(A.x, A.y, A.z) * k, self.m.Array3f(S.x, S.y, S.z) * k
+        picked = [shading.LightSample(to_light=samples[i].to_light, radiance=samples[i].open * k,
+                                      valid=samples[i].valid & (self.choice == pos))
+                  for pos, i in enumerate(self.cached_lights)]
+        n = self.shader.normal(grad, self.ray)
+        A, S = shading.phong_sum(picked, self.shader.integ.phong(), n, -self.ray.d,
+                                 mi.Bool(lit), mi.Spectrum(0.0))
+        return self.m.Array3f(A.x, A.y, A.z), self.m.Array3f(S.x, S.y, S.z)
 
     def cached(self, samples):
         """The band's cached transmittance (kernel ``Float``) towards the ray's correcting

@@ -182,7 +182,12 @@ def _clear(_ray, _from_iso, _active):
 def volume_terms(samples, phong: Phong, n, to_eye, active):
     """``(A, S)`` (see the module docstring) of a point with shading normal ``n`` lit by
     ``samples`` (:func:`light_samples`)."""
-    A = mi.Spectrum(phong.ka * phong.ambient)
+    return phong_sum(samples, phong, n, to_eye, active, mi.Spectrum(phong.ka * phong.ambient))
+
+
+def phong_sum(samples, phong: Phong, n, to_eye, active, A):
+    """``A`` plus each sample's diffuse light, and the sum of their specular light, where the
+    sample is valid and lights the front of ``n``."""
     S = mi.Spectrum(0.0)
     for smp in samples:
         diffuse, specular = phong_terms(phong, n, smp.to_light, to_eye, smp.radiance)
