@@ -9,9 +9,10 @@ from hypothesis import given, settings, strategies as st
 
 from mi_amr import AMRError, AMRVolume, KDTree
 from mi_amr.synthetic import datasets
-from mi_amr.core.kdtree import (_box_sum, _leaf_count_tables, _leaf_count_tables_reference,
-                                _window_min_max, _window_min_max_reference,
-                                finest_grid_bruteforce, support_grids_bruteforce)
+from mi_amr.core.kdtree import (CHUNK, _box_sum, _leaf_count_tables,
+                                _leaf_count_tables_reference, _window_min_max,
+                                _window_min_max_reference, finest_grid_bruteforce,
+                                support_grids_bruteforce)
 from conftest import random_grids, reference_grids
 
 def random_field(seed):
@@ -394,6 +395,32 @@ def test15b3_blocks_of_pairs_and_boxes_do_not_change_the_tree(seed):
     for reconstruction in (None, "basis", "finest"):
         for a, b in zip(got.leaf_ranges("f", reconstruction), want.leaf_ranges("f", reconstruction)):
             np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test15b4_listed_pairs_equal_their_slow_twin(seed):
+    """The leaves' grid lists come from the build's own (node, grid) pairs, kept in order of
+    node and grid at every depth, with no second descent and no sort. They equal the slow
+    twin: every leaf overlapping each grid's support, found by descending the built tree,
+    sorted; and ordering the twin's pairs (active first) gives the same lists and windows."""
+    vol = AMRVolume.from_grids(random_grids(seed, ratios=((2, 2), (4, 2), (2, 4), (4, 4))[seed],
+                                            fn=random_field(seed)))
+    tree = KDTree(vol, leaf_cells=(2, 4)[seed % 2], chunk=(7, CHUNK)[seed % 2])
+    pl, pg = tree._listed_by_descent()
+    assert len(pl) > 100 and tree.leaf_nactive.sum() < len(pl)     # some inactive pairs
+    built_leaf = np.repeat(np.arange(tree.num_leaves), tree.leaf_nsupport)
+    order = np.lexsort((tree.leaf_grids, built_leaf))
+    np.testing.assert_array_equal(built_leaf[order], pl)
+    np.testing.assert_array_equal(tree.leaf_grids[order], pg)
+    names = ("leaf_grids", "leaf_nsupport", "leaf_nactive", "leaf_start", "leaf_levels",
+             "leaf_min_h")
+    built = {name: getattr(tree, name).copy() for name in names}
+    windows = [w.copy() for w in tree._listed_windows]
+    tree._order_active(pl, pg)
+    for name in names:
+        np.testing.assert_array_equal(getattr(tree, name), built[name], err_msg=name)
+    for a, b in zip(tree._listed_windows, windows):
+        np.testing.assert_array_equal(a, b)
 
 
 def test15c_ropes_equal_their_slow_twin(tree):

@@ -13,7 +13,9 @@ support of the whole volume into leaf boxes such that
   with at least one leaf cell whose hat function is non-zero somewhere in the leaf. The basis
   reconstruction needs only the active grids.
 
-The build is breadth-first and vectorised over all nodes of a depth, so 10^5 grids take seconds.
+The build is breadth-first and vectorised over all nodes of a depth. The (node, grid) pairs
+of a depth stay in order of node and grid, so the leaves' lists come out of the build in
+order: no second descent and no sort.
 Flattened layout (what kernels gather from): node ``n`` has ``node_split[n]`` and
 ``node_code[n] = child << 2 | axis`` (axis 3 marks a leaf and ``child`` is then the leaf index;
 otherwise the children are nodes ``child`` (below the split) and ``child + 1`` (at or above it)).
@@ -103,8 +105,7 @@ class KDTree:
             self._shi.max(axis=0) - corner, corner - self._slo.min(axis=0), np.ones(3)])))
         self._root = (corner - half, corner + half)
         self.lo, self.hi = self._world(self._root[0]), self._world(self._root[1])
-        self._build(max_depth)
-        self._order_active()
+        self._order_active(*self._build(max_depth))
         self._ropes()
 
     @classmethod
@@ -124,9 +125,12 @@ class KDTree:
         return self.volume.anchor[axis] + u * self.h_fine[axis]
 
     # ------------------------------------------------------------------ build
-    def _build(self, max_depth: int) -> None:
+    def _build(self, max_depth: int):
         """Build the tree breadth first, one depth at a time, on the integer lattice of the
-        finest level (all boxes are whole numbers of finest cells from the anchor)."""
+        finest level (all boxes are whole numbers of finest cells from the anchor). Returns
+        the (leaf, grid) pairs of the leaves' lists (every grid whose open support overlaps
+        the leaf), sorted by leaf and then grid: the pairs of each depth stay sorted by node
+        and grid (:func:`_children`), and leaves are numbered in node order."""
         G = len(self.grid_lo)
         # Lattice coordinates are whole numbers: int32 (when they fit) halves the memory traffic
         # of the pair tests, which dominate the build.
@@ -134,18 +138,18 @@ class KDTree:
         lattice = (self._glo.astype(ity), self._ghi.astype(ity), self._slo.astype(ity),
                    self._shi.astype(ity))
         f_lo, f_hi = self._root[0][None, :].astype(ity), self._root[1][None, :].astype(ity)
-        # (node, grid) pairs whose open support overlaps the node; pairs that can no longer
-        # matter (support-only, no finer than the node's owner) are dropped as we go.
+        # (node, grid) pairs whose open support overlaps the node.
         p_node, p_grid = np.zeros(G, dtype=np.int64), np.arange(G, dtype=np.int64)
         out = {k: [] for k in ("split", "code", "lo", "hi", "depth", "leaf_lo", "leaf_hi",
                                "leaf_owner")}
+        listed = []
         base, n_leaves = 0, 0
         for depth in range(max_depth + 1):
-            owner, p_node, p_grid, has_partial, node_h = self._classify(
-                f_lo, f_hi, p_node, p_grid, lattice)
+            owner, has_partial, node_h = self._classify(f_lo, f_hi, p_node, p_grid, lattice)
             axis, plane = self._split_planes(f_lo, f_hi, owner, has_partial, node_h, ity)
             if depth == max_depth:
                 axis[:] = LEAF
+            listed.append(_leaf_pairs(axis, n_leaves, p_node, p_grid))
             n_leaves = _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner)
             base += len(f_lo)
             if np.all(axis == LEAF):
@@ -153,12 +157,17 @@ class KDTree:
             f_lo, f_hi, p_node, p_grid = _children(f_lo, f_hi, axis, plane, p_node, p_grid,
                                                    lattice, chunk=self.chunk)
         self._store(out)
+        return tuple(np.concatenate(column) for column in zip(*listed))
 
     def _classify(self, f_lo, f_hi, p_node, p_grid, lattice):
         """For the nodes ``[f_lo, f_hi]`` of one depth and their (node, grid) pairs: the owner
-        of each node (the finest grid containing it, lowest index among equals, -1: none), the
-        pairs still useful, whether a grid face cuts the node, and the finest cell width (in
-        finest cells) of the grids whose support reaches into it."""
+        of each node (the finest grid containing it, lowest index among equals, -1: none),
+        whether a grid face cuts the node, and the finest cell width (in finest cells) of the
+        grids whose support reaches into it.
+
+        A pair whose grid box misses the node (support only) and that is no finer than the
+        owner changes none of these: the owner contains the node, so it bounds the finest
+        level from below, and such a grid cuts no face through it."""
         G, n = len(self.grid_lo), len(f_lo)
         overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, chunk=self.chunk)
         p_level = self.level[p_grid]
@@ -166,19 +175,12 @@ class KDTree:
         best = np.full(n, -1, dtype=np.int64)
         np.maximum.at(best, p_node[contains], p_level[contains] * G + (G - 1 - p_grid[contains]))
         owner = np.where(best >= 0, G - 1 - best % G, -1)
-        # A support-only pair is dropped once it is no finer than the owner, which contains
-        # every descendant and so bounds their finest level from below. (Grids that merely
-        # overlap the node give no such bound: a child may miss them, and a dropped finer
-        # support would then be forgotten there.)
-        owner_level = np.where(best >= 0, best // G, -1)
-        useful = overlap | (p_level > owner_level[p_node])
-        p_node, p_grid, p_level = p_node[useful], p_grid[useful], p_level[useful]
         has_partial = np.zeros(n, dtype=bool)
-        has_partial[p_node[partial[useful]]] = True
+        has_partial[p_node[partial]] = True
         level_h = self._level_h
         finest = _scatter_max_level(n, p_node, p_level, self.volume.num_levels)
         node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
-        return owner, p_node, p_grid, has_partial, node_h
+        return owner, has_partial, node_h
 
     def _split_planes(self, f_lo, f_hi, owner, has_partial, node_h, ity):
         """Split nodes cut by a grid face, and clean nodes with data that are too large, in the
@@ -217,24 +219,34 @@ class KDTree:
         self.leaf_hi = self._world(self._leaf_hi_f)
         self.leaf_owner = np.concatenate(out["leaf_owner"])
 
-    def _order_active(self) -> None:
-        """Sort each leaf's grid list with the active grids first, and summarise them."""
-        L = len(self.leaf_lo)
-        pg, pl = self.overlapping_leaves(self.support_lo, self.support_hi)
+    def _order_active(self, pl, pg) -> None:
+        """Sort each leaf's grid list with the active grids first, and summarise them.
+        ``(pl, pg)``: the (leaf, grid) pairs of the lists, sorted by leaf and then grid (what
+        :meth:`_build` returns; :meth:`_listed_by_descent` is the slow twin)."""
+        L, P = len(self.leaf_lo), len(pl)
         lo, hi, active = self._active_windows(pl, pg)
-        # Sort by leaf, active first, then grid: one sort of a combined key (unique, as a grid
-        # meets a leaf once, so an unstable sort gives the same order; NumPy's is the faster).
-        G = len(self.grid_lo)
-        order = np.argsort((pl * 2 + ~active) * G + pg)
-        pl, pg, active = pl[order], pg[order], active[order]
-        # Each listed grid's cell window in its leaf, kept for the leaf value ranges.
-        self._listed_windows = (np.take(lo, order, axis=0), np.take(hi, order, axis=0))
-        self.leaf_grids = pg.astype(np.int32)
-        self.leaf_nsupport = np.bincount(pl, minlength=L).astype(np.int64)
-        self.leaf_nactive = np.bincount(pl[active], minlength=L).astype(np.int64)
-        self.leaf_start = np.concatenate([[0], np.cumsum(self.leaf_nsupport)[:-1]])
-        # The active pairs are contiguous per leaf: reduce over those runs.
+        # Active first within each leaf, each part in grid order: a stable partition, each
+        # pair's place counted from the leaf's start (no sort).
+        nsupport = np.bincount(pl, minlength=L).astype(np.int64)
+        nactive = np.bincount(pl[active], minlength=L).astype(np.int64)
+        start = np.cumsum(nsupport) - nsupport
+        active_before = np.cumsum(nactive) - nactive
+        seen = np.cumsum(active) - active       # active pairs before each pair
+        place = np.where(active, np.take(start, pl) + seen - np.take(active_before, pl),
+                         np.take(nactive + active_before, pl) + np.arange(P) - seen)
+        # The active grids, leaf after leaf, in the order they will have.
         ga = pg[active]
+        # Only pairs behind an inactive one in their leaf move: permute those in place (the
+        # moved pairs' places are the moved pairs' positions).
+        moved = np.flatnonzero(place != np.arange(P))
+        pg = pg.astype(np.int32)
+        for column in (pg, lo, hi):
+            column[place[moved]] = column[moved]
+        # Each listed grid's cell window in its leaf, kept for the leaf value ranges.
+        self._listed_windows = (lo, hi)
+        self.leaf_grids = pg
+        self.leaf_nsupport, self.leaf_nactive, self.leaf_start = nsupport, nactive, start
+        # The active pairs are contiguous per leaf: reduce over those runs.
         has = self.leaf_nactive > 0
         runs = (np.cumsum(self.leaf_nactive) - self.leaf_nactive)[has]
         self.leaf_levels = np.zeros(L, dtype=np.int64)
@@ -245,6 +257,14 @@ class KDTree:
             for a in range(3):
                 self.leaf_min_h[has, a] = _reduce_runs(
                     np.minimum, np.ascontiguousarray(self.spacing[:, a]), ga, runs, self.chunk)
+
+    def _listed_by_descent(self):
+        """Slow twin of the pairs :meth:`_build` returns: every leaf overlapping each grid's
+        open support, found by descending the built tree with the supports, then sorted by
+        leaf and grid."""
+        pg, pl = self.overlapping_leaves(self.support_lo, self.support_hi)
+        order = np.lexsort((pg, pl))
+        return pl[order], pg[order]
 
     def _active_windows(self, leaf, grid):
         """For (leaf, grid) pairs with overlapping supports: the cell windows of
@@ -608,10 +628,20 @@ def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
     return n_leaves + len(leaf_ids)
 
 
+def _leaf_pairs(axis, n_leaves, p_node, p_grid):
+    """The pairs of one depth's leaves (``axis`` :data:`LEAF`) as (leaf, grid), the leaves
+    numbered from ``n_leaves`` in node order (as :func:`_emit` numbers them)."""
+    is_leaf = axis == LEAF
+    leaf_id = np.cumsum(is_leaf) - 1 + n_leaves
+    keep = np.flatnonzero(np.take(is_leaf, p_node))
+    return np.take(leaf_id, np.take(p_node, keep)), np.take(p_grid, keep)
+
+
 def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = CHUNK):
     """The children of the split nodes (two each, low side first) and the pairs whose open
-    support reaches each side (all low-side pairs, then all high-side ones), ``chunk`` pairs
-    at a time."""
+    support reaches each side, ``chunk`` pairs at a time. Pairs sorted by node (and within
+    a node by grid) give pairs sorted by child (and grid): each side's pairs keep their
+    order, and are placed after the other side's pairs of the earlier parents."""
     _, _, slo, shi = lattice
     sp = np.flatnonzero(axis != LEAF)
     a, pos = axis[sp], plane[sp]
@@ -622,8 +652,8 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = 
     child_of = np.full(len(f_lo), -1, dtype=np.int64)
     child_of[sp] = 2 * np.arange(len(sp))
     slo_flat, shi_flat = slo.reshape(-1), shi.reshape(-1)
-    left, right = [], []
-    for start in range(0, len(p_node), chunk):
+
+    def sides(start):
         child = np.take(child_of, p_node[start:start + chunk])
         keep = np.flatnonzero(child >= 0)
         kn, kg, kc = np.take(p_node[start:start + chunk], keep), np.take(
@@ -631,12 +661,22 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = 
         at, kpos = kg * 3 + np.take(axis, kn), np.take(plane, kn)
         go_left = np.take(slo_flat, at) < kpos
         go_right = np.take(shi_flat, at) > kpos
-        left.append((kc[go_left], kg[go_left]))
-        right.append((kc[go_right] + 1, kg[go_right]))
-    if not left:
+        return kc[go_left], kg[go_left], kc[go_right] + 1, kg[go_right]
+
+    parts = list(parallel.map_ordered(sides, range(0, len(p_node), chunk)))
+    if not parts:
         return c_lo, c_hi, p_node[:0], p_grid[:0]
-    p_node = np.concatenate([n for n, _ in left] + [n for n, _ in right])
-    p_grid = np.concatenate([g for _, g in left] + [g for _, g in right])
+    ln, lg, rn, rg = (np.concatenate(c) for c in zip(*parts))
+    S = len(sp)
+    right_before = np.cumsum(np.bincount(rn >> 1, minlength=S))     # through each parent
+    left_through = np.cumsum(np.bincount(ln >> 1, minlength=S))
+    right_before -= np.bincount(rn >> 1, minlength=S)
+    p_node = np.empty(len(ln) + len(rn), dtype=np.int64)
+    p_grid = np.empty_like(p_node)
+    at_left = np.arange(len(ln)) + np.take(right_before, ln >> 1)
+    at_right = np.arange(len(rn)) + np.take(left_through, rn >> 1)
+    p_node[at_left], p_grid[at_left] = ln, lg
+    p_node[at_right], p_grid[at_right] = rn, rg
     return c_lo, c_hi, p_node, p_grid
 
 
@@ -647,7 +687,8 @@ def _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, *, chunk: int = CHUNK):
     glo, ghi, _, _ = lattice
     overlap = np.empty(len(p_node), dtype=bool)
     contains = np.empty(len(p_node), dtype=bool)
-    for a in range(0, len(p_node), chunk):
+
+    def one_part(a):                # each writes its own rows
         part = slice(a, a + chunk)
         # (np.take gathers rows several times faster than fancy indexing.)
         pl, ph = np.take(f_lo, p_node[part], axis=0), np.take(f_hi, p_node[part], axis=0)
@@ -656,6 +697,8 @@ def _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, *, chunk: int = CHUNK):
         overlap[part] = cut[:, 0] & cut[:, 1] & cut[:, 2]
         inside = (gl <= pl) & (gh >= ph)
         contains[part] = inside[:, 0] & inside[:, 1] & inside[:, 2]
+
+    parallel.for_each(one_part, range(0, len(p_node), chunk))
     return overlap, contains
 
 
