@@ -143,6 +143,8 @@ class KDTree:
         out = {k: [] for k in ("split", "code", "lo", "hi", "depth", "leaf_lo", "leaf_hi",
                                "leaf_owner")}
         listed = []
+        # Each depth's pairs go into one of two buffers, in turn: reused, not new memory.
+        buffers = (_Buffer(), _Buffer())
         base, n_leaves = 0, 0
         for depth in range(max_depth + 1):
             owner, has_partial, node_h = self._classify(f_lo, f_hi, p_node, p_grid, lattice)
@@ -155,7 +157,8 @@ class KDTree:
             if np.all(axis == LEAF):
                 break
             f_lo, f_hi, p_node, p_grid = _children(f_lo, f_hi, axis, plane, p_node, p_grid,
-                                                   lattice, chunk=self.chunk)
+                                                   lattice, chunk=self.chunk,
+                                                   into=buffers[depth % 2])
         self._store(out)
         return tuple(np.concatenate(column) for column in zip(*listed))
 
@@ -637,9 +640,23 @@ def _leaf_pairs(axis, n_leaves, p_node, p_grid):
     return np.take(leaf_id, np.take(p_node, keep)), np.take(p_grid, keep)
 
 
-def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = CHUNK):
+class _Buffer:
+    """Room for (node, grid) pairs that grows when it must and is otherwise reused."""
+
+    def __init__(self):
+        self.rows = np.empty((2, 0), dtype=np.int64)
+
+    def pairs(self, n: int):
+        """Two int64 arrays of ``n`` items (views of the buffer, valid until the next call)."""
+        if n > self.rows.shape[1]:
+            self.rows = np.empty((2, max(n, 2 * self.rows.shape[1])), dtype=np.int64)
+        return self.rows[0, :n], self.rows[1, :n]
+
+
+def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = CHUNK,
+              into: _Buffer | None = None):
     """The children of the split nodes (two each, low side first) and the pairs whose open
-    support reaches each side, ``chunk`` pairs at a time. Pairs sorted by node (and within
+    support reaches each side (in ``into``'s room when given), ``chunk`` pairs at a time. Pairs sorted by node (and within
     a node by grid) give pairs sorted by child (and grid): each side's pairs keep their
     order, and are placed after the other side's pairs of the earlier parents."""
     _, _, slo, shi = lattice
@@ -663,20 +680,27 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = 
         go_right = np.take(shi_flat, at) > kpos
         return kc[go_left], kg[go_left], kc[go_right] + 1, kg[go_right]
 
+    # The chunks' pairs stay in pieces (no whole-depth copies: new memory is slow to touch).
     parts = list(parallel.map_ordered(sides, range(0, len(p_node), chunk)))
     if not parts:
         return c_lo, c_hi, p_node[:0], p_grid[:0]
-    ln, lg, rn, rg = (np.concatenate(c) for c in zip(*parts))
     S = len(sp)
-    right_before = np.cumsum(np.bincount(rn >> 1, minlength=S))     # through each parent
-    left_through = np.cumsum(np.bincount(ln >> 1, minlength=S))
-    right_before -= np.bincount(rn >> 1, minlength=S)
-    p_node = np.empty(len(ln) + len(rn), dtype=np.int64)
-    p_grid = np.empty_like(p_node)
-    at_left = np.arange(len(ln)) + np.take(right_before, ln >> 1)
-    at_right = np.arange(len(rn)) + np.take(left_through, rn >> 1)
-    p_node[at_left], p_grid[at_left] = ln, lg
-    p_node[at_right], p_grid[at_right] = rn, rg
+    n_left, n_right = np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
+    for ln, _, rn, _ in parts:
+        for side, count in ((ln, n_left), (rn, n_right)):
+            if len(side):
+                first = side[0] >> 1
+                count[first:(side[-1] >> 1) + 1] += np.bincount((side >> 1) - first)
+    right_before = np.cumsum(n_right) - n_right         # of the earlier parents
+    left_through = np.cumsum(n_left)                    # of the parents up to this one
+    p_node, p_grid = (into or _Buffer()).pairs(int(n_left.sum() + n_right.sum()))
+    done_left = done_right = 0
+    for ln, lg, rn, rg in parts:
+        at = np.arange(done_left, done_left + len(ln)) + np.take(right_before, ln >> 1)
+        p_node[at], p_grid[at] = ln, lg
+        at = np.arange(done_right, done_right + len(rn)) + np.take(left_through, rn >> 1)
+        p_node[at], p_grid[at] = rn, rg
+        done_left, done_right = done_left + len(ln), done_right + len(rn)
     return c_lo, c_hi, p_node, p_grid
 
 
