@@ -105,8 +105,11 @@ class KDTree:
             self._shi.max(axis=0) - corner, corner - self._slo.min(axis=0), np.ones(3)])))
         self._root = (corner - half, corner + half)
         self.lo, self.hi = self._world(self._root[0]), self._world(self._root[1])
-        self._order_active(*self._build(max_depth))
-        self._ropes()
+        listed = self._build(max_depth)
+        # The ropes need only the nodes, the lists only the pairs: build them side by side.
+        ropes = parallel.beside(self._ropes)
+        self._order_active(*listed)
+        ropes.result()
 
     @classmethod
     def from_arrays(cls, volume, arrays: dict) -> "KDTree":
