@@ -344,16 +344,22 @@ class KDTree:
     def face_boxes(self, nodes):
         """Closed lattice boxes half a finest cell beyond each face of ``nodes`` (6 rows per
         node, face ``2 * axis + side``), and whether each lies outside the tree's box."""
-        lo = np.repeat(self._node_lo[nodes], 6, axis=0)
-        hi = np.repeat(self._node_hi[nodes], 6, axis=0)
-        face = np.tile(np.arange(6), len(nodes))
-        axis, side = face // 2, face % 2
-        rows = np.arange(len(face))
-        plane = np.where(side == 1, hi[rows, axis] + 0.5, lo[rows, axis] - 0.5)
-        lo[rows, axis] = plane
-        hi[rows, axis] = plane
-        outside = np.any((lo < self._root[0]) | (hi > self._root[1]), axis=1)
-        return lo, hi, outside
+        node_lo, node_hi = self._node_lo[nodes], self._node_hi[nodes]
+        lo = np.repeat(node_lo[:, None, :], 6, axis=1)
+        hi = np.repeat(node_hi[:, None, :], 6, axis=1)
+        outside = np.empty((len(nodes), 6), dtype=bool)
+        for face in range(6):
+            axis, side = divmod(face, 2)
+            # Off the face's axis the box is the node's, inside the tree's box.
+            if side:
+                plane = node_hi[:, axis] + 0.5
+                outside[:, face] = plane > self._root[1][axis]
+            else:
+                plane = node_lo[:, axis] - 0.5
+                outside[:, face] = plane < self._root[0][axis]
+            lo[:, face, axis] = plane
+            hi[:, face, axis] = plane
+        return lo.reshape(-1, 3), hi.reshape(-1, 3), outside.reshape(-1)
 
     def _descend_faces(self, nodes, start) -> np.ndarray:
         """For each face of ``nodes`` (6 per node), the deepest node holding its face box,
