@@ -176,15 +176,22 @@ class KDTree:
         level from below, and such a grid cuts no face through it."""
         G, n = len(self.grid_lo), len(f_lo)
         overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, chunk=self.chunk)
-        p_level = self.level[p_grid]
-        partial = overlap & ~contains
+        p_level = np.take(self.level, p_grid).astype(np.int64)
+        # The pairs are sorted by node: reduce over each node's run of them.
+        first = np.flatnonzero(np.concatenate([[True], p_node[1:] != p_node[:-1]])) \
+            if len(p_node) else np.zeros(0, dtype=np.int64)
+        held = np.take(p_node, first)
         best = np.full(n, -1, dtype=np.int64)
-        np.maximum.at(best, p_node[contains], p_level[contains] * G + (G - 1 - p_grid[contains]))
+        if len(first):
+            key = np.where(contains, p_level * G + (G - 1 - p_grid), -1)
+            best[held] = np.maximum.reduceat(key, first)
         owner = np.where(best >= 0, G - 1 - best % G, -1)
         has_partial = np.zeros(n, dtype=bool)
-        has_partial[p_node[partial]] = True
+        finest = np.full(n, -1, dtype=np.int64)
+        if len(first):
+            has_partial[held] = np.logical_or.reduceat(overlap & ~contains, first)
+            finest[held] = np.maximum.reduceat(p_level, first)
         level_h = self._level_h
-        finest = _scatter_max_level(n, p_node, p_level, self.volume.num_levels)
         node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
         return owner, has_partial, node_h
 
@@ -733,15 +740,6 @@ def _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, *, chunk: int = CHUNK):
 
     parallel.for_each(one_part, range(0, len(p_node), chunk))
     return overlap, contains
-
-
-def _scatter_max_level(n, node, level, num_levels) -> np.ndarray:
-    """``out[k]`` = the largest ``level[i]`` with ``node[i] == k`` (-1 where none): one
-    bincount per level, much faster than ``np.maximum.at`` over millions of pairs."""
-    out = np.full(n, -1, dtype=np.int64)
-    for lev in range(num_levels):
-        out[np.bincount(node[level == lev], minlength=n) > 0] = lev
-    return out
 
 
 def _group(pi, gi, n) -> list:
