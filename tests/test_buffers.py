@@ -3,10 +3,13 @@ by the device as they are (no copy), and a preparation keeps nothing of the velo
 derived fields came from."""
 
 import gc
+import os
+import sys
 import weakref
 
 import drjit as dr
 import numpy as np
+import pytest
 
 from mi_amr.core import buffers
 from mi_amr.kernels import prepared
@@ -109,3 +112,43 @@ def test07_level_values_follow_a_replaced_array_unless_fields_are_fixed():
     again = levels.level_values(vol, 0, "vx")
     np.testing.assert_array_equal(again[:n], first[:n] + np.float32(1.0))
     np.testing.assert_array_equal(again[n:], first[n:])
+
+
+
+_REUSE = """
+import ctypes, sys
+import numpy as np
+from mi_amr.core import memory
+
+class Info(ctypes.Structure):   # glibc's struct mallinfo2
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks", "hblkhd",
+                                                "usmblks", "fsmblks", "uordblks", "fordblks",
+                                                "keepcost")]
+
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = Info
+assert memory.keep_freed_memory() == (sys.argv[1] == "keep")
+before = libc.mallinfo2().hblkhd
+a = np.ones(3 << 20)            # 24 MB, below MMAP_THRESHOLD
+mapped = libc.mallinfo2().hblkhd - before
+del a
+print(mapped >> 20, libc.mallinfo2().fordblks >> 20)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test20_freed_memory_is_kept_for_the_next_array():
+    """After memory.keep_freed_memory(), a 24 MB array comes from the heap and, once freed,
+    stays there for the next one; glibc's default maps it from the system (fresh pages, slow
+    to touch) and gives it back. MI_AMR_KEEP_MEMORY=0 leaves the default."""
+    import subprocess
+
+    def megabytes(mode, **env):
+        out = subprocess.run([sys.executable, "-c", _REUSE, mode], capture_output=True,
+                             text=True, check=True, env={**os.environ, **env})
+        return [int(x) for x in out.stdout.split()[-2:]]
+
+    mapped, kept = megabytes("keep")
+    assert mapped == 0 and kept >= 24
+    mapped, kept = megabytes("default", MI_AMR_KEEP_MEMORY="0")
+    assert mapped >= 24 and kept < 24

@@ -17,6 +17,7 @@ from collections import OrderedDict
 import drjit as dr
 
 from mi_amr import params
+from mi_amr.core import memory
 from mi_amr.core.derive import DERIVED_FIELDS
 from mi_amr.kernels import derive as device_derive
 from mi_amr.kernels import snapshot
@@ -37,6 +38,7 @@ class PreparedVolume:
     def __init__(self, volume, field: str, color_field: str | None = None, *,
                  leaf_cells: int = params.default("leaf_cells"), m=None, report=None):
         """``report``: a callable told each step as it ends (one line of text), or None."""
+        memory.keep_freed_memory()
         clock = time.perf_counter()
         self.timings = {}
         self.report = report
@@ -221,6 +223,7 @@ def _prepare_from_file(path, field, color_field, leaf_cells, m, report) -> Prepa
     from mi_amr.readers import available_fields, load
 
     say = report or (lambda text: None)
+    memory.keep_freed_memory()          # the read's buffers too
     names = fields_to_read(field, color_field, available_fields(path))
     t0 = time.perf_counter()
     volume = load(path, fields=names)

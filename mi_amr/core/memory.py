@@ -1,0 +1,39 @@
+"""Asking the C allocator to keep freed memory for reuse during a load.
+
+A load makes and frees many arrays of a few to a few tens of megabytes (chunks of the
+derivation, a depth's pairs in the kd-tree, the leaf ranges' windows). glibc's malloc gives
+such arrays fresh pages from the system and returns them when they are freed, and the first
+write to a fresh page is slow on virtual machines (it costs more than the arithmetic done
+in it). With the two settings below, arrays up to :data:`MMAP_THRESHOLD` come from the heap and
+up to :data:`TRIM_THRESHOLD` of freed heap is kept, so the next array reuses pages already
+touched. The peak memory of a load is unchanged; the process may hold up to
+:data:`TRIM_THRESHOLD` more afterwards. ``MI_AMR_KEEP_MEMORY=0`` leaves the allocator as it is.
+Elsewhere than glibc (macOS, musl) nothing changes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+import sys
+
+MMAP_THRESHOLD = 32 << 20    # bytes; glibc's ceiling for this setting on 64-bit systems
+TRIM_THRESHOLD = 512 << 20   # bytes of freed memory kept at the heap's top
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3     # mallopt's parameter numbers (malloc.h)
+
+
+def keep_freed_memory() -> bool:
+    """Set the two thresholds (see the module docstring); True where they were set. Calling
+    it again sets the same values."""
+    if os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() == "0" or \
+            not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):        # not glibc: no mallopt
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and \
+        bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
