@@ -1,5 +1,8 @@
 """The one exception type for mistakes a user can make (bad file, bad hierarchy, bad parameter),
-and :func:`shown`, how a value is written in its messages."""
+:func:`shown`, how a value is written in its messages, and :func:`print_traceback`, how a
+long-lived thread reports a bug and goes on."""
+
+import traceback
 
 
 class AMRError(ValueError):
@@ -22,3 +25,13 @@ def _plain(value):
     if type(value).__module__ == "numpy" and callable(getattr(value, "tolist", None)):
         return value.tolist()
     return value
+
+
+def print_traceback() -> None:
+    """The exception being handled, printed on stderr, unless stderr cannot be written (a full
+    disk, a file size limit, a closed stream): a thread that answers requests (the viewer's)
+    must go on answering either way."""
+    try:
+        traceback.print_exc()
+    except (OSError, ValueError):       # ValueError: stderr closed
+        pass

@@ -629,6 +629,62 @@ def test12b_slow_previews_get_smaller_and_grow_back(variant):
     assert sizes == [32, 32] and worker.scale == worker.preview_scale == 2
 
 
+def test12c_a_bug_the_render_thread_cannot_print_still_gets_an_answer(variant, monkeypatch):
+    """A job that fails while stderr cannot be written (a full disk, a file size limit) is
+    still answered on the page, and the render thread goes on with the next job (it used to
+    die printing the traceback, and every later request waited for ever)."""
+    import sys
+    import threading
+
+    from mi_amr.workflows.viewer.worker import RenderWorker
+
+    class Scene:
+        resolution = (8, 8)
+        state = plain_state()
+        compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
+                    "steps": 0, "preview_sizes": 0}
+
+        def render(self, size, spp, seed=0, preview=False):
+            return np.zeros((size[1], size[0], 3), dtype=np.float32)
+
+        def render_refined(self, size, spp, before_pass=None):
+            return self.render(size, spp)
+
+        def prefetch_next(self):
+            pass
+
+        def close(self):
+            pass
+
+    class Unwritable:
+        def write(self, text):
+            raise OSError(27, "File too large")
+
+        def flush(self):
+            raise OSError(27, "File too large")
+
+    errors, later = [], threading.Event()
+
+    def publish(kind, payload, data):
+        if kind == "error":
+            errors.append(payload["message"])
+
+    def broken(session):
+        raise RuntimeError("a bug")
+
+    worker = RenderWorker(Scene, publish, idle_s=60.0)
+    worker.start()
+    try:
+        monkeypatch.setattr(sys, "stderr", Unwritable())
+        worker.job(broken)
+        worker.job(lambda session: later.set())
+        assert later.wait(10), "the render thread stopped after the failed job"
+    finally:
+        monkeypatch.undo()
+        worker.stop()
+    assert errors == ["internal error: RuntimeError('a bug')"]
+
+
 def test13_a_frame_ready_before_the_server_runs_is_kept(tmp_path):
     """The first frame can be rendered before the server's event loop runs (the render thread
     starts first): the hub keeps the render thread's reports until the loop is attached, then

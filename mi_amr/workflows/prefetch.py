@@ -9,9 +9,8 @@ overlap.
 from __future__ import annotations
 
 import threading
-import traceback
 
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, print_traceback
 
 
 class Prefetcher:
@@ -48,7 +47,7 @@ class Prefetcher:
         except AMRError:                # a bad file: the step loads it itself and says why
             pass
         except Exception:               # a bug: print it; the step loads the file itself
-            traceback.print_exc()
+            print_traceback()
 
     def wait(self) -> None:
         """Until the preparation under way (if any) is done."""

@@ -14,11 +14,10 @@ import json
 import re
 import struct
 import threading
-import traceback
 from collections import deque
 from pathlib import Path
 
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, print_traceback
 from mi_amr.workflows.viewer import bands, controls, tf2d
 from mi_amr.workflows.viewer.paths import FileRules
 from mi_amr.workflows.viewer.sceneio import MARK, scene_text, write_table
@@ -227,7 +226,7 @@ class Hub:
         except (OSError, UnicodeError) as e:     # the disk, or a file that is not text
             client.post(error_message(f"{msg.get('op')}: {type(e).__name__}: {e}"))
         except Exception as e:           # a bug: report it and keep serving
-            traceback.print_exc()
+            print_traceback()
             client.post(error_message(f"internal error: {type(e).__name__}"))
 
     def _change(self, new) -> None:

@@ -24,13 +24,12 @@ from __future__ import annotations
 
 import threading
 import time
-import traceback
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, print_traceback
 from mi_amr.workflows.viewer.state import structure
 
 # seconds: the longest a preview may take before the next ones are made smaller (the default of
@@ -123,7 +122,7 @@ class RenderWorker:
             self.error = e
         except Exception as e:  # reported to the command line, which exits with it
             self.error = AMRError(f"the viewer could not start: {e}")
-            traceback.print_exc()
+            print_traceback()
         self._ready.set()
         if self.error is not None:
             return
@@ -142,7 +141,7 @@ class RenderWorker:
                 self.publish("error", {"message": str(e), "state": self.session.state,
                                        "version": item[1] if kind == "show" else None}, None)
             except Exception as e:   # a bug: say so on the page and keep serving
-                traceback.print_exc()
+                print_traceback()
                 self.publish("error", {"message": f"internal error: {e!r}", "version": None,
                                        "state": self.session.state}, None)
         self.session.close()
