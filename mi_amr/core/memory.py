@@ -19,7 +19,7 @@ import os
 import sys
 
 MMAP_THRESHOLD = 32 << 20    # bytes; glibc's ceiling for this setting on 64-bit systems
-TRIM_THRESHOLD = 512 << 20   # bytes of freed memory kept at the heap's top
+TRIM_THRESHOLD = 64 << 20    # bytes of freed memory kept at the heap's top (twice MMAP_THRESHOLD)
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3     # mallopt's parameter numbers (malloc.h)
 
 
