@@ -124,7 +124,9 @@ class KDTree:
     def _world(self, u, axis=None):
         """World coordinates of lattice coordinates ``u`` (all axes, or one ``axis``)."""
         if axis is None:
-            return self.volume.anchor + u * self.h_fine
+            out = u * self.h_fine
+            out += self.volume.anchor           # (the same sum, with one temporary fewer)
+            return out
         return self.volume.anchor[axis] + u * self.h_fine[axis]
 
     # ------------------------------------------------------------------ build
@@ -217,17 +219,17 @@ class KDTree:
     def _store(self, out) -> None:
         """The emitted depths as the tree's arrays (world space next to lattice ones)."""
         self.node_code = np.concatenate(out["code"])
-        self._node_split = np.concatenate(out["split"]).astype(np.float64)
-        self._node_lo = np.concatenate(out["lo"]).astype(np.float64)
-        self._node_hi = np.concatenate(out["hi"]).astype(np.float64)
+        self._node_split = np.concatenate(out["split"], dtype=np.float64)
+        self._node_lo = np.concatenate(out["lo"], dtype=np.float64)
+        self._node_hi = np.concatenate(out["hi"], dtype=np.float64)
         axis = np.minimum(self.node_code & 3, 2)
         self.node_split = self._world(self._node_split, axis)
         self.node_lo = self._world(self._node_lo)
         self.node_hi = self._world(self._node_hi)
         self.node_depth = np.concatenate(out["depth"])
         self.depth = len(out["code"])
-        self._leaf_lo_f = np.concatenate(out["leaf_lo"]).astype(np.float64)
-        self._leaf_hi_f = np.concatenate(out["leaf_hi"]).astype(np.float64)
+        self._leaf_lo_f = np.concatenate(out["leaf_lo"], dtype=np.float64)
+        self._leaf_hi_f = np.concatenate(out["leaf_hi"], dtype=np.float64)
         self.leaf_lo = self._world(self._leaf_lo_f)
         self.leaf_hi = self._world(self._leaf_hi_f)
         self.leaf_owner = np.concatenate(out["leaf_owner"])
