@@ -423,6 +423,29 @@ def test15b4_listed_pairs_equal_their_slow_twin(seed):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test15b5_leaf_windows_are_the_listed_pairs_each_reconstruction_reads(seed):
+    """leaf_windows picks, leaf by leaf, the pairs the reconstruction reads: of an owned leaf,
+    its active grids (basis) or all its listed grids (None), those whose cell window is not
+    empty, with the windows of :meth:`KDTree._windows`. The slow twin walks the leaves one
+    by one."""
+    vol = AMRVolume.from_grids(random_grids(seed, ratios=((2, 2), (4, 2), (2, 4))[seed],
+                                            fn=random_field(seed)))
+    tree = KDTree(vol, leaf_cells=4)
+    for reconstruction, count in (("basis", tree.leaf_nactive), (None, tree.leaf_nsupport)):
+        want = []
+        for leaf in np.flatnonzero(tree.leaf_owner >= 0):
+            start = tree.leaf_start[leaf]
+            for grid in tree.leaf_grids[start:start + count[leaf]]:
+                lo, hi = (w[0] for w in tree._windows(np.array([leaf]), np.array([grid])))
+                if np.all(hi >= lo):
+                    want.append((leaf, grid, *lo, *hi))
+        pl, pg, lo, hi = tree.leaf_windows("f", reconstruction)
+        got = np.column_stack([pl, pg, lo, hi])
+        assert 0 < len(got) < tree.leaf_nsupport.sum() * 1.01
+        np.testing.assert_array_equal(got, np.array(want), err_msg=str(reconstruction))
+
+
 def test15c_ropes_equal_their_slow_twin(tree):
     """Ropes built top-down from the parents' equal the descents of every face from the root."""
     np.testing.assert_array_equal(tree.node_ropes, tree._ropes_from_root())

@@ -463,24 +463,18 @@ class KDTree:
     def _listed_pairs(self, count):
         """The first ``count[l]`` listed grids of each leaf ``l`` with a non-empty cell window
         in an owned leaf: ``(leaf, grid, lo, hi)``, windows as in :meth:`_windows` (int32),
-        gathered :attr:`chunk` pairs at a time."""
-        L = self.num_leaves
-        pl = np.repeat(np.arange(L), count)
-        first = np.repeat(self.leaf_start, count)
-        at = first + np.arange(len(pl)) - np.repeat(np.cumsum(count) - count, count)
+        picked by one mask over all listed pairs (gathered once, not chunk by chunk and then
+        joined)."""
+        nsupport = self.leaf_nsupport
+        leaf = np.repeat(np.arange(self.num_leaves), nsupport)
+        keep = np.arange(len(leaf)) - np.take(self.leaf_start, leaf) < np.take(count, leaf)
+        keep &= np.take(self.leaf_owner >= 0, leaf)
         w_lo, w_hi = self._listed_windows
-        owned = self.leaf_owner >= 0
-        parts = []
-        for a in range(0, len(at), self.chunk):
-            leaf, pos = pl[a:a + self.chunk], at[a:a + self.chunk]
-            lo, hi = np.take(w_lo, pos, axis=0), np.take(w_hi, pos, axis=0)
-            keep = np.flatnonzero((hi >= lo).all(axis=1) & owned[leaf])
-            parts.append((leaf[keep], self.leaf_grids[pos[keep]].astype(np.int64), lo[keep],
-                          hi[keep]))
-        if not parts:
-            return (np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64),
-                    np.zeros((0, 3), dtype=np.int32), np.zeros((0, 3), dtype=np.int32))
-        return tuple(np.concatenate(column) for column in zip(*parts))
+        for a in range(3):
+            keep &= w_hi[:, a] >= w_lo[:, a]
+        at = np.flatnonzero(keep)
+        return (np.take(leaf, at), np.take(self.leaf_grids, at).astype(np.int64),
+                np.take(w_lo, at, axis=0), np.take(w_hi, at, axis=0))
 
     # ------------------------------------------------------------------ queries
     def check(self, field: str | None = None, **kw) -> dict:
