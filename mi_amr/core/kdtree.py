@@ -179,20 +179,18 @@ class KDTree:
         G, n = len(self.grid_lo), len(f_lo)
         overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, chunk=self.chunk)
         p_level = np.take(self.level, p_grid).astype(np.int64)
-        # The pairs are sorted by node: reduce over each node's run of them.
-        first = np.flatnonzero(np.concatenate([[True], p_node[1:] != p_node[:-1]])) \
-            if len(p_node) else np.zeros(0, dtype=np.int64)
-        held = np.take(p_node, first)
         best = np.full(n, -1, dtype=np.int64)
-        if len(first):
-            key = np.where(contains, p_level * G + (G - 1 - p_grid), -1)
-            best[held] = np.maximum.reduceat(key, first)
-        owner = np.where(best >= 0, G - 1 - best % G, -1)
         has_partial = np.zeros(n, dtype=bool)
         finest = np.full(n, -1, dtype=np.int64)
+        # The pairs are sorted by node: reduce over each node's run of them.
+        first = run_starts(p_node)
         if len(first):
+            held = np.take(p_node, first)
+            key = np.where(contains, p_level * G + (G - 1 - p_grid), -1)
+            best[held] = np.maximum.reduceat(key, first)
             has_partial[held] = np.logical_or.reduceat(overlap & ~contains, first)
             finest[held] = np.maximum.reduceat(p_level, first)
+        owner = np.where(best >= 0, G - 1 - best % G, -1)
         level_h = self._level_h
         node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
         return owner, has_partial, node_h
@@ -643,6 +641,13 @@ def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
     return n_leaves + len(leaf_ids)
 
 
+def run_starts(keys) -> np.ndarray:
+    """Where each run of equal values of the sorted array ``keys`` starts (empty for none)."""
+    if len(keys) == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
+
+
 def _leaf_pairs(axis, n_leaves, p_node, p_grid):
     """The pairs of one depth's leaves (``axis`` :data:`LEAF`) as (leaf, grid), the leaves
     numbered from ``n_leaves`` in node order (as :func:`_emit` numbers them)."""
@@ -668,9 +673,10 @@ class _Buffer:
 def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = CHUNK,
               into: _Buffer | None = None):
     """The children of the split nodes (two each, low side first) and the pairs whose open
-    support reaches each side (in ``into``'s room when given), ``chunk`` pairs at a time. Pairs sorted by node (and within
-    a node by grid) give pairs sorted by child (and grid): each side's pairs keep their
-    order, and are placed after the other side's pairs of the earlier parents."""
+    support reaches each side (in ``into``'s room when given), ``chunk`` pairs at a time.
+    Pairs sorted by node (and within a node by grid) give pairs sorted by child (and grid):
+    each side's pairs keep their order, and are placed after the other side's pairs of the
+    earlier parents."""
     _, _, slo, shi = lattice
     sp = np.flatnonzero(axis != LEAF)
     a, pos = axis[sp], plane[sp]

@@ -17,6 +17,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
+from mi_amr.core.kdtree import run_starts
 from mi_amr.kernels.arrays import device_array
 
 
@@ -55,7 +56,7 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
     out_lo = np.full(tree.num_leaves, np.inf, dtype=np.float32)
     out_hi = np.full(tree.num_leaves, -np.inf, dtype=np.float32)
     if len(pl):
-        first = np.flatnonzero(np.concatenate([[True], pl[1:] != pl[:-1]]))
+        first = run_starts(pl)
         out_lo[pl[first]] = np.minimum.reduceat(vmin, first)
         out_hi[pl[first]] = np.maximum.reduceat(vmax, first)
     return out_lo, out_hi
