@@ -119,6 +119,34 @@ def test01_a_ray_through_three_bands_matches_float64_quadrature(setup, direction
     assert res.T.numpy()[0] == pytest.approx(T_ref, abs=MATCH)
 
 
+@pytest.mark.parametrize("inside", [-0.6, 0.6])
+def test01b_rays_that_start_inside_a_band_match_float64_quadrature(setup, inside):
+    """Rays that start inside each band, a fraction ``inside`` of the way from its isovalue
+    to its support's end, and leave it both ways: the first piece's values then cover only
+    part of the band (the march skips a band by the piece's value range, see
+    ``composite._met_band_opacities``), and the rest of the ray the other bands."""
+    dev, cfg, shapes = setup
+    rows = []
+    for (c, _, _), shape in zip(BANDS, shapes):
+        x0 = 0.5 * (c + inside * (shape.hi if inside > 0 else -shape.lo))
+        for direction in (1.0, -1.0):
+            rows.append((np.array([x0, 0.37, 0.41]), np.array([direction * 0.9, 0.05, -0.03])))
+    o = np.array([r[0] for r in rows])
+    d = np.array([r[1] for r in rows])
+    # each ray runs to its side of the cube, a little short of it
+    t1 = np.where(d[:, 0] > 0, (0.99 - o[:, 0]) / d[:, 0], (0.01 - o[:, 0]) / d[:, 0])
+    o_k, d_k = M.Array3f(*(o[:, i] for i in range(3))), M.Array3f(*(d[:, i] for i in range(3)))
+    res = composite(RayContext(dev, cfg, o_k, d_k, M.Float(np.zeros(len(rows))),
+                               M.Float(t1), M.Bool(np.ones(len(rows), bool))),
+                    M.Float(0.5), Shading(color_of, FlatLight()))
+    C = np.stack([res.C.x.numpy(), res.C.y.numpy(), res.C.z.numpy()], axis=-1)
+    for i, (oi, di) in enumerate(rows):
+        C_ref, T_ref = quadrature(shapes, oi, di, t1[i], n=400_000)
+        assert T_ref < 0.999     # the ray meets opacity in its first band
+        np.testing.assert_allclose(C[i], C_ref, atol=MATCH, rtol=0, err_msg=f"ray {i}")
+        assert res.T.numpy()[i] == pytest.approx(T_ref, abs=MATCH), i
+
+
 def test02_a_steps_opacity_and_centroid_match_quadrature():
     """Random ramps (long and short, in and out of the support, both ways, thin to opaque) on
     a capped and an uncapped band: the opacity to 5e-5 and the light's error per unit of
@@ -139,3 +167,43 @@ def test02_a_steps_opacity_and_centroid_match_quadrature():
         err = np.abs(u.numpy() - ref[:, 1]) * ref[:, 0]
         assert err.max() < tol.CENTROID_ABS, err.max()
         assert np.quantile(err, 0.9) < 0.1 * tol.CENTROID_ABS
+
+
+def saddle_cube():
+    """One grid of 2^3 cells over the unit cube whose field ``f`` is ``u + v - 2 u v`` between
+    the cell centres (``u``, ``v``: x and y from the first centre to the last, 0 to 1), so
+    that along the diagonal ``u = v = s`` it rises to 0.5 at ``s = 1/2`` and falls back; the
+    colour field ``c`` is ``x``."""
+    u = np.array([0.0, 1.0])
+    f = (u[:, None] + u[None, :] - 2.0 * u[:, None] * u[None, :])[:, :, None] * np.ones(2)
+    c = np.broadcast_to(np.array([0.25, 0.75])[:, None, None], (2, 2, 2)).copy()
+    return AMRVolume.from_grids([{"level": 0, "origin": (0.0, 0.0, 0.0), "spacing": 0.5,
+                                  "fields": {"f": f, "c": c}}])
+
+
+def test01c_a_piece_that_turns_inside_the_band_shades_both_of_its_sides():
+    """A piece whose value rises into the band and falls back (two sub-pieces with opacity,
+    the colour field different on each): its light equals that of the same ray cut at the
+    turn into two rays, each composited on its own (``C1 + T1 C2``), where each side is
+    shaded as a piece's first sub-piece. Giving the second sub-piece the first's colours
+    fails it."""
+    vol = saddle_cube()
+    dev = PreparedVolume(vol, "f", "c", m=M).device
+    shape = band.OpacityBand(width=0.03, peak=0.5, dx0=float(dev.min_h.numpy()[0]))
+    cfg = MarchConfig(method="exact", basis=False, isovalues=opaque_floats(M, [0.45]),
+                      step_scale=opaque_floats(M, [0.5]), num_iso=1,
+                      band=band.band_inputs(M, [shape]), shading_extrema=False)
+    o, d = M.Array3f(0.25, 0.25, 0.5), M.Array3f(0.5, 0.5, 0.0)
+    # the whole diagonal of the cell between the centres, its half to the turn, the rest
+    t0, t1 = M.Float([1e-4, 1e-4, 0.5]), M.Float([1.0 - 1e-4, 0.5, 1.0 - 1e-4])
+    res = composite(RayContext(dev, cfg, M.Array3f(o), M.Array3f(d), t0, t1,
+                               M.Bool([True] * 3)),
+                    M.Float(0.5), Shading(lambda shares, value: M.Array3f(value, 1.0 - value, 0.0),
+                                          FlatLight()))
+    C = np.stack([res.C.x.numpy(), res.C.y.numpy()], axis=-1)
+    T = res.T.numpy()
+    # both sides lit, in colours (x : 1 - x) of their own
+    assert T[1] < 0.97 and T[2] < 0.97
+    assert C[2, 0] / C[2, 1] - C[1, 0] / C[1, 1] > 0.1, C
+    np.testing.assert_allclose(C[0], C[1] + T[1] * C[2], atol=MATCH)
+    assert T[0] == pytest.approx(T[1] * T[2], abs=MATCH)

@@ -279,14 +279,19 @@ class SubPiece:
 def _sub_pieces(ray: RayContext, piece: Piece, have, centres):
     """Per sub-piece its :class:`SubPiece`."""
     m, cfg = ray.m, ray.cfg
+    dxs = [(piece.s_pts[i + 1] - piece.s_pts[i]) * ray.dnorm
+           for i in range(len(piece.s_pts) - 1)]
+    if cfg.transfer2d is not None:
+        per_band = [[_opacity2d(ray, piece, i, dx) for i, dx in enumerate(dxs)]]
+    elif len(centres) == 1:
+        per_band = [_band_opacities(ray, piece, dxs, (0, centres[0]))]
+    else:
+        v_lo, v_hi = _value_range(piece.values)
+        per_band = [_met_band_opacities(ray, piece, dxs, (k, c), (v_lo, v_hi))
+                    for k, c in enumerate(centres)]
     out = []
-    # what each band needs of each cut, shared by the sub-pieces on either side
-    ints = [] if cfg.transfer2d is not None else \
-        [[cut_point(m, cfg.band, k, v - c) for v in piece.values] for k, c in enumerate(centres)]
-    for i in range(len(piece.s_pts) - 1):
-        dx = (piece.s_pts[i + 1] - piece.s_pts[i]) * ray.dnorm
-        alphas = [dr.select(have & (dx > 0.0), a, 0.0)
-                  for a in _opacities(ray, piece, i, dx, centres, ints)]
+    for i, dx in enumerate(dxs):
+        alphas = [dr.select(have & (dx > 0.0), band[i], 0.0) for band in per_band]
         k_best, c_best, best = m.UInt32(0), centres[0], alphas[0]
         trans = 1.0 - alphas[0]
         for k in range(1, len(alphas)):
@@ -299,22 +304,46 @@ def _sub_pieces(ray: RayContext, piece: Piece, have, centres):
     return out
 
 
-def _opacities(ray: RayContext, piece: Piece, i, dx, centres, ints):
-    """Each band's pre-integrated opacity on sub-piece ``i`` (its values run from
-    ``piece.values[i]`` to the next, over length ``dx``, world; ``ints[k][j]``: band ``k``'s
-    :func:`~mi_amr.kernels.band.cut_point` at cut ``j``); with a 2D transfer function its one
-    band, at the gradient magnitude of the sub-piece's middle."""
+def _band_opacities(ray: RayContext, piece: Piece, dxs, band):
+    """Band ``band`` (its index and isovalue)'s pre-integrated opacity on each sub-piece
+    (their values run from ``piece.values[i]`` to the next, over lengths ``dxs``, world); the
+    cuts' :func:`~mi_amr.kernels.band.cut_point` shared by the sub-pieces on either side."""
     m, cfg = ray.m, ray.cfg
-    a, b = piece.values[i], piece.values[i + 1]
-    if cfg.transfer2d is None:
-        return [segment_alpha(m, cfg.band, k, Ramp(a, b, dx), c, (ints[k][i], ints[k][i + 1]))
-                for k, c in enumerate(centres)]
+    k, c = band
+    ints = [cut_point(m, cfg.band, k, v - c) for v in piece.values]
+    return [segment_alpha(m, cfg.band, k, Ramp(piece.values[i], piece.values[i + 1], dx), c,
+                          (ints[i], ints[i + 1]))
+            for i, dx in enumerate(dxs)]
+
+
+@dr.syntax
+def _met_band_opacities(ray: RayContext, piece: Piece, dxs, band, value_range):
+    """:func:`_band_opacities`, 0 on every sub-piece where the piece's values
+    (``value_range``: their ``(lo, hi)``) miss the band's support, as they give there; a
+    packet whose lanes all miss it skips it (a symbolic branch: a piece seldom meets more
+    than one band of several)."""
+    m, cfg = ray.m, ray.cfg
+    k, c = band
+    v_lo, v_hi = value_range
+    meets = (v_lo < c + cfg.band.get(m, "hi", k)) & (v_hi > c + cfg.band.get(m, "lo", k))
+    out = [m.Float(0.0) for _ in dxs]
+    if dr.hint(meets, label="band_met"):
+        out = _band_opacities(ray, piece, dxs, band)
+    return out
+
+
+def _opacity2d(ray: RayContext, piece: Piece, i, dx):
+    """The 2D transfer function's opacity on sub-piece ``i`` (its values run from
+    ``piece.values[i]`` to the next, over length ``dx``, world), at the gradient magnitude of
+    the sub-piece's middle."""
     mid = 0.5 * (piece.s_pts[i] + piece.s_pts[i + 1])
-    return [segment_alpha2d(m, cfg.transfer2d, a, b, dx, dr.norm(piece.gradient(mid)))]
+    return segment_alpha2d(ray.m, ray.cfg.transfer2d, piece.values[i], piece.values[i + 1], dx,
+                           dr.norm(piece.gradient(mid)))
 
 
 def _two_most_opaque(m, subs):
-    """The indices of the most and the second most opaque sub-pieces (lane values)."""
+    """The indices of the most and the second most opaque sub-pieces (lane values), and the
+    second's opacity."""
     i1, i2 = m.UInt32(0), m.UInt32(0)
     a1, a2 = m.Float(-1.0), m.Float(-1.0)
     for i, sub in enumerate(subs):
@@ -324,7 +353,7 @@ def _two_most_opaque(m, subs):
         a2 = dr.select(first, a1, dr.select(second, sub.alpha, a2))
         i1 = dr.select(first, i, i1)
         a1 = dr.select(first, sub.alpha, a1)
-    return i1, i2
+    return i1, i2, a2
 
 
 def _pick(piece: Piece, subs, dnorm, i):
@@ -410,9 +439,9 @@ def _piece_light(ray: RayContext, piece: Piece, subs, lit: Lit):
     met in the order of the value ramp. Also the piece's light from the correcting light
     alone, unshadowed by the band (None where the lighting does not correct)."""
     m = ray.m
-    i1, i2 = _two_most_opaque(m, subs)
+    i1, i2, a2 = _two_most_opaque(m, subs)
     first = _shaded_colors(ray, piece, subs, i1, lit)
-    second = _shaded_colors(ray, piece, subs, i2, lit)
+    second = _second_colors(ray, piece, subs, (i2, a2), (lit, first))
     kinds = 1 if first[1] is None else 2
     C = [m.Array3f(0.0) for _ in range(kinds)]
     T = m.Float(1.0)
@@ -428,6 +457,19 @@ def _piece_light(ray: RayContext, piece: Piece, subs, lit: Lit):
             C[kind] += T * light
         T *= trans
     return C[0], T, (C[1] if kinds == 2 else None)
+
+
+@dr.syntax
+def _second_colors(ray: RayContext, piece: Piece, subs, second, shaded):
+    """:func:`_shaded_colors` of the second most opaque sub-piece (``second``: its index and
+    opacity), or the first's (``shaded``: the :class:`Lit` and the first's colours) where it
+    has no opacity: it then adds no light whatever its colours, so a packet whose lanes all
+    have none skips its shading (a symbolic branch)."""
+    i2, a2 = second
+    lit, out = shaded
+    if dr.hint(a2 > 0.0, label="second_shade"):
+        out = _shaded_colors(ray, piece, subs, i2, lit)
+    return out
 
 
 def _one_hot(n, k):
