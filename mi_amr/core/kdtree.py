@@ -27,7 +27,7 @@ import numpy as np
 
 from mi_amr import params
 from mi_amr.core import parallel
-from mi_amr.core.buffers import joined
+from mi_amr.core.buffers import aligned_full, joined
 from mi_amr.core.boxes import contains_points
 from mi_amr.core.points import (as_points, finest_of,  # noqa: F401  (twins: tests)
                                 finest_grid_bruteforce, support_grids_bruteforce)
@@ -57,11 +57,10 @@ class KDTree:
     # :meth:`from_arrays` makes the tree from them again without building it.
     STATE = ("_ghi", "_glo", "_leaf_hi_f", "_leaf_lo_f", "_level_h", "_listed_windows",
              "_node_hi", "_node_lo", "_node_split", "_root", "_shi", "_slo", "_step_f", "depth",
-             "grid_hi", "grid_lo", "h_fine", "hi", "leaf_cells", "leaf_grids", "leaf_hi",
-             "leaf_levels", "leaf_lo", "leaf_min_h", "leaf_nactive", "leaf_node",
+             "grid_hi", "grid_lo", "h_fine", "hi", "leaf_cells", "leaf_grids",
+             "leaf_levels", "leaf_min_h", "leaf_nactive", "leaf_node",
              "leaf_nsupport", "leaf_owner", "leaf_start", "level", "lo", "node_code",
-             "node_depth", "node_hi", "node_lo", "node_ropes", "node_split", "shape", "spacing",
-             "support_hi", "support_lo")
+             "node_depth", "node_ropes", "shape", "spacing", "support_hi", "support_lo")
 
     def __init__(self, volume, *, leaf_cells: int = params.default("leaf_cells"),
                  max_depth: int = 80, arrays: dict | None = None, chunk: int = CHUNK,
@@ -215,28 +214,56 @@ class KDTree:
         return axis, plane
 
     def _store(self, out) -> None:
-        """The emitted depths as the tree's arrays (world space next to lattice ones)."""
+        """The emitted depths as the tree's arrays, in lattice coordinates (the world boxes
+        and splits are computed from them when asked for: :attr:`node_lo` and the others)."""
         self.node_code = np.concatenate(out["code"])
         self._node_split = np.concatenate(out["split"], dtype=np.float64)
         self._node_lo = np.concatenate(out["lo"], dtype=np.float64)
         self._node_hi = np.concatenate(out["hi"], dtype=np.float64)
-        axis = np.minimum(self.node_code & 3, 2)
-        self.node_split = self._world(self._node_split, axis)
-        self.node_lo = self._world(self._node_lo)
-        self.node_hi = self._world(self._node_hi)
         self.node_depth = np.concatenate(out["depth"])
         self.depth = len(out["code"])
         self._leaf_lo_f = np.concatenate(out["leaf_lo"], dtype=np.float64)
         self._leaf_hi_f = np.concatenate(out["leaf_hi"], dtype=np.float64)
-        self.leaf_lo = self._world(self._leaf_lo_f)
-        self.leaf_hi = self._world(self._leaf_hi_f)
         self.leaf_owner = np.concatenate(out["leaf_owner"])
+
+    # World boxes and splits: computed from the lattice ones on each use, not stored (a copy
+    # of each would hold a third of the tree's memory). Each is float64 in world units.
+    @property
+    def node_lo(self) -> np.ndarray:
+        """Lower corner of each node's box, ``(N, 3)``."""
+        return self._world(self._node_lo)
+
+    @property
+    def node_hi(self) -> np.ndarray:
+        """Upper corner of each node's box, ``(N, 3)``."""
+        return self._world(self._node_hi)
+
+    @property
+    def node_split(self) -> np.ndarray:
+        """Split plane of each node on its axis, ``(N,)`` (a leaf has none: its entry, the
+        anchor's z, is never read)."""
+        return self.split_of(np.arange(self.num_nodes))
+
+    def split_of(self, nodes) -> np.ndarray:
+        """:attr:`node_split` of ``nodes`` alone."""
+        axis = np.minimum(np.take(self.node_code, nodes) & 3, 2)
+        return self._world(np.take(self._node_split, nodes), axis)
+
+    @property
+    def leaf_lo(self) -> np.ndarray:
+        """Lower corner of each leaf's box, ``(L, 3)``."""
+        return self._world(self._leaf_lo_f)
+
+    @property
+    def leaf_hi(self) -> np.ndarray:
+        """Upper corner of each leaf's box, ``(L, 3)``."""
+        return self._world(self._leaf_hi_f)
 
     def _order_active(self, pl, pg) -> None:
         """Sort each leaf's grid list with the active grids first, and summarise them.
         ``(pl, pg)``: the (leaf, grid) pairs of the lists, sorted by leaf and then grid (what
         :meth:`_build` returns; :meth:`_listed_by_descent` is the slow twin)."""
-        L, P = len(self.leaf_lo), len(pl)
+        L, P = self.num_leaves, len(pl)
         lo, hi, active = self._active_windows(pl, pg)
         # Active first within each leaf, each part in grid order: a stable partition, each
         # pair's place counted from the leaf's start (no sort).
@@ -326,7 +353,8 @@ class KDTree:
         parent = np.full(N, -1, dtype=np.int64)
         parent[code[inner] >> 2] = inner
         parent[(code[inner] >> 2) + 1] = inner
-        ropes = np.zeros((N, 6), dtype=np.int64)
+        # uint32 and aligned, as the device reads them: its array maps these, no copy.
+        ropes = aligned_full(N * 6, 0, np.uint32).reshape(N, 6)
         for depth in range(1, self.depth):
             nodes = np.flatnonzero(self.node_depth == depth)
             if len(nodes) == 0:
@@ -462,16 +490,18 @@ class KDTree:
         """The first ``count[l]`` listed grids of each leaf ``l`` with a non-empty cell window
         in an owned leaf: ``(leaf, grid, lo, hi)``, windows as in :meth:`_windows` (int32),
         picked by one mask over all listed pairs (gathered once, not chunk by chunk and then
-        joined)."""
-        nsupport = self.leaf_nsupport
-        leaf = np.repeat(np.arange(self.num_leaves), nsupport)
-        keep = np.arange(len(leaf)) - np.take(self.leaf_start, leaf) < np.take(count, leaf)
-        keep &= np.take(self.leaf_owner >= 0, leaf)
+        joined). The mask is made per leaf (its first pairs kept, the rest not), so nothing
+        the size of all pairs is held but the mask and the windows' test."""
+        taken = np.where(self.leaf_owner >= 0, np.minimum(count, self.leaf_nsupport), 0)
+        runs = np.stack([taken, self.leaf_nsupport - taken], axis=1).ravel()
+        keep = np.repeat(np.tile(np.array([True, False]), self.num_leaves), runs)
         w_lo, w_hi = self._listed_windows
         for a in range(3):
             keep &= w_hi[:, a] >= w_lo[:, a]
         at = np.flatnonzero(keep)
-        return (np.take(leaf, at), np.take(self.leaf_grids, at).astype(np.int64),
+        del keep
+        leaf = np.searchsorted(self.leaf_start, at, side="right") - 1
+        return (leaf, np.take(self.leaf_grids, at).astype(np.int64),
                 np.take(w_lo, at, axis=0), np.take(w_hi, at, axis=0))
 
     # ------------------------------------------------------------------ queries
@@ -486,7 +516,7 @@ class KDTree:
 
     @property
     def num_leaves(self) -> int:
-        return len(self.leaf_lo)
+        return len(self._leaf_lo_f)
 
     @property
     def num_nodes(self) -> int:
@@ -507,7 +537,7 @@ class KDTree:
                 break
             code, axis = code[inner], axis[inner]
             n = node[todo]
-            up = points[todo, axis] >= self.node_split[n]
+            up = points[todo, axis] >= self.split_of(n)
             node[todo] = (code >> 2) + up
         return self.node_code[node] >> 2
 
@@ -539,7 +569,7 @@ class KDTree:
             q, code, axis = q[inner], code[inner], axis[inner]
             if len(q) == 0:
                 break
-            split = np.take(self.node_split, np.take(node, np.flatnonzero(inner)))
+            split = self.split_of(np.take(node, np.flatnonzero(inner)))
             at = q * 3 + axis
             left = np.take(lo_flat, at) < split
             right = np.take(hi_flat, at) > split

@@ -1,12 +1,12 @@
 """Host arrays handed to the kernels: copied into aligned memory first (see
 :func:`host_aligned`), so that the code Dr.Jit compiles for them does not depend on where NumPy
-put them."""
+put them, or mapped as they are where they already lie aligned (:func:`mapped_array`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from mi_amr.core.buffers import aligned_empty
+from mi_amr.core.buffers import ALIGN, aligned_empty
 
 
 def host_aligned(values, dtype) -> np.ndarray:
@@ -24,6 +24,17 @@ def host_aligned(values, dtype) -> np.ndarray:
 def device_array(T, values, dtype):
     """A Dr.Jit array of type ``T`` holding ``values`` (see :func:`host_aligned`)."""
     return T(host_aligned(values, dtype))
+
+
+def mapped_array(T, values, dtype):
+    """A Dr.Jit array of type ``T`` mapping ``values`` itself (no copy) where it is a contiguous
+    array of ``dtype`` starting on an :data:`~mi_amr.core.buffers.ALIGN` byte boundary (as
+    :func:`~mi_amr.core.buffers.aligned_empty` makes them), else :func:`device_array`'s
+    copy. The caller leaves ``values`` unchanged while the device array is in use."""
+    a = np.asarray(values)
+    if a.dtype == np.dtype(dtype) and a.flags.c_contiguous and a.ctypes.data % ALIGN == 0:
+        return T(a.reshape(-1))
+    return device_array(T, values, dtype)
 
 
 def device_table(T, values, dtype):

@@ -33,7 +33,7 @@ from mi_amr import tolerances as tol
 from mi_amr.core import levels
 from mi_amr.core.buffers import aligned_empty, joined
 from mi_amr.kernels import bricks, ranges, starts
-from mi_amr.kernels.arrays import device_array
+from mi_amr.kernels.arrays import device_array, mapped_array
 from mi_amr.kernels.bricks import BRICK, BRICK_N, NO_BRICK, brick_table  # noqa: F401
 from mi_amr.errors import AMRError
 
@@ -121,7 +121,8 @@ class DeviceVolume:
         min_h = tree.leaf_min_h.min(axis=1)
         self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h_host))
         self.leaf_grids = u32(tree.leaf_grids)
-        self.node_ropes = u32(tree.node_ropes)
+        # The tree's own ropes, mapped (they are uint32 and aligned for this).
+        self.node_ropes = mapped_array(self.m.UInt32, tree.node_ropes, np.uint32)
         self.host_ranges, self.on_new_ranges, self._search, self._boxes = {}, None, {}, {}
         self._tables = {}
 
