@@ -390,8 +390,10 @@ def test15b3_blocks_of_pairs_and_boxes_do_not_change_the_tree(seed):
     for name in ("node_code", "node_split", "node_lo", "node_hi", "leaf_owner", "leaf_grids",
                  "leaf_nsupport", "leaf_nactive", "leaf_levels", "leaf_min_h", "node_ropes"):
         np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
-    for a, b in zip(got._listed_windows, want._listed_windows):
-        np.testing.assert_array_equal(a, b)
+    for reconstruction in (None, "basis", "finest"):
+        for a, b in zip(got.leaf_windows("f", reconstruction),
+                        want.leaf_windows("f", reconstruction)):
+            np.testing.assert_array_equal(a, b)
     for reconstruction in (None, "basis", "finest"):
         for a, b in zip(got.leaf_ranges("f", reconstruction), want.leaf_ranges("f", reconstruction)):
             np.testing.assert_array_equal(a, b)
@@ -415,12 +417,14 @@ def test15b4_listed_pairs_equal_their_slow_twin(seed):
     names = ("leaf_grids", "leaf_nsupport", "leaf_nactive", "leaf_start", "leaf_levels",
              "leaf_min_h")
     built = {name: getattr(tree, name).copy() for name in names}
-    windows = [w.copy() for w in tree._listed_windows]
+    field = vol.field_names[0]
+    windows = [tree.leaf_windows(field, r) for r in (None, "basis")]
     tree._order_active(pl, pg)
     for name in names:
         np.testing.assert_array_equal(getattr(tree, name), built[name], err_msg=name)
-    for a, b in zip(tree._listed_windows, windows):
-        np.testing.assert_array_equal(a, b)
+    for r, want in zip((None, "basis"), windows):
+        for a, b in zip(tree.leaf_windows(field, r), want):
+            np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -55,7 +55,7 @@ class KDTree:
 
     # What a built tree holds besides its volume: :meth:`arrays` gives them, and
     # :meth:`from_arrays` makes the tree from them again without building it.
-    STATE = ("_ghi", "_glo", "_leaf_hi_f", "_leaf_lo_f", "_level_h", "_listed_windows",
+    STATE = ("_ghi", "_glo", "_leaf_hi_f", "_leaf_lo_f", "_level_h",
              "_node_hi", "_node_lo", "_node_split", "_root", "_shi", "_slo", "_step_f", "depth",
              "grid_hi", "grid_lo", "h_fine", "hi", "leaf_cells", "leaf_grids",
              "leaf_levels", "leaf_min_h", "leaf_nactive", "leaf_node",
@@ -264,7 +264,7 @@ class KDTree:
         ``(pl, pg)``: the (leaf, grid) pairs of the lists, sorted by leaf and then grid (what
         :meth:`_build` returns; :meth:`_listed_by_descent` is the slow twin)."""
         L, P = self.num_leaves, len(pl)
-        lo, hi, active = self._active_windows(pl, pg)
+        active = self._active(pl, pg)
         # Active first within each leaf, each part in grid order: a stable partition, each
         # pair's place counted from the leaf's start (no sort).
         nsupport = np.bincount(pl, minlength=L).astype(np.int64)
@@ -280,10 +280,7 @@ class KDTree:
         # moved pairs' places are the moved pairs' positions).
         moved = np.flatnonzero(place != np.arange(P))
         pg = pg.astype(np.int32)
-        for column in (pg, lo, hi):
-            column[place[moved]] = column[moved]
-        # Each listed grid's cell window in its leaf, kept for the leaf value ranges.
-        self._listed_windows = (lo, hi)
+        pg[place[moved]] = pg[moved]
         self.leaf_grids = pg
         self.leaf_nsupport, self.leaf_nactive, self.leaf_start = nsupport, nactive, start
         # The active pairs are contiguous per leaf: reduce over those runs.
@@ -306,13 +303,11 @@ class KDTree:
         order = np.lexsort((pg, pl))
         return pl[order], pg[order]
 
-    def _active_windows(self, leaf, grid):
-        """For (leaf, grid) pairs with overlapping supports: the cell windows of
-        :meth:`_windows` (int32) and whether the grid is active in the leaf (a non-empty
-        window holding at least one leaf cell), :attr:`chunk` pairs at a time."""
+    def _active(self, leaf, grid):
+        """For (leaf, grid) pairs with overlapping supports: whether the grid is active in the
+        leaf (its cell window, :meth:`_windows`, is not empty and holds at least one leaf
+        cell), :attr:`chunk` pairs at a time."""
         P = len(leaf)
-        lo = np.empty((P, 3), dtype=np.int32)
-        hi = np.empty((P, 3), dtype=np.int32)
         active = np.empty(P, dtype=bool)
         # Grids with covered cells: is there a leaf cell in the window? (Count it from a
         # summed-area table of the leaf mask.)
@@ -332,10 +327,10 @@ class KDTree:
                 sat, offsets = tables
                 gs = g[sel]
                 act[sel] = _box_sum(sat, offsets[gs], self.shape[gs], w_lo[sel], w_hi[sel]) > 0
-            lo[part], hi[part], active[part] = w_lo, w_hi, act
+            active[part] = act
 
         parallel.for_each(one_part, range(0, P, chunk))      # each writes its own rows
-        return lo, hi, active
+        return active
 
     def _ropes(self) -> None:
         """``node_ropes[n, 2 * axis + side]``: the deepest node holding everything just beyond
@@ -459,12 +454,16 @@ class KDTree:
         (a lattice distance ``D`` over the grid's cell width ``s``, both in finest cells), cell
         ``i`` (centre ``i + 1/2``) reaches past the low face when ``i > u - 3/2``, before the
         high face when ``i < u + 1/2``: ``lo = floor((D - 3 s / 2) / s) + 1``, ``hi =
-        ceil((D + s / 2) / s) - 1``."""
-        lo = np.empty((len(leaf), 3), dtype=np.int64)
-        hi = np.empty((len(leaf), 3), dtype=np.int64)
-        for a in range(0, len(leaf), self.chunk):
-            part = slice(a, a + self.chunk)
+        ceil((D + s / 2) / s) - 1``. int32, :attr:`chunk` pairs at a time."""
+        lo = np.empty((len(leaf), 3), dtype=np.int32)
+        hi = np.empty((len(leaf), 3), dtype=np.int32)
+        chunk = self.chunk
+
+        def one_part(a):
+            part = slice(a, a + chunk)
             lo[part], hi[part] = self._windows_part(leaf[part], grid[part])
+
+        parallel.for_each(one_part, range(0, len(leaf), chunk))   # each writes its own rows
         return lo, hi
 
     def _windows_part(self, leaf, grid):
@@ -488,21 +487,19 @@ class KDTree:
 
     def _listed_pairs(self, count):
         """The first ``count[l]`` listed grids of each leaf ``l`` with a non-empty cell window
-        in an owned leaf: ``(leaf, grid, lo, hi)``, windows as in :meth:`_windows` (int32),
-        picked by one mask over all listed pairs (gathered once, not chunk by chunk and then
-        joined). The mask is made per leaf (its first pairs kept, the rest not), so nothing
-        the size of all pairs is held but the mask and the windows' test."""
+        in an owned leaf: ``(leaf, grid, lo, hi)``, windows as in :meth:`_windows` (int32).
+        The windows are computed here, for the pairs asked for (the tree keeps none: they
+        would take 24 bytes a listed pair), and the empty ones dropped."""
         taken = np.where(self.leaf_owner >= 0, np.minimum(count, self.leaf_nsupport), 0)
         runs = np.stack([taken, self.leaf_nsupport - taken], axis=1).ravel()
-        keep = np.repeat(np.tile(np.array([True, False]), self.num_leaves), runs)
-        w_lo, w_hi = self._listed_windows
-        for a in range(3):
-            keep &= w_hi[:, a] >= w_lo[:, a]
-        at = np.flatnonzero(keep)
-        del keep
+        at = np.flatnonzero(np.repeat(np.tile(np.array([True, False]), self.num_leaves), runs))
         leaf = np.searchsorted(self.leaf_start, at, side="right") - 1
-        return (leaf, np.take(self.leaf_grids, at).astype(np.int64),
-                np.take(w_lo, at, axis=0), np.take(w_hi, at, axis=0))
+        grid = np.take(self.leaf_grids, at).astype(np.int64)
+        lo, hi = self._windows(leaf, grid)
+        keep = np.all(hi >= lo, axis=1)
+        if keep.all():          # (the active grids' windows, for one, are never empty)
+            return leaf, grid, lo, hi
+        return leaf[keep], grid[keep], lo[keep], hi[keep]
 
     # ------------------------------------------------------------------ queries
     def check(self, field: str | None = None, **kw) -> dict:
