@@ -25,6 +25,15 @@ def aligned_empty(size: int, dtype) -> np.ndarray:
     return buf[start:start + size * itemsize].view(dtype)
 
 
+def aligned_copy(values, dtype) -> np.ndarray:
+    """``values`` (any shape) copied into a new :func:`aligned_empty` array of ``dtype``, of
+    the same shape."""
+    values = np.asarray(values)
+    out = aligned_empty(values.size, dtype).reshape(values.shape)
+    out[...] = values
+    return out
+
+
 def aligned_parts(sizes, dtype) -> list:
     """Flat arrays of ``sizes`` elements of ``dtype``, consecutive slices of one new
     :func:`aligned_empty` buffer, end to end in this order (what :func:`joined` finds again)."""

@@ -27,7 +27,7 @@ import numpy as np
 
 from mi_amr import params
 from mi_amr.core import parallel
-from mi_amr.core.buffers import aligned_full, joined
+from mi_amr.core.buffers import aligned_copy, aligned_full, joined
 from mi_amr.core.boxes import contains_points
 from mi_amr.core.points import (as_points, finest_of,  # noqa: F401  (twins: tests)
                                 finest_grid_bruteforce, support_grids_bruteforce)
@@ -279,7 +279,7 @@ class KDTree:
         # Only pairs behind an inactive one in their leaf move: permute those in place (the
         # moved pairs' places are the moved pairs' positions).
         moved = np.flatnonzero(place != np.arange(P))
-        pg = pg.astype(np.int32)
+        pg = aligned_copy(pg, np.int32)         # (aligned: the device maps it)
         pg[place[moved]] = pg[moved]
         self.leaf_grids = pg
         self.leaf_nsupport, self.leaf_nactive, self.leaf_start = nsupport, nactive, start

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mi_amr.core.buffers import ALIGN, aligned_empty
+from mi_amr.core.buffers import ALIGN, aligned_copy
 
 
 def host_aligned(values, dtype) -> np.ndarray:
@@ -15,10 +15,7 @@ def host_aligned(values, dtype) -> np.ndarray:
     copying it, and compiles other code (unaligned loads, no packet gathers) for an array that
     is not aligned: with arrays at whatever address NumPy gave them, the same scene would
     compile different kernels from one load to the next."""
-    a = np.ascontiguousarray(values, dtype=dtype).ravel()
-    out = aligned_empty(a.size, dtype)
-    out[:] = a
-    return out
+    return aligned_copy(values, dtype).reshape(-1)
 
 
 def device_array(T, values, dtype):

@@ -96,18 +96,21 @@ class DeviceVolume:
         f32 = lambda a: self._floats(np.asarray(a, dtype=np.float32).ravel())  # noqa: E731
         u32 = lambda a: self._uints(np.asarray(a, dtype=np.uint32).ravel())    # noqa: E731
 
-        # kd-tree nodes (code and split side by side, boxes as 2 x 4 floats) and leaves
-        code_split = np.empty((tree.num_nodes, 2), dtype=np.uint32)
+        # kd-tree nodes (code and split side by side, boxes as 2 x 4 floats) and leaves, made
+        # in aligned memory that the device arrays map (no second copy).
+        N = tree.num_nodes
+        code_split = aligned_empty(N * 2, np.uint32).reshape(N, 2)
         code_split[:, 0] = tree.node_code
         code_split[:, 1] = tree.node_split.astype(np.float32).view(np.uint32)
-        self.node_code_split = u32(code_split)
+        self.node_code_split = mapped_array(m.UInt32, code_split, np.uint32)
         self._host_code_split = code_split
-        box = np.zeros((tree.num_nodes, 2, 4), dtype=np.float32)
+        box = aligned_empty(N * 8, np.float32).reshape(N, 2, 4)
         box[:, 0, :3] = tree.node_lo
         box[:, 1, :3] = tree.node_hi
-        self.node_box = f32(box)
-        self.root_lo = self._point(tree.node_lo[0])
-        self.root_hi = self._point(tree.node_hi[0])
+        box[:, :, 3] = 0.0
+        self.node_box = mapped_array(m.Float, box, np.float32)
+        self.root_lo = self._point(tree.lo)
+        self.root_hi = self._point(tree.hi)
         self.leaf_lo = f32(tree.leaf_lo)
         self.leaf_hi = f32(tree.leaf_hi)
         self.leaf_owner = u32(np.where(tree.leaf_owner >= 0, tree.leaf_owner, NO_GRID))
@@ -120,7 +123,8 @@ class DeviceVolume:
         self.leaf_owner_levels = u32(np.where(tree.leaf_owner >= 0, 1 << owner_level, 0))
         min_h = tree.leaf_min_h.min(axis=1)
         self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h_host))
-        self.leaf_grids = u32(tree.leaf_grids)
+        # (grid numbers: int32 bits that are uint32's; the tree's own aligned array, mapped)
+        self.leaf_grids = mapped_array(m.UInt32, tree.leaf_grids.view(np.uint32), np.uint32)
         # The tree's own ropes, mapped (they are uint32 and aligned for this).
         self.node_ropes = mapped_array(self.m.UInt32, tree.node_ropes, np.uint32)
         self.host_ranges, self.on_new_ranges, self._search, self._boxes = {}, None, {}, {}
