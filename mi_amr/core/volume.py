@@ -30,6 +30,7 @@ import numpy as np
 
 from mi_amr.core import levels
 from mi_amr.core.boxes import intersection_volume, overlap_pairs
+from mi_amr.core.buffers import aligned_full
 from mi_amr.errors import AMRError, shown
 
 ALLOWED_RATIOS = (2, 4)
@@ -694,7 +695,8 @@ def _leaf_masks(volume: AMRVolume, box_cells: int = MASK_BOX_CELLS,
     by one with a slice."""
     shapes = volume.grid_columns()["shape"]
     offsets = volume.grid_columns()["offset"]
-    flat = np.ones(int(np.prod(shapes, axis=1).sum()), dtype=bool)
+    # Aligned: the brick fill and the leaf ranges map it on the device, not copy it.
+    flat = aligned_full(int(np.prod(shapes, axis=1).sum()), True, np.bool_)
     partly = np.zeros(len(shapes), dtype=bool)
     for c, a, b in _covered_boxes(volume):
         partly[c] = True

@@ -19,7 +19,7 @@ import drjit as dr
 import numpy as np
 
 from mi_amr.core import levels
-from mi_amr.kernels.arrays import device_array, device_table
+from mi_amr.kernels.arrays import device_array, device_table, mapped_array
 
 NO_BRICK = 0xFFFFFFFF
 BRICK = 8                 # cells per brick side; a brick stores BRICK + 1 (one cell of apron)
@@ -31,7 +31,7 @@ def build_pools(m, volume, arrays, parts, count):
     levels' ``parts`` (``(lo, dims, table, n)`` each, as :func:`brick_table` gives them, with
     brick numbers from 0 on). ``arrays``: each field's values of all cells on the device
     (float32, grid after grid: :meth:`AMRVolume.cell_offsets`), which the slots gather from."""
-    leaf = device_array(m.Bool, volume.leaf_mask_flat(), np.bool_)
+    leaf = mapped_array(m.Bool, volume.leaf_mask_flat(), np.bool_)
     # Left unset: the levels' bricks are numbered 0..count-1 without a gap (brick_table) and
     # fill_level writes every slot of each, so no value is read before it is written, and
     # new memory is touched once, by the fill (a NaN fill first would touch the pools twice,
@@ -137,7 +137,7 @@ def level_bricks(volume, level, names, first, m=None):
               for name in names]
     pools = [dr.full(m.Float, dr.nan, n * BRICK_N ** 3) for _ in names]
     fill_level(m, volume, level, (lo, dims, table, first),
-               (arrays, device_array(m.Bool, volume.leaf_mask_flat(), np.bool_)), pools)
+               (arrays, mapped_array(m.Bool, volume.leaf_mask_flat(), np.bool_)), pools)
     return lo, dims, table, [p.numpy() for p in pools]
 
 

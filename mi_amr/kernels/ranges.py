@@ -18,7 +18,7 @@ import drjit as dr
 import numpy as np
 
 from mi_amr.core.kdtree import run_starts
-from mi_amr.kernels.arrays import device_array
+from mi_amr.kernels.arrays import device_array, mapped_array
 
 
 # Pairs per kernel launch: bounds the host's per-pair temporaries (about 100 bytes a pair) and
@@ -38,7 +38,7 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
     pl, pg, lo, hi = tree.leaf_windows(field, reconstruction)
     vmin = np.empty(len(pl), dtype=np.float32)
     vmax = np.empty(len(pl), dtype=np.float32)
-    leaf = device_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
+    leaf = mapped_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
         if reconstruction == "basis" and len(pl) else None
     for a in range(0, len(pl), pairs):
         # A launch of one pair is given it twice: Dr.Jit compiles a one-lane input into a
