@@ -152,3 +152,40 @@ def test20_freed_memory_is_kept_for_the_next_array():
     assert mapped == 0 and kept >= 24
     mapped, kept = megabytes("default", MI_AMR_KEEP_MEMORY="0")
     assert mapped >= 24 and kept < 24
+
+
+_RELEASE = """
+import sys
+import numpy as np
+from mi_amr.core import memory
+
+def resident():
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * 4096 >> 20
+
+memory.keep_freed_memory()
+held = [np.ones(3 << 20) for _ in range(8)]     # 8 x 24 MB from the heap, touched
+top = np.ones(3 << 20)                          # above them: the heap's top stays in use
+del held
+before = resident()
+released = memory.release_freed_memory()
+print(int(released), before - resident())
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc_trim")
+def test21_freed_memory_is_given_back_when_asked():
+    """memory.release_freed_memory() gives back the freed heap that keep_freed_memory() keeps,
+    also below an array still in use (what a large load does before its brick pools);
+    MI_AMR_KEEP_MEMORY=0 leaves the allocator alone."""
+    import subprocess
+
+    def run(**env):
+        out = subprocess.run([sys.executable, "-c", _RELEASE], capture_output=True, text=True,
+                             check=True, env={**os.environ, **env})
+        return [int(x) for x in out.stdout.split()[-2:]]
+
+    released, megabytes = run()
+    assert released == 1 and megabytes >= 150
+    released, megabytes = run(MI_AMR_KEEP_MEMORY="0")
+    assert released == 0

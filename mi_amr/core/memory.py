@@ -7,8 +7,10 @@ write to a fresh page is slow on virtual machines (it costs more than the arithm
 in it). With the two settings below, arrays up to :data:`MMAP_THRESHOLD` come from the heap and
 up to :data:`TRIM_THRESHOLD` of freed heap is kept, so the next array reuses pages already
 touched. The peak memory of a load is unchanged; the process may hold up to
-:data:`TRIM_THRESHOLD` more afterwards. ``MI_AMR_KEEP_MEMORY=0`` leaves the allocator as it is.
-Elsewhere than glibc (macOS, musl) nothing changes.
+:data:`TRIM_THRESHOLD` more afterwards. A load of :data:`RELEASE_CELLS` cells or more hands the
+freed memory back (:func:`release_freed_memory`) before its brick pools, which cannot reuse it.
+``MI_AMR_KEEP_MEMORY=0`` leaves the allocator as it is. Elsewhere than glibc (macOS, musl)
+nothing changes.
 """
 
 from __future__ import annotations
@@ -19,6 +21,10 @@ import sys
 
 MMAP_THRESHOLD = 32 << 20    # bytes; glibc's ceiling for this setting on 64-bit systems
 TRIM_THRESHOLD = 64 << 20    # bytes of freed memory kept at the heap's top (twice MMAP_THRESHOLD)
+# Cells from which a load hands its freed memory back before the brick pools
+# (release_freed_memory): below it the memory at stake is small, and a render running beside
+# the load (a movie's next step, the viewer's) would lose the cached buffers it reuses.
+RELEASE_CELLS = 1 << 24
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3     # mallopt's parameter numbers (malloc.h)
 
 
@@ -35,3 +41,20 @@ def keep_freed_memory() -> bool:
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and \
         bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+
+
+def release_freed_memory() -> bool:
+    """Give the freed memory that glibc's heap holds (anywhere in the heap, not only at its
+    top) back to the system; True where it did. A large load calls it before arrays that
+    cannot reuse that memory (the brick pools, each a new mapping), which it would otherwise
+    add to the load's peak. ``MI_AMR_KEEP_MEMORY=0`` and other C libraries than glibc: no-op."""
+    if os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() == "0" or \
+            not sys.platform.startswith("linux"):
+        return False
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):        # not glibc
+        return False
+    trim.argtypes, trim.restype = (ctypes.c_size_t,), ctypes.c_int
+    trim(0)
+    return True

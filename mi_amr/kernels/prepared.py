@@ -49,6 +49,11 @@ class PreparedVolume:
         clock = self._lap("derive", clock, quiet=not derived)
         self.tree = KDTree(self.volume, leaf_cells=leaf_cells)
         clock = self._lap("tree", clock)
+        if volume.num_cells >= memory.RELEASE_CELLS:
+            # The pools are new mappings, which cannot reuse what the derivation's kernels and
+            # the tree freed: handed back first, that memory is not part of the load's peak.
+            dr.flush_malloc_cache()
+            memory.release_freed_memory()
         self.device = DeviceVolume(self.volume, self.tree, field, self.color_field,
                                    m=m or dr.llvm.ad)
         self._lap("device", clock)
