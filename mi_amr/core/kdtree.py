@@ -177,7 +177,6 @@ class KDTree:
         level from below, and such a grid cuts no face through it."""
         G, n = len(self.grid_lo), len(f_lo)
         overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, chunk=self.chunk)
-        p_level = np.take(self.level, p_grid).astype(np.int64)
         best = np.full(n, -1, dtype=np.int64)
         has_partial = np.zeros(n, dtype=bool)
         finest = np.full(n, -1, dtype=np.int64)
@@ -185,10 +184,15 @@ class KDTree:
         first = run_starts(p_node)
         if len(first):
             held = np.take(p_node, first)
-            key = np.where(contains, p_level * G + (G - 1 - p_grid), -1)
+            # Per grid, its owner key: finer first, then the lowest index.
+            level = self.level.astype(np.int64)
+            grid_key = level * G + (G - 1 - np.arange(G))
+            key = np.take(grid_key, p_grid)
+            key[~contains] = -1
             best[held] = np.maximum.reduceat(key, first)
-            has_partial[held] = np.logical_or.reduceat(overlap & ~contains, first)
-            finest[held] = np.maximum.reduceat(p_level, first)
+            overlap &= ~contains
+            has_partial[held] = np.logical_or.reduceat(overlap, first)
+            finest[held] = np.maximum.reduceat(np.take(level, p_grid), first)
         owner = np.where(best >= 0, G - 1 - best % G, -1)
         level_h = self._level_h
         node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
