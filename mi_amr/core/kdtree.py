@@ -344,8 +344,12 @@ class KDTree:
 
         Built top-down, one depth at a time: a child's face box off its parent's split axis
         lies inside the same face box of its parent, so its descent from the root passes
-        through the parent's rope and starts there; only the face on the split plane descends
-        from the root. :meth:`_ropes_from_root` is the slow twin."""
+        through the parent's rope and starts there. The face on the split plane starts at the
+        sibling, which holds its box, unless the descent from the root stops above: at the
+        shallowest ancestor whose split plane on another axis is the node's upper face there
+        (the closed face box touches that plane, so neither side holds it; a face box is half
+        a cell off the lattice on its own axis, so no split on that axis stops it). ``touch``
+        carries those ancestors down, per axis. :meth:`_ropes_from_root` is the slow twin."""
         N = self.num_nodes
         code = self.node_code
         inner = np.flatnonzero((code & 3) != LEAF)
@@ -354,6 +358,8 @@ class KDTree:
         parent[(code[inner] >> 2) + 1] = inner
         # uint32 and aligned, as the device reads them: its array maps these, no copy.
         ropes = aligned_full(N * 6, 0, np.uint32).reshape(N, 6)
+        # touch[n, b]: the shallowest ancestor of n splitting axis b on n's upper face (-1: none).
+        touch = np.full((N, 3), -1, dtype=np.int64)
         for depth in range(1, self.depth):
             nodes = np.flatnonzero(self.node_depth == depth)
             if len(nodes) == 0:
@@ -362,7 +368,17 @@ class KDTree:
             start = ropes[p]
             axis = code[p] & 3
             right = nodes == (code[p] >> 2) + 1
-            start[np.arange(len(nodes)), 2 * axis + ~right] = 0
+            rows = np.arange(len(nodes))
+            # A lower child's upper face on the split axis is its parent's split; no ancestor
+            # splits that axis there (the parent straddles the plane).
+            t = touch[p]
+            t[rows[~right], axis[~right]] = p[~right]
+            touch[nodes] = t
+            t[rows, axis] = -1          # (the split face's own axis never stops it)
+            t_depth = np.where(t >= 0, np.take(self.node_depth, np.maximum(t, 0)), depth)
+            stop = np.take_along_axis(t, np.argmin(t_depth, axis=1)[:, None], axis=1)[:, 0]
+            sibling = (code[p] >> 2) + ~right
+            start[rows, 2 * axis + ~right] = np.where(stop >= 0, stop, sibling)
             parts = range(0, len(nodes), ROPE_BLOCK)     # side by side, in order
             ropes[nodes] = np.concatenate(list(parallel.map_ordered(
                 lambda a: self._descend_faces(nodes[a:a + ROPE_BLOCK],
