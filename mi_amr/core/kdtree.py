@@ -44,6 +44,12 @@ BOX_BLOCK = 1 << 13
 ROPE_BLOCK = 1 << 13   # nodes whose 6 faces descend together (threads take a block each)
 
 
+def _world_array(name: str, doc: str) -> property:
+    """A read-only :class:`KDTree` property: its lattice array ``name`` in world coordinates,
+    computed on each use."""
+    return property(lambda tree: tree._world(getattr(tree, name)), doc=doc)
+
+
 class KDTree:
     """kd-tree over the grid supports of ``volume`` (see the module docstring).
 
@@ -232,15 +238,18 @@ class KDTree:
 
     # World boxes and splits: computed from the lattice ones on each use, not stored (a copy
     # of each would hold a third of the tree's memory). Each is float64 in world units.
-    @property
-    def node_lo(self) -> np.ndarray:
-        """Lower corner of each node's box, ``(N, 3)``."""
-        return self._world(self._node_lo)
+    node_lo = _world_array("_node_lo", "Lower corner of each node's box, ``(N, 3)``.")
+    node_hi = _world_array("_node_hi", "Upper corner of each node's box, ``(N, 3)``.")
+    leaf_lo = _world_array("_leaf_lo_f", "Lower corner of each leaf's box, ``(L, 3)``.")
+    leaf_hi = _world_array("_leaf_hi_f", "Upper corner of each leaf's box, ``(L, 3)``.")
 
-    @property
-    def node_hi(self) -> np.ndarray:
-        """Upper corner of each node's box, ``(N, 3)``."""
-        return self._world(self._node_hi)
+    def node_boxes(self, nodes):
+        """``(lo, hi)`` (world) of the boxes of ``nodes`` alone."""
+        return self._world(self._node_lo[nodes]), self._world(self._node_hi[nodes])
+
+    def leaf_boxes(self, leaves):
+        """``(lo, hi)`` (world) of the boxes of ``leaves`` alone."""
+        return self._world(self._leaf_lo_f[leaves]), self._world(self._leaf_hi_f[leaves])
 
     @property
     def node_split(self) -> np.ndarray:
@@ -252,16 +261,6 @@ class KDTree:
         """:attr:`node_split` of ``nodes`` alone."""
         axis = np.minimum(np.take(self.node_code, nodes) & 3, 2)
         return self._world(np.take(self._node_split, nodes), axis)
-
-    @property
-    def leaf_lo(self) -> np.ndarray:
-        """Lower corner of each leaf's box, ``(L, 3)``."""
-        return self._world(self._leaf_lo_f)
-
-    @property
-    def leaf_hi(self) -> np.ndarray:
-        """Upper corner of each leaf's box, ``(L, 3)``."""
-        return self._world(self._leaf_hi_f)
 
     def _order_active(self, pl, pg) -> None:
         """Sort each leaf's grid list with the active grids first, and summarise them.

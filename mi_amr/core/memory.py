@@ -31,12 +31,8 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3     # mallopt's parameter numbers 
 def keep_freed_memory() -> bool:
     """Set the two thresholds (see the module docstring); True where they were set. Calling
     it again sets the same values."""
-    if os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() == "0" or \
-            not sys.platform.startswith("linux"):
-        return False
-    try:
-        mallopt = ctypes.CDLL(None).mallopt     # the process's own C library
-    except (OSError, AttributeError):        # not glibc: no mallopt
+    mallopt = _glibc("mallopt")
+    if mallopt is None:
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and \
@@ -47,14 +43,22 @@ def release_freed_memory() -> bool:
     """Give the freed memory that glibc's heap holds (anywhere in the heap, not only at its
     top) back to the system; True where it did. A large load calls it before arrays that
     cannot reuse that memory (the brick pools, each a new mapping), which it would otherwise
-    add to the load's peak. ``MI_AMR_KEEP_MEMORY=0`` and other C libraries than glibc: no-op."""
-    if os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() == "0" or \
-            not sys.platform.startswith("linux"):
-        return False
-    try:
-        trim = ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):        # not glibc
+    add to the load's peak."""
+    trim = _glibc("malloc_trim")
+    if trim is None:
         return False
     trim.argtypes, trim.restype = (ctypes.c_size_t,), ctypes.c_int
     trim(0)
     return True
+
+
+def _glibc(name: str):
+    """The process's C library function ``name``; None with ``MI_AMR_KEEP_MEMORY=0``, off
+    Linux, or where the C library has no such function (not glibc)."""
+    if os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() == "0" or \
+            not sys.platform.startswith("linux"):
+        return None
+    try:
+        return getattr(ctypes.CDLL(None), name)     # the process's own C library
+    except (OSError, AttributeError):
+        return None

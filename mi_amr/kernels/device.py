@@ -126,7 +126,7 @@ class DeviceVolume:
         # (grid numbers: int32 bits that are uint32's; the tree's own aligned array, mapped)
         self.leaf_grids = mapped_array(m.UInt32, tree.leaf_grids.view(np.uint32), np.uint32)
         # The tree's own ropes, mapped (they are uint32 and aligned for this).
-        self.node_ropes = mapped_array(self.m.UInt32, tree.node_ropes, np.uint32)
+        self.node_ropes = mapped_array(m.UInt32, tree.node_ropes, np.uint32)
         self.host_ranges, self.on_new_ranges, self._search, self._boxes = {}, None, {}, {}
         self._tables = {}
 
@@ -349,7 +349,8 @@ def active_box_host(tree, ranges, isovalues, pad: float):
     active = active_leaves(tree, ranges, isovalues)
     if len(active) == 0:
         return np.full(3, np.inf), np.full(3, -np.inf)
-    return (tree.node_lo[active].min(axis=0) - pad, tree.node_hi[active].max(axis=0) + pad)
+    lo, hi = tree.node_boxes(active)
+    return lo.min(axis=0) - pad, hi.max(axis=0) + pad
 
 
 def active_leaves(tree, ranges, isovalues) -> np.ndarray:

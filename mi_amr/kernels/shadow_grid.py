@@ -57,8 +57,8 @@ def band_leaves(tree, ranges, bands) -> np.ndarray:
 def plan(tree, leaves, max_points: int = tol.SHADOW_CACHE_POINTS) -> GridPlan:
     """The grid over the box of ``leaves`` (leaf indices of ``tree``, not empty), at their
     finest cell width, coarsened evenly until it holds at most ``max_points`` points."""
-    lo = tree.leaf_lo[leaves].min(axis=0)
-    hi = tree.leaf_hi[leaves].max(axis=0)
+    lo, hi = tree.leaf_boxes(leaves)
+    lo, hi = lo.min(axis=0), hi.max(axis=0)
     h = float(np.nanmin(np.where(np.isfinite(tree.leaf_min_h[leaves]),
                                  tree.leaf_min_h[leaves], np.nan)))
     extent = np.maximum(hi - lo, h)
@@ -74,8 +74,9 @@ def plan(tree, leaves, max_points: int = tol.SHADOW_CACHE_POINTS) -> GridPlan:
 def needed_points(grid: GridPlan, tree, leaves) -> np.ndarray:
     """The flat indices (``uint32``, ascending) of the grid points within one grid cell of
     one of ``leaves``: every corner a lookup inside those leaves reads."""
-    first = np.floor((tree.leaf_lo[leaves] - grid.lo) / grid.cell).astype(np.int64) - 1
-    last = np.ceil((tree.leaf_hi[leaves] - grid.lo) / grid.cell).astype(np.int64) + 1
+    lo, hi = tree.leaf_boxes(leaves)
+    first = np.floor((lo - grid.lo) / grid.cell).astype(np.int64) - 1
+    last = np.ceil((hi - grid.lo) / grid.cell).astype(np.int64) + 1
     first = np.clip(first, 0, grid.dims - 1)
     last = np.clip(last, 0, grid.dims - 1) + 1
     # Each box adds 1 to the points it covers, by +-1 at its 8 corners of a difference array
@@ -94,8 +95,9 @@ def needed_points(grid: GridPlan, tree, leaves) -> np.ndarray:
 def needed_points_by_box(grid: GridPlan, tree, leaves) -> np.ndarray:
     """:func:`needed_points` one leaf box at a time (its slow twin, for tests)."""
     need = np.zeros(tuple(grid.dims[::-1]), dtype=bool)      # [k, j, i]
-    first = np.floor((tree.leaf_lo[leaves] - grid.lo) / grid.cell).astype(np.int64) - 1
-    last = np.ceil((tree.leaf_hi[leaves] - grid.lo) / grid.cell).astype(np.int64) + 1
+    lo, hi = tree.leaf_boxes(leaves)
+    first = np.floor((lo - grid.lo) / grid.cell).astype(np.int64) - 1
+    last = np.ceil((hi - grid.lo) / grid.cell).astype(np.int64) + 1
     first = np.clip(first, 0, grid.dims - 1)
     last = np.clip(last, 0, grid.dims - 1)
     for (i0, j0, k0), (i1, j1, k1) in zip(first, last):
