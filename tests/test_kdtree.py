@@ -467,6 +467,26 @@ def test15d_cell_windows_equal_their_world_space_twin(seed):
         np.testing.assert_array_equal(fast, slow)
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test15e_active_pairs_equal_their_window_twin(seed):
+    """A (leaf, grid) pair is active where the grid's cell window in the leaf is not empty and
+    holds a leaf cell. ``_active`` tells an empty window by a box test (the grid's box grown
+    by half a cell) and counts leaf cells from summed-area tables; the twin takes each
+    pair's window in world coordinates and sums the grid's leaf mask over it. The random
+    hierarchies have pairs whose leaf lies in the grid's support but beyond the half
+    cell."""
+    vol = AMRVolume.from_grids(random_grids(seed, ratios=((2, 2), (4, 2), (2, 4))[seed % 3]))
+    tree = KDTree(vol, leaf_cells=(2, 4)[seed % 2])
+    pl, pg = tree._listed_by_descent()
+    lo, hi = tree._windows_world(pl, pg)
+    empty = np.any(hi < lo, axis=1)
+    want = np.array([not e and vol.leaf_mask(g)[a[0]:b[0] + 1, a[1]:b[1] + 1,
+                                                 a[2]:b[2] + 1].any()
+                     for e, g, a, b in zip(empty, pg, lo, hi)])
+    assert empty.sum() > 10 and (~empty & ~want).sum() > 10     # both kinds of inactive pair
+    np.testing.assert_array_equal(tree._active(pl, pg), want)
+
+
 def test16_bad_arguments_are_refused():
     vol = AMRVolume.from_grids(reference_grids())
     with pytest.raises(AMRError, match="leaf_cells must be >= 2, got 1"):

@@ -309,7 +309,12 @@ class KDTree:
     def _active(self, leaf, grid):
         """For (leaf, grid) pairs with overlapping supports: whether the grid is active in the
         leaf (its cell window, :meth:`_windows`, is not empty and holds at least one leaf
-        cell), :attr:`chunk` pairs at a time."""
+        cell), :attr:`chunk` pairs at a time.
+
+        The window is not empty exactly when the leaf overlaps the union of the cells' open hat
+        supports, the grid's box grown by half a cell (the window's integer bounds, worked
+        out): in doubled lattice coordinates, whole numbers compared without a division. Only
+        the pairs of partly covered grids need the window itself, to count its leaf cells."""
         P = len(leaf)
         active = np.empty(P, dtype=bool)
         # Grids with covered cells: is there a leaf cell in the window? (Count it from a
@@ -317,19 +322,29 @@ class KDTree:
         partly = self.volume.partly_covered()
         tables = _leaf_count_tables(self.volume, np.flatnonzero(partly)) \
             if partly[grid].any() else None
-
+        # Per axis, contiguous int32 columns (lattice coordinates below 2^30, doubled).
+        ity = np.int32 if max(np.abs(self._root[0]).max(), np.abs(self._root[1]).max()) < \
+            2 ** 29 else np.int64
+        column = lambda x, a: np.ascontiguousarray(x[:, a], dtype=ity)  # noqa: E731
+        reach = [(column(2.0 * self._glo - self._step_f, a),
+                  column(2.0 * self._ghi + self._step_f, a)) for a in range(3)]
+        leaf2 = [(column(2.0 * self._leaf_lo_f, a), column(2.0 * self._leaf_hi_f, a))
+                 for a in range(3)]
         chunk = self.chunk
 
         def one_part(a):
             part = slice(a, a + chunk)
-            g = grid[part]
-            w_lo, w_hi = self._windows_part(leaf[part], g)
-            act = np.all(w_hi >= w_lo, axis=1)
+            lf, g = leaf[part], grid[part]
+            act = np.ones(len(g), dtype=bool)
+            for (l_lo, l_hi), (r_lo, r_hi) in zip(leaf2, reach):
+                act &= np.take(l_lo, lf) < np.take(r_hi, g)
+                act &= np.take(l_hi, lf) > np.take(r_lo, g)
             sel = np.flatnonzero(act & partly[g])
             if len(sel):
                 sat, offsets = tables
                 gs = g[sel]
-                act[sel] = _box_sum(sat, offsets[gs], self.shape[gs], w_lo[sel], w_hi[sel]) > 0
+                w_lo, w_hi = self._windows_part(lf[sel], gs)
+                act[sel] = _box_sum(sat, offsets[gs], self.shape[gs], w_lo, w_hi) > 0
             active[part] = act
 
         parallel.for_each(one_part, range(0, P, chunk))      # each writes its own rows
