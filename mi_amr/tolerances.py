@@ -69,6 +69,11 @@ TANGENT_REL = 2e-6
 # cubic pieces meet, their values at the shared end differ by float32 rounding (1e-5 of the
 # terms seen), which must not make a crossing there count two or three times.
 SIGN_SURE_REL = 1e-4
+# relative to the size of the terms: a volume piece's cheap value bound (the Bernstein
+# coefficients' ratios, mi_amr.kernels.composite) is widened by this much for the float32
+# rounding of those coefficients (a few 1e-7 of the terms), so that it never leaves out a
+# value that the piece's exact range, itself rounded, holds.
+VALUE_BOUND_REL = 1e-5
 # a cubic's leading coefficient below this: its derivative is linear (float32 has no
 # meaningful quadratic term left).
 QUADRATIC_EPS = 1e-30

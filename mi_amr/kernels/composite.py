@@ -255,6 +255,49 @@ def _value_cuts(cp: CubicPiece):
     return turns, [roots.cubic(cp.num, s) / roots.cubic(cp.den, s) for s in s_pts]
 
 
+def _bernstein(c, length):
+    """The Bernstein coefficients on ``[0, length]`` of the cubic ``c`` (power basis in ``s``),
+    and the size of its terms there (the sum of their magnitudes)."""
+    a1, a2 = c[1] * length, c[2] * length * length
+    a3 = c[3] * length * length * length
+    size = dr.abs(c[0]) + dr.abs(a1) + dr.abs(a2) + dr.abs(a3)
+    third = 1.0 / 3.0
+    return [c[0], dr.fma(a1, third, c[0]), c[0] + (2.0 * a1 + a2) * third,
+            c[0] + a1 + a2 + a3], size
+
+
+def _value_bound(cp: CubicPiece):
+    """A range ``(lo, hi)`` that holds every value of the piece ``cp``, for much less work
+    than its exact range (:func:`_value_cuts`). Where the Bernstein coefficients ``d_i`` of
+    the denominator on ``[0, length]`` are all positive, ``N / D`` is the mean of the
+    coefficients' ratios ``n_i / d_i`` weighted by ``d_i B_i / D`` (non-negative, summing to
+    1), so it lies between the least ratio and the greatest; widened for rounding by
+    :data:`~mi_amr.tolerances.VALUE_BOUND_REL` of the size of the terms. Elsewhere the whole
+    line."""
+    n, n_size = _bernstein(cp.num, cp.length)
+    d, d_size = _bernstein(cp.den, cp.length)
+    d_min = dr.minimum(dr.minimum(d[0], d[1]), dr.minimum(d[2], d[3]))
+    ratios = [a / b for a, b in zip(n, d)]
+    lo, hi = _value_range(ratios)
+    positive = d_min > 0.0
+    slack = tol.VALUE_BOUND_REL * (n_size + dr.maximum(dr.abs(lo), dr.abs(hi)) * d_size) / \
+        dr.select(positive, d_min, 1.0)
+    return dr.select(positive, lo - slack, -dr.inf), dr.select(positive, hi + slack, dr.inf)
+
+
+@dr.syntax
+def _value_cuts_where(cp: CubicPiece, near):
+    """:func:`_value_cuts` where ``near``; elsewhere no turn and the piece's start value
+    throughout (never read: such a piece is not composited). A packet with no lane ``near``
+    skips the search for the turns (a symbolic branch)."""
+    turns = [cp.length, cp.length]
+    start = cp.num[0] / cp.den[0]
+    values = [start, start, start, start]
+    if dr.hint(near, label="value_cuts"):
+        turns, values = _value_cuts(cp)
+    return turns, values
+
+
 def _value_range(values):
     """The range ``(lo, hi)`` of a piece whose values at its cuts are ``values`` (monotone
     between them)."""
@@ -577,11 +620,12 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
         # (The middle's weight alone: a piece that ends at missing data still has its band's
         # opacity up to there.)
         have = cp.defined(work, cp.mid()[1], ends=False)
-        turns, values = _value_cuts(cp)
-
         # --- Only a piece whose values meet a band is split, integrated and lit (a leaf's
-        # range holds a band's values, most of its pieces' do not).
-        near = have & holds(ray.dev, cfg, *_value_range(values))
+        # range holds a band's values, most of its pieces' do not): first by a cheap bound
+        # on its values, then by their exact range.
+        near = have & holds(ray.dev, cfg, *_value_bound(cp))
+        turns, values = _value_cuts_where(cp, near)
+        near &= holds(ray.dev, cfg, *_value_range(values))
         C_p, T_p = m.Array3f(0.0), m.Float(1.0)
         offer = PieceLight.none(m)
         if near:
