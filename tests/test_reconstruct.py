@@ -283,16 +283,16 @@ def horner(c, s):
     return ((c[3] * s + c[2]) * s + c[1]) * s + c[0]
 
 
-@pytest.mark.parametrize("basis", [True, False], ids=["basis", "finest"])
-def test07_segment_cubic_equals_the_point_reconstruction_inside_one_piece(hierarchy, basis):
-    """``N(s) / D(s)`` from :func:`segment_cubic` equals the Dr.Jit point reconstruction and
-    the slow twin at points along the ray inside one piece."""
-    vol, dev = hierarchy
-    rng = np.random.default_rng(24)
+def pieces(vol, dev, basis, n=300, seed=24):
+    """Random pieces inside the volume (rays around random points, cut to the piece around
+    each, :func:`piece_around`, less a margin) and their cubics: ``(p0, dirs, length, seg,
+    nums, den)`` (float64 NumPy values of what the kernels got; ``seg`` and the cubics are
+    the kernels' own)."""
+    rng = np.random.default_rng(seed)
     h_min = vol.spacings().min()
     lo, hi = vol.bounds
-    mids = f32(lo + 0.02 + rng.random((300, 3)) * (hi - lo - 0.04))
-    dirs = rng.normal(size=(300, 3))
+    mids = f32(lo + 0.02 + rng.random((n, 3)) * (hi - lo - 0.04))
+    dirs = rng.normal(size=(n, 3))
     dirs = f32(dirs / np.linalg.norm(dirs, axis=1, keepdims=True))
     t_lo, t_hi = piece_around(vol, dev.tree, mids, dirs)
     margin = 1e-3 * (t_hi - t_lo)
@@ -305,16 +305,25 @@ def test07_segment_cubic_equals_the_point_reconstruction_inside_one_piece(hierar
 
     active = dr.full(M.Bool, True, len(p0))
     leaf = rec.locate(dev, array3(mids), active)
-    arrays = dev.arrays(basis)
     seg = rec.Segment(leaf=leaf, p0=array3(p0), d=array3(dirs),
                       s_mid=M.Float(0.5 * length.astype(np.float32)))
-    nums, den = rec.segment_cubic(dev, basis, seg, arrays, active)
+    nums, den = rec.segment_cubic(dev, basis, seg, dev.arrays(basis), active)
     dr.eval(nums, den)
+    return p0, dirs, length, seg, nums, den
+
+
+FRACTIONS = np.array([0.0, 0.1, 0.35, 0.5, 0.8, 1.0])     # points of a piece checked
+
+
+@pytest.mark.parametrize("basis", [True, False], ids=["basis", "finest"])
+def test07_segment_cubic_equals_the_point_reconstruction_inside_one_piece(hierarchy, basis):
+    """``N(s) / D(s)`` from :func:`segment_cubic` equals the Dr.Jit point reconstruction and
+    the slow twin at points along the ray inside one piece."""
+    vol, dev = hierarchy
+    p0, dirs, length, _, nums, den = pieces(vol, dev, basis)
     n = [c.numpy().astype(np.float64) for c in nums[0]]
     d = [c.numpy().astype(np.float64) for c in den]
-
-    fractions = np.array([0.0, 0.1, 0.35, 0.5, 0.8, 1.0])
-    s = length[:, None] * fractions[None, :]
+    s = length[:, None] * FRACTIONS[None, :]
     cubic_value = horner(n, s.T).T / horner(d, s.T).T
     pts = (p0[:, None, :] + s[:, :, None] * dirs[:, None, :]).reshape(-1, 3)
     kernel, _ = evaluate(dev, basis, pts)
@@ -323,6 +332,33 @@ def test07_segment_cubic_equals_the_point_reconstruction_inside_one_piece(hierar
     scale = np.abs(slow).max()
     np.testing.assert_allclose(cubic_value.ravel(), kernel, rtol=0, atol=2e-5 * scale)
     np.testing.assert_allclose(cubic_value.ravel(), slow, rtol=0, atol=2e-5 * scale)
+
+
+@pytest.mark.parametrize("basis", [True, False], ids=["basis", "finest"])
+def test07b_segment_gradient_equals_the_point_gradient_inside_one_piece(hierarchy, basis):
+    """The gradient along a piece from its cells read once (:func:`segment_gradient`, the
+    quotient rule on quadratics of the sums' gradients and the piece's cubics) equals the point
+    reconstruction's analytic gradient and the float64 twin's, at points of the piece,
+    its ends included."""
+    vol, dev = hierarchy
+    p0, dirs, length, seg, nums, den = pieces(vol, dev, basis)
+    active = dr.full(M.Bool, True, len(p0))
+    quadratics = rec.segment_gradient(dev, basis, seg, dev.arrays(basis), active)
+    got = []
+    for f in FRACTIONS:
+        g = quadratics.at(M.Float(np.float32(f) * length.astype(np.float32)), nums[0], den)
+        dr.eval(g)
+        got.append(numpy3(g))
+    got = np.stack(got, axis=1).reshape(-1, 3)
+    s = length[:, None] * FRACTIONS[None, :]
+    pts = (p0[:, None, :] + s[:, :, None] * dirs[:, None, :]).reshape(-1, 3)
+    _, kernel = evaluate(dev, basis, pts)
+    twin = basis_point_reference if basis else finest_point_reference
+    _, slow = twin(vol, pts, "f")
+    scale = np.abs(slow).max()
+    assert scale > 0
+    np.testing.assert_allclose(got, kernel, rtol=0, atol=1e-4 * scale)
+    np.testing.assert_allclose(got, slow, rtol=0, atol=1e-4 * scale)
 
 
 @pytest.mark.parametrize("dense", [True, False])

@@ -210,13 +210,6 @@ def _dominant(points, shares):
     return point
 
 
-def _quadratic(q, x):
-    """The quadratic through ``q = (q0, q_mid, q1)`` at fractions 0, 1/2, 1, at fraction
-    ``x``."""
-    q0, qm, q1 = q
-    return q0 + x * ((4.0 * qm - 3.0 * q0 - q1) + x * (2.0 * (q0 + q1) - 4.0 * qm))
-
-
 def _quadratic_extremum(q, length):
     """Where in ``[0, length]`` the quadratic through ``q`` (at 0, the middle and the end)
     turns; ``length`` if it does not inside."""
@@ -523,27 +516,24 @@ def _piece(ray: RayContext, cp: CubicPiece, leaf, turns, lighting, have):
     """The cubic piece ``cp`` (in kd leaf ``leaf``) split for compositing: where the value
     turns (``turns``, from :func:`_value_cuts`) and, where it is shaded with
     ``cfg.shading_extrema``, where the first light's diffuse term turns (Marchesin et al. 2009,
-    section 3.2; that term is a quadratic in ``t`` inside a trilinear cell, and so is the
-    gradient, which is then taken at the piece's front, middle and back and interpolated, as it
-    is for a 2D transfer function; otherwise it is reconstructed where it is needed)."""
+    section 3.2; inside a trilinear cell that term is close to a quadratic in ``t``, whose
+    extremum is found from its values at the piece's front, middle and back). The gradient,
+    where shading or a 2D transfer function needs it, comes from the piece's cells read once
+    (:func:`~mi_amr.kernels.reconstruct.segment_gradient`), at any point of the piece."""
     cfg, length = ray.cfg, cp.length
-    arrays = ray.dev.arrays(cfg.basis, color=True)
-
-    def reconstructed(s):
-        return rec.reconstruct(ray.dev, cfg.basis, ray.at(cp.t + s), arrays[:1], have,
-                               leaf=leaf)[1]
-
-    extra, gradient = [], reconstructed
-    shade_cut = lighting is not None and cfg.shading_extrema
-    if shade_cut or cfg.transfer2d is not None:
-        grads_q = [reconstructed(f * length) for f in (0.0, 0.5, 1.0)]
+    extra, gradient = [], None
+    if lighting is not None or cfg.transfer2d is not None:
+        arrays = ray.dev.arrays(cfg.basis, color=True)
+        seg = rec.Segment(leaf=leaf, p0=ray.at(cp.t), d=ray.d, s_mid=0.5 * length)
+        quadratics = rec.segment_gradient(ray.dev, cfg.basis, seg, arrays[:1], have)
 
         def gradient(s):
-            return _quadratic(grads_q, s / length)
+            return quadratics.at(s, cp.num, cp.den)
 
-    if shade_cut:
+    if lighting is not None and cfg.shading_extrema:
         ctx = lighting.sample(ray.at(cp.t + 0.5 * length), have, False)
-        extra = [_quadratic_extremum([lighting.lambert(ctx, g) for g in grads_q], length)]
+        extra = [_quadratic_extremum([lighting.lambert(ctx, gradient(f * length))
+                                      for f in (0.0, 0.5, 1.0)], length)]
 
     s_pts = [0.0 * length] + _sort(list(turns) + extra) + [length]
     values = [roots.cubic(cp.num, s) / roots.cubic(cp.den, s) for s in s_pts]

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 
-from mi_amr.kernels.device import BRICK, BRICK_N, NO_BRICK, NO_GRID
+from mi_amr.kernels.device import BRICK, BRICK_N, NO_BRICK, NO_GRID, backend_of
 
 # Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
 # (Dr.Jit reads a dataclass's annotations but converts nothing by them).
@@ -207,21 +207,24 @@ def reconstruct(dev, basis: bool, p, arrays, active, leaf=None):
 
 # ---------------------------------------------------------------------- cubic along a ray
 
-def _clamped_factors(m, ua, du, um, n):
-    """Finest-level rule along one axis: the two corners' weights ``alpha + beta * s`` and their
-    (clamped) indices. ``ua``/``du``: local coordinate at s = 0 and its rate; ``um``: at the
-    segment's middle (chooses the dual cell)."""
+def _clamped_factors(m, ua, du, um, n, ih):
+    """Finest-level rule along one axis: the two corners' weights ``alpha + beta * s``, their
+    (clamped) indices and the weights' derivatives along the axis (world). ``ua``/``du``: local
+    coordinate at s = 0 and its rate; ``um``: at the segment's middle (chooses the dual cell);
+    ``ih``: the inverse cell size along the axis."""
     last = m.Float(n) - 1.0
     below = um < 0.0
     above = um > last
     i0 = dr.minimum(m.UInt32(dr.maximum(dr.floor(um), 0.0)), dr.maximum(n, 2) - 2)
     i1 = dr.minimum(i0 + 1, n - 1)
     e = ua - m.Float(i0)
+    flat = below | above        # (the clamped outer half cell: constant along the axis)
     a0 = dr.select(below, 1.0, dr.select(above, 0.0, 1.0 - e))
-    b0 = dr.select(below | above, 0.0, -du)
+    b0 = dr.select(flat, 0.0, -du)
     a1 = dr.select(below, 0.0, dr.select(above, 1.0, e))
-    b1 = dr.select(below | above, 0.0, du)
-    return (a0, b0, i0), (a1, b1, i1)
+    b1 = dr.select(flat, 0.0, du)
+    slope = dr.select(flat, 0.0, ih)
+    return (a0, b0, i0, -slope), (a1, b1, i1, slope)
 
 
 def _cubics(m, fx, fy, fz, fetch, count):
@@ -230,13 +233,13 @@ def _cubics(m, fx, fy, fz, fetch, count):
     two ``(alpha, beta, index)`` per axis) and ``fetch(ix, iy, iz) -> (values, has)``."""
     num = [[m.Float(0.0) for _ in range(4)] for _ in range(count)]
     den = [m.Float(0.0) for _ in range(4)]
-    for ax, bx, ix in fx:
-        for ay, by, iy in fy:
+    for ax, bx, ix, _ in fx:
+        for ay, by, iy, _ in fy:
             # (ax + bx s)(ay + by s) = q0 + q1 s + q2 s^2
             q0, q1, q2 = ax * ay, ax * by + bx * ay, bx * by
             lin_num = [[m.Float(0.0), m.Float(0.0)] for _ in range(count)]
             lin_den = [m.Float(0.0), m.Float(0.0)]
-            for az, bz, iz in fz:
+            for az, bz, iz, _ in fz:
                 vals, has = fetch(ix, iy, iz)
                 wa = dr.select(has, az, 0.0)
                 wb = dr.select(has, bz, 0.0)
@@ -252,6 +255,52 @@ def _cubics(m, fx, fy, fz, fetch, count):
     return num, den
 
 
+def _gradient_quadratics(m, fx, fy, fz, fetch):
+    """Quadratic coefficients (in ``s``) of the gradients (world) of ``sum_C w_C(s) v_C`` (the
+    first value array) and of ``sum_C w_C(s)``, per axis: ``dw_C / dx`` is the x factor's
+    slope times the y and z factors, linear each (``fx`` etc. as :func:`_cubics` takes them,
+    with each factor's derivative along its axis)."""
+    gn = [[m.Float(0.0) for _ in range(3)] for _ in range(3)]
+    gd = [[m.Float(0.0) for _ in range(3)] for _ in range(3)]
+    for x in fx:
+        for y in fy:
+            for z in fz:
+                vals, has = fetch(x[2], y[2], z[2])
+                v = dr.select(has, vals[0], 0.0)
+                for axis, (f, g, h) in enumerate(((x, y, z), (y, x, z), (z, x, y))):
+                    # d/d(axis): the slope of f times (g0 + g1 s)(h0 + h1 s)
+                    slope = dr.select(has, f[3], 0.0)
+                    q = (slope * g[0] * h[0], slope * (g[0] * h[1] + g[1] * h[0]),
+                         slope * g[1] * h[1])
+                    for c in range(3):
+                        gd[axis][c] += q[c]
+                        gn[axis][c] = dr.fma(q[c], v, gn[axis][c])
+    return gn, gd
+
+
+@dataclass
+class GradientPiece:
+    """The gradient of the reconstruction ``N / D`` along a segment ``p0 + s d``: the
+    quadratics (in ``s``; 3 coefficients each) of the gradients of its numerator ``gn[axis]``
+    and of its denominator ``gd[axis]``, world units (:func:`segment_gradient`)."""
+
+    gn: list
+    gd: list
+
+    def at(self, s, num, den):
+        """The gradient of ``N / D`` at ``s`` (world, per world unit), given the cubics ``num``
+        and ``den`` of the same segment (:func:`segment_cubic`): the quotient rule; NaN where
+        no cell has weight, as :func:`basis_point` gives."""
+        def quad(c):
+            return dr.fma(dr.fma(c[2], s, c[1]), s, c[0])
+
+        n = dr.fma(dr.fma(dr.fma(num[3], s, num[2]), s, num[1]), s, num[0])
+        d = dr.fma(dr.fma(dr.fma(den[3], s, den[2]), s, den[1]), s, den[0])
+        inv = dr.select(d > 0.0, dr.rcp(d), dr.nan)
+        g = [(quad(self.gn[a]) * d - n * quad(self.gd[a])) * (inv * inv) for a in range(3)]
+        return backend_of(type(n)).Array3f(*g)
+
+
 @dataclass
 class Segment:
     """A segment ``p0 + s d`` of a ray (volume world space) inside kd leaf ``leaf``, whose
@@ -263,31 +312,39 @@ class Segment:
     s_mid: Float
 
 
-def finest_cubic(dev, g, seg: Segment, arrays, active):
-    """Cubic coefficients (in ``s``, along ``seg.p0 + s seg.d``) of the finest-level
-    reconstruction in grid ``g`` for the segment ``seg``: ``num[a]`` per value array and
-    ``den`` (1 unless a value is missing)."""
+def _finest_factors(dev, g, seg: Segment, arrays, active):
+    """The finest-level rule in grid ``g`` along the segment ``seg``: the factors of each axis
+    (:func:`_clamped_factors`) and ``fetch(i, j, k) -> (values, has)`` of the grid's cells."""
     m = dev.m
     p0, d, s_mid = seg.p0, seg.d, seg.s_mid
     o, ih, n, off = grid_frame(dev, g, active)
     ua = (p0 - o) * ih - 0.5
     du = d * ih
     um = ua + s_mid * du
-    fx = _clamped_factors(m, ua.x, du.x, um.x, n.x)
-    fy = _clamped_factors(m, ua.y, du.y, um.y, n.y)
-    fz = _clamped_factors(m, ua.z, du.z, um.z, n.z)
+    fx = _clamped_factors(m, ua.x, du.x, um.x, n.x, ih.x)
+    fy = _clamped_factors(m, ua.y, du.y, um.y, n.y, ih.y)
+    fz = _clamped_factors(m, ua.z, du.z, um.z, n.z, ih.z)
 
     def fetch(i, j, k):
         idx = _cell_index(n, off, i, j, k)
         vals = [dr.gather(m.Float, arr, idx, active) for arr in arrays]
         return vals, active & dr.isfinite(vals[0])
 
-    return _cubics(m, fx, fy, fz, fetch, len(arrays))
+    return fx, fy, fz, fetch
 
 
-def level_cubic(dev, level, seg: Segment, arrays, active):
-    """Cubic coefficients of the basis sums of one level's leaf cells along the segment
-    ``seg`` (corners with no leaf cell get no weight)."""
+def finest_cubic(dev, g, seg: Segment, arrays, active):
+    """Cubic coefficients (in ``s``, along ``seg.p0 + s seg.d``) of the finest-level
+    reconstruction in grid ``g`` for the segment ``seg``: ``num[a]`` per value array and
+    ``den`` (1 unless a value is missing)."""
+    return _cubics(dev.m, *_finest_factors(dev, g, seg, arrays, active), len(arrays))
+
+
+def _level_factors(dev, level, seg: Segment, arrays, active):
+    """The basis sums of one level's leaf cells along the segment ``seg``: the two corners'
+    factors of each axis (weights ``alpha + beta s``, brick offsets, derivatives along the
+    axis) and ``fetch(bx, by, bz) -> (values, has)`` of the dual cell's corners in the brick
+    pools (a corner with no leaf cell has none)."""
     m = dev.m
     p0, d, s_mid = seg.p0, seg.d, seg.s_mid
     ua, ih = _level_frame(dev, level, p0, active)
@@ -295,16 +352,22 @@ def level_cubic(dev, level, seg: Segment, arrays, active):
     base_f = dr.floor(ua + s_mid * du)
     e = ua - base_f
     base, ok = brick_cell(dev, level, m.Array3i(base_f), active)
-    fx = [(1.0 - e.x, -du.x, 0), (e.x, du.x, 1)]
-    fy = [(1.0 - e.y, -du.y, 0), (e.y, du.y, 1)]
-    fz = [(1.0 - e.z, -du.z, 0), (e.z, du.z, 1)]
+    fx = [(1.0 - e.x, -du.x, 0, -ih.x), (e.x, du.x, 1, ih.x)]
+    fy = [(1.0 - e.y, -du.y, 0, -ih.y), (e.y, du.y, 1, ih.y)]
+    fz = [(1.0 - e.z, -du.z, 0, -ih.z), (e.z, du.z, 1, ih.z)]
 
     def fetch(bx, by, bz):
         idx = base + corner_offset(bx, by, bz)
         vals = [dr.gather(m.Float, arr, idx, ok) for arr in arrays]
         return vals, ok & dr.isfinite(vals[0])
 
-    return _cubics(m, fx, fy, fz, fetch, len(arrays))
+    return fx, fy, fz, fetch
+
+
+def level_cubic(dev, level, seg: Segment, arrays, active):
+    """Cubic coefficients of the basis sums of one level's leaf cells along the segment
+    ``seg`` (corners with no leaf cell get no weight)."""
+    return _cubics(dev.m, *_level_factors(dev, level, seg, arrays, active), len(arrays))
 
 
 def segment_cubic(dev, basis: bool, seg: Segment, arrays, active):
@@ -314,6 +377,39 @@ def segment_cubic(dev, basis: bool, seg: Segment, arrays, active):
         return _basis_segment_cubic(dev, seg, arrays, active)
     g = dr.gather(dev.m.UInt32, dev.leaf_owner, seg.leaf, active)
     return finest_cubic(dev, g, seg, arrays, active & (g != NO_GRID))
+
+
+def segment_gradient(dev, basis: bool, seg: Segment, arrays, active) -> GradientPiece:
+    """The gradient of the reconstruction of the first of ``arrays`` along the segment
+    ``seg``, which must lie in one dual cell of every level it blends (a cubic piece does):
+    the same cells as :func:`segment_cubic`, read once for every point of the segment
+    (:meth:`GradientPiece.at`), where :func:`reconstruct` reads them per point."""
+    if basis:
+        return _basis_segment_gradient(dev, seg, arrays[:1], active)
+    g = dr.gather(dev.m.UInt32, dev.leaf_owner, seg.leaf, active)
+    ok = active & (g != NO_GRID)
+    return GradientPiece(*_gradient_quadratics(dev.m, *_finest_factors(dev, g, seg, arrays[:1],
+                                                                         ok)))
+
+
+def _added(sums, quadratics):
+    """``sums`` (18 Floats) plus the coefficients of ``quadratics`` (``(gn, gd)``), in order."""
+    gn, gd = quadratics
+    return [a + c for a, c in zip(sums, [c for q in gn + gd for c in q])]
+
+
+@dr.syntax
+def _basis_segment_gradient(dev, seg: Segment, arrays, active) -> GradientPiece:
+    m = dev.m
+    levels = dr.gather(m.UInt32, dev.leaf_levels, seg.leaf, active)
+    sums = [m.Float(0.0) for _ in range(18)]       # gn, then gd: 3 axes x 3 coefficients
+    while dr.hint(active & (levels != 0), label="level_gradients"):
+        level = dr.tzcnt(levels)
+        levels &= levels - 1
+        sums = _added(sums, _gradient_quadratics(m, *_level_factors(dev, level, seg, arrays,
+                                                                    active)))
+    return GradientPiece(gn=[sums[3 * a:3 * a + 3] for a in range(3)],
+                         gd=[sums[9 + 3 * a:12 + 3 * a] for a in range(3)])
 
 
 @dr.syntax
