@@ -782,18 +782,21 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
             smp = _into_band(ray, smp, prev, bands, arrays)
         a, shares, t_light = _sample_alpha(ray, smp, march.walk.t, prev, dt, centres)
         if dr.hint(shade, mode="scalar"):
-            lighting = shading.lighting
             lit = smp.take & (a > tol.ALPHA_LIT)
-            p_lit = ray.at(t_light)
-            ctx = lighting.sample(p_lit, lit, True)
-            A, S = lighting.terms(ctx, smp.grad, lit)
-            color = shading.color_of(shares, smp.cval)
-            C += dr.select(lit, T * a * (color * A + S), 0.0)
-            if dr.hint(corrects, mode="scalar"):
-                A_d, S_d = lighting.direct_terms(ctx, smp.grad, lit)
-                pick = pick.offer(T, PieceLight(p=p_lit, D=dr.select(lit, a * (color * A_d + S_d),
-                                                                     0.0),
-                                                cached=lighting.cached(ctx)))
+            # (a symbolic branch: a packet whose samples are all too faint to shade skips
+            # the light samples and the shading)
+            if dr.hint(lit, label="shade_sample"):
+                lighting = shading.lighting
+                p_lit = ray.at(t_light)
+                ctx = lighting.sample(p_lit, lit, True)
+                A, S = lighting.terms(ctx, smp.grad, lit)
+                color = shading.color_of(shares, smp.cval)
+                C += dr.select(lit, T * a * (color * A + S), 0.0)
+                if dr.hint(corrects, mode="scalar"):
+                    A_d, S_d = lighting.direct_terms(ctx, smp.grad, lit)
+                    pick = pick.offer(T, PieceLight(p=p_lit,
+                                                    D=dr.select(lit, a * (color * A_d + S_d), 0.0),
+                                                    cached=lighting.cached(ctx)))
         T = dr.select(work, T * (1.0 - a), T)
         prev = dr.select(smp.take, Previous(t=smp.t_s, v=smp.v), prev)
 
