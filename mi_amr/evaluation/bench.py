@@ -502,11 +502,13 @@ def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
     import drjit as dr
 
     from mi_amr import params
+    from mi_amr.core import memory
     from mi_amr.core.kdtree import KDTree
     from mi_amr.core.volume import AMRVolume
     from mi_amr.kernels import ranges
     from mi_amr.synthetic import datasets
 
+    memory.keep_freed_memory()      # as every load of a file does (kernels.prepared)
     rows = []
     for per_axis, fine in sizes:
         grids = datasets.many_grids(per_axis, fine)
