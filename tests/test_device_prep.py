@@ -50,6 +50,24 @@ def test02_windows_widen_to_the_blocks_of_the_numpy_twin():
     np.testing.assert_array_equal(ranges.block_tops(lo, hi, shape), [[3, 3, 3], [5, 6, 8]])
 
 
+def test02b_the_kernels_widened_windows_are_the_host_twins():
+    """The kernel widens each window on the device (:func:`ranges.device_tops`, the block from
+    the longest side's leading zeros); its tops equal :func:`ranges.block_tops` on random
+    windows of random grids, sides from 1 to 300 cells."""
+    rng = np.random.default_rng(8)
+    shape = rng.integers(1, 300, size=(5000, 3))
+    a, b = (rng.integers(0, 300, size=(5000, 3)) % shape for _ in range(2))
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    m = dr.llvm.ad
+    dev = [m.Array3i(*(m.Int32(np.ascontiguousarray(x[:, k], dtype=np.int32))
+                       for k in range(3))) for x in (lo, hi, shape)]
+    top = ranges.device_tops(m, *dev)
+    got = np.stack([np.array(top.x), np.array(top.y), np.array(top.z)], axis=1)
+    want = ranges.block_tops(lo, hi, shape)
+    assert np.any(want - lo > hi - lo + 1)              # some windows widen
+    np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("basis", [True, False])
 def test03_node_ranges_the_search_reads_are_the_numpy_ones(basis):
     from mi_amr.kernels.prepared import PreparedVolume

@@ -3,9 +3,9 @@
 :meth:`KDTree.leaf_ranges <mi_amr.core.kdtree.KDTree.leaf_ranges>` (NumPy) takes, for each
 (leaf, grid) pair of :meth:`~mi_amr.core.kdtree.KDTree.leaf_windows`, the min and max of the
 finite values of the grid's cells in the pair's window widened to power-of-two blocks, then per
-leaf the extremes over its pairs. Here one kernel walks each pair's widened window cell by cell
-(a lane a pair); the per-leaf extremes over the pairs (listed leaf after leaf) are taken on the
-host. The values are the field as the kernels read it (float32; rounding to float32 keeps the
+leaf the extremes over its pairs. Here one kernel widens each pair's window and walks it cell by
+cell (a lane a pair); the per-leaf extremes over the pairs (listed leaf after leaf) are taken on
+the host. The values are the field as the kernels read it (float32; rounding to float32 keeps the
 order of values, so the extremes are the float32 roundings of the NumPy ones), and so is the
 result.
 
@@ -46,9 +46,8 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
         part = np.arange(a, min(a + pairs, len(pl)))
         lanes = np.repeat(part, 2) if len(part) == 1 else part
         shape = vol.shapes()[pg[lanes]]
-        top = block_tops(lo[lanes], hi[lanes], shape)
         start = vol.cell_offsets()[pg[lanes]]
-        lo_part, hi_part = _window_extremes(m, values, leaf, (start, shape), (lo[lanes], top))
+        lo_part, hi_part = _window_extremes(m, values, leaf, (start, shape), (lo[lanes], hi[lanes]))
         dr.eval(lo_part, hi_part)
         vmin[part], vmax[part] = lo_part.numpy()[:len(part)], hi_part.numpy()[:len(part)]
     # Per leaf, the extremes over its pairs (listed leaf after leaf), on the host: a scatter
@@ -67,24 +66,35 @@ def block_tops(lo, hi, shape):
     as :func:`~mi_amr.core.kdtree._window_min_max` widens them: to the blocks of ``2**k`` cells
     a side (``2**k`` the largest power of two not longer than the window's longest side) that
     start at ``lo`` or end at ``hi``, cut at the grid's end (``shape``, ``(P, 3)``). The lower
-    corner stays ``lo``."""
+    corner stays ``lo``. The slow twin of :func:`device_tops`, which the kernel uses."""
     side = (hi - lo + 1).max(axis=1)
     block = (1 << np.floor(np.log2(side)).astype(np.int64))[:, None]
     return np.minimum(np.maximum(lo, hi - block + 1) + block, shape)
 
 
+def device_tops(m, lo, hi, shape):
+    """:func:`block_tops` of the windows ``[lo, hi]`` (inclusive, not empty) in grids of
+    ``shape`` (three ``m.Array3i``), on the device: ``2**k`` from the longest side's leading
+    zeros."""
+    side = dr.maximum(dr.maximum(hi.x - lo.x, hi.y - lo.y), hi.z - lo.z) + 1
+    block = m.Int32(1) << m.Int32(31 - dr.lzcnt(m.UInt32(side)))
+    return dr.minimum(dr.maximum(lo, hi - block + 1) + block, shape)
+
+
 @dr.syntax
 def _window_extremes(m, values, leaf, grid, box):
     """Per window (a lane each) the min and max of the finite ``values`` (of leaf cells where
-    ``leaf`` is given) in the box ``[lo, top)`` (``box``) of the grid whose cells start at
-    ``start`` (``grid``: ``(start, shape)``); ``(+inf, -inf)`` where there are none."""
-    (start, shape), (lo, top) = grid, box
+    ``leaf`` is given) in the window ``[lo, hi]`` (``box``, inclusive) widened to its blocks
+    (:func:`device_tops`) of the grid whose cells start at ``start`` (``grid``: ``(start,
+    shape)``); ``(+inf, -inf)`` where there are none."""
+    (start, shape), (lo, hi) = grid, box
     def ints(a):
         return device_array(m.Int32, a, np.int32)
 
     b_lo = m.Array3i(*(ints(lo[:, a]) for a in range(3)))
-    b_top = m.Array3i(*(ints(top[:, a]) for a in range(3)))
-    ny, nz = ints(shape[:, 1]), ints(shape[:, 2])
+    n = m.Array3i(*(ints(shape[:, a]) for a in range(3)))
+    b_top = device_tops(m, b_lo, m.Array3i(*(ints(hi[:, a]) for a in range(3))), n)
+    ny, nz = n.y, n.z
     base = device_array(m.UInt32, start, np.uint32)
     x, y, z = m.Int32(b_lo.x), m.Int32(b_lo.y), m.Int32(b_lo.z)
     vmin = dr.full(m.Float, dr.inf, len(start))
