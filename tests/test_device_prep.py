@@ -68,6 +68,23 @@ def test02b_the_kernels_widened_windows_are_the_host_twins():
     np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize("name", sorted(HIERARCHIES))
+def test02c_the_kernels_windows_are_the_trees(name):
+    """The kernel takes each (leaf, grid) pair's cell window itself (from the leaves' and
+    grids' lattice boxes, float64, the tree's operations in its order); they equal
+    :meth:`KDTree._windows` for every listed pair, those with an empty window included."""
+    tree = KDTree(AMRVolume.from_grids(HIERARCHIES[name]()), leaf_cells=4)
+    pl, pg = tree.leaf_pairs("f", None)
+    m = dr.llvm.ad
+    lo, hi, _, _ = ranges._Frame.of(m, tree).windows(
+        m, m.UInt32(pl.astype(np.uint32)), m.UInt32(pg.astype(np.uint32)))
+    want = tree._windows(pl, pg)
+    assert np.any(np.any(want[1] < want[0], axis=1))        # some empty windows
+    for got, w in zip((lo, hi), want):
+        np.testing.assert_array_equal(np.stack([np.array(got.x), np.array(got.y),
+                                                np.array(got.z)], axis=1), w)
+
+
 @pytest.mark.parametrize("basis", [True, False])
 def test03_node_ranges_the_search_reads_are_the_numpy_ones(basis):
     from mi_amr.kernels.prepared import PreparedVolume

@@ -520,20 +520,13 @@ class KDTree:
         return np.maximum(lo, 0), np.minimum(hi, np.take(self.shape, grid, axis=0) - 1)
 
     def _listed_pairs(self, count):
-        """The first ``count[l]`` listed grids of each leaf ``l`` with a non-empty cell window
-        in an owned leaf: ``(leaf, grid, lo, hi)``, windows as in :meth:`_windows` (int32).
-        The windows are computed here, for the pairs asked for (the tree keeps none: they
-        would take 24 bytes a listed pair), and the empty ones dropped."""
+        """The first ``count[l]`` listed grids of each owned leaf ``l``: ``(leaf, grid)``, leaf
+        after leaf."""
         taken = np.where(self.leaf_owner >= 0, np.minimum(count, self.leaf_nsupport), 0)
         runs = np.stack([taken, self.leaf_nsupport - taken], axis=1).ravel()
         at = np.flatnonzero(np.repeat(np.tile(np.array([True, False]), self.num_leaves), runs))
         leaf = np.searchsorted(self.leaf_start, at, side="right") - 1
-        grid = np.take(self.leaf_grids, at).astype(np.int64)
-        lo, hi = self._windows(leaf, grid)
-        keep = np.all(hi >= lo, axis=1)
-        if keep.all():          # (the active grids' windows, for one, are never empty)
-            return leaf, grid, lo, hi
-        return leaf[keep], grid[keep], lo[keep], hi[keep]
+        return leaf, np.take(self.leaf_grids, at).astype(np.int64)
 
     # ------------------------------------------------------------------ queries
     def check(self, field: str | None = None, **kw) -> dict:
@@ -644,8 +637,8 @@ class KDTree:
         ``"basis"`` -- leaf cells of the leaf's active grids; ``"finest"`` -- cells of the
         owner grid; ``None`` -- every cell of every grid listed at the leaf (valid for both).
         Leaves with no owner get the empty range ``(+inf, -inf)``. The windows are those of
-        :meth:`leaf_windows` (the device computes the same extremes from them,
-        :mod:`mi_amr.kernels.ranges`)."""
+        :meth:`leaf_windows` (the device computes the same extremes, taking each pair's window
+        itself: :meth:`leaf_pairs`, :meth:`window_frame`, :mod:`mi_amr.kernels.ranges`)."""
         vol = self.volume
         pl, pg, lo, hi = self.leaf_windows(field, reconstruction)
         if reconstruction == "basis":
@@ -666,6 +659,19 @@ class KDTree:
         ``reconstruction`` reads (see there), leaf after leaf (a leaf's pairs one after the
         other, leaves in increasing order); the values to take are all cells' for
         ``"finest"`` and None, the leaf cells' for ``"basis"``."""
+        pl, pg = self.leaf_pairs(field, reconstruction)
+        # (computed for the pairs asked for: the tree keeps no windows, which would take 24
+        # bytes a listed pair)
+        lo, hi = self._windows(pl, pg)
+        keep = np.all(hi >= lo, axis=1)
+        if keep.all():          # (the active grids' windows, for one, are never empty)
+            return pl, pg, lo, hi
+        return pl[keep], pg[keep], lo[keep], hi[keep]
+
+    def leaf_pairs(self, field: str, reconstruction: str | None = None):
+        """The (leaf, grid) pairs of :meth:`leaf_windows`, those whose window is empty
+        included (they hold no cell), without the windows: ``(leaf, grid)``, leaf after leaf.
+        The device takes each pair's window itself (:mod:`mi_amr.kernels.ranges`)."""
         vol = self.volume
         if field not in vol.field_names:
             raise AMRError(f"unknown field '{field}'; available: {list(vol.field_names)}")
@@ -673,12 +679,17 @@ class KDTree:
             raise AMRError(f"reconstruction must be 'basis' or 'finest', got {reconstruction!r}")
         if reconstruction == "finest":
             pl = np.flatnonzero(self.leaf_owner >= 0)
-            pg = self.leaf_owner[pl]
-            lo, hi = self._windows(pl, pg)
-            keep = np.all(hi >= lo, axis=1) & (self.leaf_owner[pl] >= 0)
-            return pl[keep], pg[keep], lo[keep], hi[keep]
+            return pl, self.leaf_owner[pl].astype(np.int64)
         count = self.leaf_nactive if reconstruction == "basis" else self.leaf_nsupport
         return self._listed_pairs(count)
+
+    def window_frame(self) -> dict:
+        """What a pair's window (:meth:`_windows`) is computed from, as the device reads it:
+        the leaves' boxes ``leaf_lo``/``leaf_hi`` and the grids' lower corners ``grid_lo`` and
+        cell widths ``step`` (lattice coordinates, float64, ``(L, 3)`` and ``(G, 3)``), and
+        the grids' ``shape``."""
+        return {"leaf_lo": self._leaf_lo_f, "leaf_hi": self._leaf_hi_f, "grid_lo": self._glo,
+                "step": self._step_f, "shape": self.shape}
 
 
 # ---------------------------------------------------------------------- brute-force twins

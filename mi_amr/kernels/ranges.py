@@ -3,9 +3,11 @@
 :meth:`KDTree.leaf_ranges <mi_amr.core.kdtree.KDTree.leaf_ranges>` (NumPy) takes, for each
 (leaf, grid) pair of :meth:`~mi_amr.core.kdtree.KDTree.leaf_windows`, the min and max of the
 finite values of the grid's cells in the pair's window widened to power-of-two blocks, then per
-leaf the extremes over its pairs. Here one kernel widens each pair's window and walks it cell by
-cell (a lane a pair); the per-leaf extremes over the pairs (listed leaf after leaf) are taken on
-the host. The values are the field as the kernels read it (float32; rounding to float32 keeps the
+leaf the extremes over its pairs. Here one kernel takes each pair's window (from the leaf's and
+the grid's lattice boxes, :meth:`~mi_amr.core.kdtree.KDTree.window_frame`), widens it and walks
+it cell by cell (a lane a pair); the host hands over only the pairs
+(:meth:`~mi_amr.core.kdtree.KDTree.leaf_pairs`), and takes the per-leaf extremes over them
+(listed leaf after leaf). The values are the field as the kernels read it (float32; rounding to float32 keeps the
 order of values, so the extremes are the float32 roundings of the NumPy ones), and so is the
 result.
 
@@ -18,7 +20,7 @@ import drjit as dr
 import numpy as np
 
 from mi_amr.core.kdtree import run_starts
-from mi_amr.kernels.arrays import device_array, mapped_array
+from mi_amr.kernels.arrays import device_array, device_table, mapped_array
 
 
 # Pairs per kernel launch: bounds the host's per-pair temporaries (about 100 bytes a pair) and
@@ -35,9 +37,10 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
     Leaves with no pair get ``(+inf, -inf)``. One kernel launch takes ``pairs`` (leaf, grid)
     pairs."""
     vol = tree.volume
-    pl, pg, lo, hi = tree.leaf_windows(field, reconstruction)
+    pl, pg = tree.leaf_pairs(field, reconstruction)
     vmin = np.empty(len(pl), dtype=np.float32)
     vmax = np.empty(len(pl), dtype=np.float32)
+    frame = _Frame.of(m, tree) if len(pl) else None
     leaf = mapped_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
         if reconstruction == "basis" and len(pl) else None
     for a in range(0, len(pl), pairs):
@@ -45,9 +48,9 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
         # broadcast, which would be another kernel.
         part = np.arange(a, min(a + pairs, len(pl)))
         lanes = np.repeat(part, 2) if len(part) == 1 else part
-        shape = vol.shapes()[pg[lanes]]
-        start = vol.cell_offsets()[pg[lanes]]
-        lo_part, hi_part = _window_extremes(m, values, leaf, (start, shape), (lo[lanes], hi[lanes]))
+        at = (device_array(m.UInt32, pl[lanes], np.uint32),
+              device_array(m.UInt32, pg[lanes], np.uint32))
+        lo_part, hi_part = _window_extremes(m, values, leaf, frame, at)
         dr.eval(lo_part, hi_part)
         vmin[part], vmax[part] = lo_part.numpy()[:len(part)], hi_part.numpy()[:len(part)]
     # Per leaf, the extremes over its pairs (listed leaf after leaf), on the host: a scatter
@@ -81,25 +84,49 @@ def device_tops(m, lo, hi, shape):
     return dr.minimum(dr.maximum(lo, hi - block + 1) + block, shape)
 
 
-@dr.syntax
-def _window_extremes(m, values, leaf, grid, box):
-    """Per window (a lane each) the min and max of the finite ``values`` (of leaf cells where
-    ``leaf`` is given) in the window ``[lo, hi]`` (``box``, inclusive) widened to its blocks
-    (:func:`device_tops`) of the grid whose cells start at ``start`` (``grid``: ``(start,
-    shape)``); ``(+inf, -inf)`` where there are none."""
-    (start, shape), (lo, hi) = grid, box
-    def ints(a):
-        return device_array(m.Int32, a, np.int32)
+class _Frame:
+    """The tree's :meth:`~mi_amr.core.kdtree.KDTree.window_frame` on the device: per leaf its
+    box, per grid its lower corner and cell width (lattice coordinates, float64), its shape
+    and where its cells start in the values."""
 
-    b_lo = m.Array3i(*(ints(lo[:, a]) for a in range(3)))
-    n = m.Array3i(*(ints(shape[:, a]) for a in range(3)))
-    b_top = device_tops(m, b_lo, m.Array3i(*(ints(hi[:, a]) for a in range(3))), n)
+    def __init__(self, m, arrays: dict, start):
+        self.leaf_lo, self.leaf_hi, self.grid_lo, self.step = (
+            device_table(m.Float64, arrays[k], np.float64)
+            for k in ("leaf_lo", "leaf_hi", "grid_lo", "step"))
+        self.shape = device_table(m.Int32, arrays["shape"], np.int32)
+        self.start = device_table(m.UInt32, start, np.uint32)
+
+    @staticmethod
+    def of(m, tree) -> "_Frame":
+        return _Frame(m, tree.window_frame(), tree.volume.cell_offsets())
+
+    def windows(self, m, leaf, grid):
+        """The inclusive windows ``(lo, hi)`` (``m.Array3i``) of the pairs ``(leaf, grid)``,
+        as :meth:`~mi_amr.core.kdtree.KDTree._windows` computes them (the same float64
+        operations in the same order), the grid's shape and its first value."""
+        g_lo = dr.gather(m.Array3f64, self.grid_lo, grid)
+        s = dr.gather(m.Array3f64, self.step, grid)
+        n = dr.gather(m.Array3i, self.shape, grid)
+        lo = dr.floor((dr.gather(m.Array3f64, self.leaf_lo, leaf) - g_lo - 1.5 * s) / s)
+        hi = dr.ceil((dr.gather(m.Array3f64, self.leaf_hi, leaf) - g_lo + 0.5 * s) / s)
+        return (dr.maximum(m.Array3i(lo) + 1, 0), dr.minimum(m.Array3i(hi) - 1, n - 1), n,
+                dr.gather(m.UInt32, self.start, grid))
+
+
+@dr.syntax
+def _window_extremes(m, values, leaf, frame: _Frame, pairs):
+    """Per (leaf, grid) pair (``pairs``: two ``m.UInt32``, a lane each) the min and max of the
+    finite ``values`` (of leaf cells where ``leaf`` is given) in the pair's window
+    (:meth:`_Frame.windows`) widened to its blocks (:func:`device_tops`); ``(+inf, -inf)``
+    where there are none (an empty window holds none)."""
+    b_lo, b_hi, n, base = frame.windows(m, *pairs)
+    full = dr.all(b_lo <= b_hi)
+    b_top = device_tops(m, b_lo, dr.select(full, b_hi, b_lo), n)
     ny, nz = n.y, n.z
-    base = device_array(m.UInt32, start, np.uint32)
     x, y, z = m.Int32(b_lo.x), m.Int32(b_lo.y), m.Int32(b_lo.z)
-    vmin = dr.full(m.Float, dr.inf, len(start))
-    vmax = dr.full(m.Float, -dr.inf, len(start))
-    active = dr.all(b_lo < b_top)
+    vmin = dr.full(m.Float, dr.inf, dr.width(base))
+    vmax = dr.full(m.Float, -dr.inf, dr.width(base))
+    active = full & dr.all(b_lo < b_top)
     while dr.hint(active, label="window"):
         at = base + m.UInt32((x * ny + y) * nz + z)
         v = dr.gather(m.Float, values, at, active)
