@@ -523,9 +523,10 @@ class KDTree:
         """The first ``count[l]`` listed grids of each owned leaf ``l``: ``(leaf, grid)``, leaf
         after leaf."""
         taken = np.where(self.leaf_owner >= 0, np.minimum(count, self.leaf_nsupport), 0)
-        runs = np.stack([taken, self.leaf_nsupport - taken], axis=1).ravel()
-        at = np.flatnonzero(np.repeat(np.tile(np.array([True, False]), self.num_leaves), runs))
-        leaf = np.searchsorted(self.leaf_start, at, side="right") - 1
+        leaf = np.repeat(np.arange(self.num_leaves), taken)
+        # each taken pair's place in leaf_grids: its leaf's start plus its rank in the leaf
+        at = np.repeat(self.leaf_start - (np.cumsum(taken) - taken), taken)
+        at += np.arange(len(at))
         return leaf, np.take(self.leaf_grids, at).astype(np.int64)
 
     # ------------------------------------------------------------------ queries
