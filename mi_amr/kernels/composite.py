@@ -525,7 +525,7 @@ def _piece(ray: RayContext, cp: CubicPiece, leaf, turns, lighting, have):
     if lighting is not None or cfg.transfer2d is not None:
         arrays = ray.dev.arrays(cfg.basis, color=True)
         seg = rec.Segment(leaf=leaf, p0=ray.at(cp.t), d=ray.d, s_mid=0.5 * length)
-        quadratics = rec.segment_gradient(ray.dev, cfg.basis, seg, arrays[:1], have)
+        quadratics = rec.segment_gradient(ray.dev, cfg.basis, seg, arrays, have)
 
         def gradient(s):
             return quadratics.at(s, cp.num, cp.den)

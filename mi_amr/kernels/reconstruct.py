@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import drjit as dr
 
+from mi_amr.kernels import roots
 from mi_amr.kernels.device import BRICK, BRICK_N, NO_BRICK, NO_GRID, backend_of
 
 # Annotation names: the backend's arrays have these names in drjit.llvm.ad and drjit.cuda.ad
@@ -294,8 +295,7 @@ class GradientPiece:
         def quad(c):
             return dr.fma(dr.fma(c[2], s, c[1]), s, c[0])
 
-        n = dr.fma(dr.fma(dr.fma(num[3], s, num[2]), s, num[1]), s, num[0])
-        d = dr.fma(dr.fma(dr.fma(den[3], s, den[2]), s, den[1]), s, den[0])
+        n, d = roots.cubic(num, s), roots.cubic(den, s)
         inv = dr.select(d > 0.0, dr.rcp(d), dr.nan)
         g = [(quad(self.gn[a]) * d - n * quad(self.gd[a])) * (inv * inv) for a in range(3)]
         return backend_of(type(n)).Array3f(*g)
