@@ -10,6 +10,12 @@ points within one grid cell of such a leaf are needed: a lit piece lies inside o
 eight corners of its lookup are that close. The host plans the grid (:func:`plan`,
 :func:`needed_points`); the plugin fills it with the exact shadow compositing
 (:mod:`mi_amr.plugin.shadow_cache`); :func:`lookup` reads it per piece.
+
+A thin band's shadow on itself changes from clear to dark within far less than a grid cell,
+and a lit piece lies inside that band: the trilinear lookup there blends corners on either
+side of it, an error that a finer grid hardly reduces. So a piece's shadow is composited
+exactly over the first stretch of its shadow ray, the grid's ``reach`` (one grid cell), and
+looked up only beyond it, where the eight corners lie ahead of the piece's own band.
 """
 
 from __future__ import annotations
@@ -31,11 +37,14 @@ from drjit.llvm.ad import Array3f, Float
 @dataclass(frozen=True)
 class GridPlan:
     """Where a cache's points lie (host, float64, volume world): the first point ``lo``, the
-    spacing ``cell`` (3 floats) and the points per axis ``dims`` (3 ints, each >= 2)."""
+    spacing ``cell`` (3 floats) and the points per axis ``dims`` (3 ints, each >= 2);
+    ``reach`` (volume world): how far along a shadow ray the band is composited exactly
+    before the grid is read (see the module docstring)."""
 
     lo: np.ndarray
     cell: np.ndarray
     dims: np.ndarray
+    reach: float = 0.0
 
     @property
     def size(self) -> int:
@@ -56,19 +65,24 @@ def band_leaves(tree, ranges, bands) -> np.ndarray:
 
 def plan(tree, leaves, max_points: int = tol.SHADOW_CACHE_POINTS) -> GridPlan:
     """The grid over the box of ``leaves`` (leaf indices of ``tree``, not empty), at their
-    finest cell width, coarsened evenly until it holds at most ``max_points`` points."""
+    finest cell width, coarsened evenly until it holds at most ``max_points`` points; its
+    reach is its longest cell side, at most :data:`~mi_amr.tolerances.SHADOW_REACH_CELLS`
+    finest cells (a coarse preview grid keeps the exact stretch short)."""
     lo, hi = tree.leaf_boxes(leaves)
     lo, hi = lo.min(axis=0), hi.max(axis=0)
     h = float(np.nanmin(np.where(np.isfinite(tree.leaf_min_h[leaves]),
                                  tree.leaf_min_h[leaves], np.nan)))
     extent = np.maximum(hi - lo, h)
+    finest = h
     while True:
         dims = np.maximum(np.ceil(extent / h).astype(np.int64) + 1, 2)
         if np.prod(dims) <= max_points:
             break
         h *= max(1.01, (np.prod(dims) / max_points) ** (1.0 / 3.0))
-    return GridPlan(lo=np.asarray(lo, np.float64), cell=extent / (dims - 1),
-                    dims=dims.astype(np.int64))
+    cell = extent / (dims - 1)
+    reach = min(float(cell.max()), tol.SHADOW_REACH_CELLS * finest)
+    return GridPlan(lo=np.asarray(lo, np.float64), cell=cell, dims=dims.astype(np.int64),
+                    reach=reach)
 
 
 def needed_points(grid: GridPlan, tree, leaves) -> np.ndarray:
@@ -127,23 +141,25 @@ def _opaque_uint(m, n):
 @dataclass
 class TransmittanceGrid:
     """A filled cache on the device: the grid's first point ``lo`` and inverse spacing
-    ``inv_cell`` (volume world), the points per axis ``dims`` (as floats) and the
-    transmittance ``values`` (flat, see the module docstring); all kernel inputs, never
-    literals, so a new grid compiles nothing."""
+    ``inv_cell`` (volume world), the points per axis ``dims`` (as floats), the transmittance
+    ``values`` (flat, see the module docstring) and ``reach``, the exact stretch of a lookup's
+    shadow ray (scene units); all kernel inputs, never literals, so a new grid compiles
+    nothing."""
 
     lo: Array3f
     inv_cell: Array3f
     dims: Array3f
     values: Float
+    reach: Float
 
     @staticmethod
-    def of(m, grid: GridPlan, values) -> "TransmittanceGrid":
+    def of(m, grid: GridPlan, values, reach: float = 0.0) -> "TransmittanceGrid":
         """The device grid of ``grid`` holding ``values`` (a device ``Float`` of
-        ``grid.size``)."""
+        ``grid.size``), with the exact stretch ``reach`` (scene units)."""
         dims = m.Array3f(*(opaque_floats(m, [float(n)]) for n in grid.dims))
         return TransmittanceGrid(lo=opaque_point(m, grid.lo),
                                  inv_cell=opaque_point(m, 1.0 / grid.cell), dims=dims,
-                                 values=values)
+                                 values=values, reach=opaque_floats(m, [reach]))
 
 
 def lookup(m, cache: TransmittanceGrid, p, active):

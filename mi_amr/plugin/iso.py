@@ -6,11 +6,12 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mi_amr.kernels import colormap, shadow_grid
+from mi_amr.kernels import colormap
 from mi_amr.kernels.composite import Shading, composite
 from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.reconstruct import reconstruct
 from mi_amr.plugin import bridge, shading
+from mi_amr.plugin.shadow_cache import CachedShadow
 
 
 class IsoShader:
@@ -154,7 +155,7 @@ class VolumeLighting:
         t = self._t(p)
         shadows = integ.shadows() if visible else False
         cached = [None if g is None or not visible else
-                  bridge.to_mi(shadow_grid.lookup(self.m, g, p, self.m.Bool(lit)), mi.Float)
+                  CachedShadow(self.m, g, self.shader.transmittance, integ.frame.to_volume)
                   for g in self.grids]
         return shading.light_samples(self.scene, self.light_u, self.ray, self.ray(t),
                                      mi.Bool(lit), shading.Shadowing(

@@ -144,8 +144,9 @@ class Shadowing:
     """How the light samples of a volume point are shadowed: ``shadows`` (a Mitsuba Bool, or
     False for no shadow rays at all), ``transmittance(ray, from_iso, active)`` (the exact
     shadow ray through the isosurfaces or the band) and per emitter ``cached``, the
-    transmittance at the point from its cache (a Mitsuba Float; its meshes still tested by a
-    shadow ray), or None for the exact shadow ray."""
+    transmittance from its cache (``cached(P, ds, active)``, a Mitsuba Float at scene points
+    ``P`` towards light samples ``ds``, see :class:`~mi_amr.plugin.shadow_cache.CachedShadow`;
+    its meshes still tested by a shadow ray), or None for the exact shadow ray."""
 
     shadows: Any
     transmittance: Callable
@@ -168,7 +169,7 @@ def light_samples(scene, light_u, ray, P, active, shadowing: Shadowing):
             out.append(LightSample(to_light=ds.d, radiance=w, valid=valid))
         else:
             w = w * visibility(scene, P, ds, valid, shadowing.shadows, _clear, from_iso=True)
-            band = dr.select(shadowing.shadows, cached, 1.0)
+            band = dr.select(shadowing.shadows, cached(P, ds, valid), 1.0)
             out.append(LightSample(to_light=ds.d, radiance=w * band, valid=valid, open=w,
                                    cached=band))
     return out

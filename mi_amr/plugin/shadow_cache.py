@@ -6,8 +6,10 @@ A cache is filled with the same exact compositing that a per-piece shadow ray ru
 (:meth:`~mi_amr.plugin.integrator._AMRIso.iso_transmittance`, ``composite`` without shading),
 one wavefront of rays from the grid's points. It is built again when what it depends on
 changes: the volume, the bands (isovalues, widths, supports, peaks) or the 2D transfer
-function, the volume's placement in the scene, or the light; never for a camera move. The
-meshes' shadows are not in it: a lit piece still tests them with Mitsuba's shadow ray. Lights
+function, the volume's placement in the scene, or the light; never for a camera move. A lit
+piece's shadow (:class:`CachedShadow`) is the exact compositing over the first grid cell of its
+shadow ray (the band's shadow on itself) times the cache read beyond it. The meshes' shadows
+are not in it: a lit piece still tests them with Mitsuba's shadow ray. Lights
 whose direction depends on the light sample (area lights, environments) have no cache and
 keep exact shadow rays.
 
@@ -17,6 +19,9 @@ program is the same whether or not it built them.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any, Callable
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -24,7 +29,7 @@ import numpy as np
 from mi_amr import tolerances as tol
 from mi_amr.kernels.arrays import device_array
 from mi_amr.kernels.device import opaque_floats
-from mi_amr.kernels.shadow_grid import (GridPlan, TransmittanceGrid, band_leaves,
+from mi_amr.kernels.shadow_grid import (GridPlan, TransmittanceGrid, band_leaves, lookup,
                                         needed_points, plan, point_positions)
 from mi_amr.plugin import bridge, shading
 
@@ -149,4 +154,32 @@ def _build(integ, emitter, grid: GridPlan, index) -> TransmittanceGrid:
     values = dr.full(m.Float, 1.0, grid.size)
     dr.scatter(values, bridge.to_kernel(m, dr.select(lit, T, 1.0)), index)
     dr.eval(values)
-    return TransmittanceGrid.of(m, grid, values)
+    # (In scene units: a volume-space stretch of the reach is at most this long in the scene.)
+    stretch = float(np.linalg.svd(integ.frame.host[:3, :3], compute_uv=False).max())
+    return TransmittanceGrid.of(m, grid, values, grid.reach * stretch)
+
+
+@dataclass(frozen=True)
+class CachedShadow:
+    """The band's transmittance towards one cached light, at scene points: ``transmittance``
+    (``(ray, from_iso, active)``, the exact shadow compositing, see
+    :meth:`~mi_amr.plugin.integrator._AMRIso.iso_transmittance`) over the first ``grid.reach``
+    of the shadow ray, times the ``grid`` read where that stretch ends; ``to_volume`` takes
+    scene points to the volume's world space and ``m`` is the kernels' backend."""
+
+    m: Any
+    grid: TransmittanceGrid
+    transmittance: Callable
+    to_volume: Any
+
+    def __call__(self, P, ds, active):
+        """The transmittance (a Mitsuba ``Float``) from scene points ``P`` towards the light
+        samples ``ds``, where ``active``."""
+        ray = shading.shadow_ray(P, ds)
+        reach = bridge.to_mi(self.grid.reach, mi.Float)
+        beyond = active & (ray.maxt > reach)
+        ray.maxt = dr.minimum(ray.maxt, reach)
+        near = self.transmittance(ray, True, active)
+        far = bridge.to_kernel3(self.m, self.to_volume @ (P + ds.d * reach))
+        return near * bridge.to_mi(lookup(self.m, self.grid, far, self.m.Bool(beyond)),
+                                   mi.Float)
