@@ -79,11 +79,12 @@ TABLE = (
     Param("shadows", "boolean", True, "shadow rays test meshes and isosurfaces",
           traversable=True),
     Param("volume_shadows", "string", "cache",
-          "volume mode: how a lit piece of the band finds its shadow. ``cache``: one "
-          "trilinear lookup in a grid per directional, point or spot light holding the "
-          "transmittance through the bands towards it, built with the exact shadow "
-          "compositing when the light, the bands or the transfer function change (not when "
-          "the camera moves); meshes still cast theirs by a shadow ray, and other lights "
+          "volume mode: how a lit piece of the band finds its shadow. ``cache``: a grid per "
+          "directional, point or spot light holding the transmittance through the bands "
+          "towards it, built with the exact shadow compositing when the light, the bands or "
+          "the transfer function change (not when the camera moves); a lit piece composites "
+          "the first grid cell of its shadow ray exactly and reads the grid (one trilinear "
+          "lookup) beyond it; meshes still cast theirs by a shadow ray, and other lights "
           "(area, environment) keep exact shadow rays. ``corrected``: the "
           "cache, and per camera sample one exact shadow ray from one lit piece (or sample), "
           "picked by its light, that corrects the cache's error: unbiased, its noise going "

@@ -376,3 +376,46 @@ def test09_a_lit_piece_s_own_band_is_composited_exactly(variant, folder):
         grid_err = np.mean(np.abs(grid_T - exact_T))
         assert near_err < tol.SHADOW_NEAR_MEAN_ABS, (near_err, grid_err)
         assert near_err < 0.6 * grid_err, (near_err, grid_err)
+
+
+def test10_a_shadow_ray_started_in_its_leaf_matches_the_search_from_the_root(variant, folder):
+    """A lit piece's exact stretch starts in the piece's own leaf (``composite(start=)``,
+    :meth:`~mi_amr.kernels.traverse.Walk.within`) instead of searching from the root: the same
+    transmittance, including points on a leaf's face; a wrong leaf would read another grid's
+    values."""
+    import drjit as dr
+
+    from mi_amr.kernels.composite import composite
+    from mi_amr.kernels.ray import RayContext
+    from mi_amr.kernels.traverse import Walk
+
+    scene = load(folder, band_width=0.002)
+    render(variant, scene)
+    integ = scene.integrator()
+    m, tree = integ.m, integ.dev.tree
+    rng = np.random.default_rng(5)
+    u = rng.normal(size=(2000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    pts = 0.5 + rng.choice([0.3, 0.4], len(u))[:, None] * u * np.array([1.0, 0.8, 0.5])
+    pts[:200] = tree.leaf_lo[tree.locate(pts[:200])]        # (corners of their leaves)
+    d = np.array([0.4, -0.5, 1.0]) / np.linalg.norm([0.4, -0.5, 1.0])
+    n = len(pts)
+
+    def transmittance(leaves):
+        o = m.Array3f(*(m.Float(pts[:, a]) for a in range(3)))
+        ray = RayContext(integ.dev, integ.config(), o, m.Array3f(*map(float, d)),
+                         m.Float(np.zeros(n)), m.Float(np.full(n, 0.1)), m.Bool(True))
+        start = None if leaves is None else Walk(
+            node=m.UInt32(tree.leaf_node[leaves].astype(np.uint32)),
+            leaf=m.UInt32(leaves.astype(np.uint32)), face=m.UInt32(6),
+            t_exit=m.Float(0.0), t=m.Float(0.0))
+        T = composite(ray, m.Float(0.5), start=start).T
+        dr.eval(T)
+        return np.array(T)
+
+    leaves = tree.locate(pts)
+    from_root = transmittance(None)
+    assert 0.2 < np.mean(from_root) < 0.95, "the rays must cross their bands"
+    assert np.max(np.abs(transmittance(leaves) - from_root)) < 1e-5
+    wrong = transmittance(np.roll(leaves, 1))
+    assert np.max(np.abs(wrong - from_root)) > 0.05, "a wrong leaf must show"

@@ -125,7 +125,7 @@ class Lighting(Protocol):
 
     corrects: bool
 
-    def sample(self, p, lit, visible: bool) -> Any: ...
+    def sample(self, p, lit, visible: bool, walk: Optional[Walk] = None) -> Any: ...
 
     def terms(self, ctx, gradient, lit) -> tuple: ...
 
@@ -145,7 +145,8 @@ class Shading:
     lighting: Lighting
 
 
-def composite(ray: RayContext, jitter, shading: Optional[Shading] = None) -> Composite:
+def composite(ray: RayContext, jitter, shading: Optional[Shading] = None,
+              start: Optional[Walk] = None) -> Composite:
     """Front-to-back compositing of the opacity bands ``cfg.band`` (one around each isovalue)
     or of the 2D transfer function ``cfg.transfer2d`` along the ray, with early termination
     when less than :data:`~mi_amr.tolerances.T_MIN` of the light gets through.
@@ -155,11 +156,15 @@ def composite(ray: RayContext, jitter, shading: Optional[Shading] = None) -> Com
     bands hold ``shares`` of the optical depth (a list, one per band) and the colour field is
     ``value``; an attribute ``same_for_all_bands`` says it ignores ``shares``.
     ``shading.lighting`` has
-    ``sample(p, lit, visible)``, the light samples at volume point ``p`` (with shadow rays
-    where ``visible``), ``terms(ctx, gradient, lit)``, ``(A, S)`` such that the shaded colour
+    ``sample(p, lit, visible, walk)``, the light samples at volume point ``p`` (with shadow
+    rays where ``visible``; ``walk``: the march whose leaf holds ``p``, or None), ``terms(ctx, gradient, lit)``, ``(A, S)`` such that the shaded colour
     of a point of colour ``c`` and gradient ``gradient`` lit by those samples is ``c * A + S``
     (the Phong terms), and ``lambert(ctx, gradient)``, the first light's unnormalised diffuse
     term (linear in the gradient).
+
+    ``start`` (the exact method's shadow rays): the walk of the camera ray whose lit piece
+    the ray starts from; the march begins in that piece's leaf (:meth:`Walk.within`) instead
+    of searching from the root. The sampling methods start from the root.
 
     ``exact``: each cubic piece is cut where the reconstructed value turns (the extrema of
     ``N / D``, one search for all bands) and where the diffuse term turns (Marchesin et al.
@@ -178,7 +183,7 @@ def composite(ray: RayContext, jitter, shading: Optional[Shading] = None) -> Com
     """
     ray = ray.clipped()
     if ray.cfg.method == "exact":
-        return _composite_exact(ray, shading)
+        return _composite_exact(ray, shading, start)
     return _composite_sampled(ray, ray.m.Float(jitter), shading)
 
 
@@ -559,15 +564,15 @@ class Bands:
         return Bands([0.5 * (tf.get(m, SUPPORT_LO) + tf.get(m, SUPPORT_HI))], shading)
 
 
-def _piece_colour(ray: RayContext, cp: CubicPiece, leaf, turns, have, bands: Bands):
-    """The light (premultiplied) and transmittance of the cubic piece ``cp`` (in kd leaf
-    ``leaf``, its value turning at ``turns``): split, each part's opacity pre-integrated and,
+def _piece_colour(ray: RayContext, cp: CubicPiece, walk: Walk, turns, have, bands: Bands):
+    """The light (premultiplied) and transmittance of the cubic piece ``cp`` (in the kd leaf
+    of ``walk``, its value turning at ``turns``): split, each part's opacity pre-integrated and,
     where it is shaded, lit once where the piece has made half its opacity and shaded at its
     two most opaque parts. Third, its :class:`PieceLight` (:meth:`PieceLight.none` where
     the lighting does not correct)."""
     m, shading = ray.m, bands.shading
     lighting = shading.lighting if shading is not None else None
-    piece = _piece(ray, cp, leaf, turns, lighting, have)
+    piece = _piece(ray, cp, walk.leaf, turns, lighting, have)
     subs = _sub_pieces(ray, piece, have, bands.centres)
     if shading is None:
         T_p = m.Float(1.0)
@@ -577,7 +582,7 @@ def _piece_colour(ray: RayContext, cp: CubicPiece, leaf, turns, have, bands: Ban
     s_best, best_alpha = _light_place(ray, piece, subs, bands.centres)
     lit = have & (best_alpha > tol.ALPHA_LIT)
     p_lit = ray.at(cp.t + s_best)
-    ctx = lighting.sample(p_lit, lit, True)
+    ctx = lighting.sample(p_lit, lit, True, walk)
     C_p, T_p, D_p = _piece_light(ray, piece, subs, Lit(shading, ctx, lit, bands.centres))
     if D_p is None:
         return C_p, T_p, PieceLight.none(m)
@@ -586,7 +591,7 @@ def _piece_colour(ray: RayContext, cp: CubicPiece, leaf, turns, have, bands: Ban
 
 
 @dr.syntax
-def _composite_exact(ray: RayContext, shading: Optional[Shading]):
+def _composite_exact(ray: RayContext, shading: Optional[Shading], start: Optional[Walk]):
     m, cfg = ray.m, ray.cfg
     arrays = ray.dev.arrays(cfg.basis, color=True)
     bands = Bands.of(ray, shading)
@@ -595,7 +600,8 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
     T = m.Float(1.0)
     pick = Pick.start(m, shading.lighting.pick_u if corrects else 0.0)
     # Each leaf search whole: this march's pieces cost far more than search steps.
-    march = March.start(ray, whole=True)
+    march = March.start(ray, whole=True,
+                        walk=None if start is None else Walk.within(ray, start))
     samples = m.UInt32(0)
     active = m.Bool(ray.active)
     while dr.hint(active, label="composite"):
@@ -619,7 +625,7 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading]):
         C_p, T_p = m.Array3f(0.0), m.Float(1.0)
         offer = PieceLight.none(m)
         if near:
-            C_p, T_p, offer = _piece_colour(ray, cp, march.walk.leaf, turns, near, bands)
+            C_p, T_p, offer = _piece_colour(ray, cp, march.walk, turns, near, bands)
         if dr.hint(corrects, mode="scalar"):
             pick = pick.offer(T, offer)
         C += T * C_p

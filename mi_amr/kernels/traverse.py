@@ -57,6 +57,18 @@ class Walk:
         """The lanes that have used up their leaf and must seek the next."""
         return self.t >= self.t_exit
 
+    @staticmethod
+    def within(ray, held: "Walk") -> "Walk":
+        """A walk from ``ray.t0`` in the leaf of another ray's walk ``held`` (its ``node`` and
+        ``leaf``), which holds this ray's start: a lit piece's shadow ray begins in the piece's
+        own leaf, with no search from the root. Where the start lies outside that leaf's box
+        after all (rounding), its exit is behind the start and the first search begins at the
+        leaf's rope, or else at the root."""
+        lo, hi = _node_box(ray.dev, held.node, ray.active)
+        t_exit, face = box_exit(ray.m, lo, hi, ray.o, ray.d)
+        return Walk(node=ray.m.UInt32(held.node), leaf=ray.m.UInt32(held.leaf), face=face,
+                    t_exit=t_exit, t=ray.m.Float(ray.t0))
+
 
 @dataclass
 class Skips:

@@ -224,17 +224,19 @@ class _AMRIso:
             return bridge.to_kernel(self.m, u)
         return stable_jitter(self.m, self.m.UInt32(wavefront.lane_index(lanes, ray)), salt)
 
-    def iso_transmittance(self, ray, from_iso, active, lanes=None):
+    def iso_transmittance(self, ray, from_iso, active, lanes=None, start=None):
         """Light passing the isosurfaces (or the band) along a scene ray up to ``ray.maxt``;
         ``from_iso``: the ray leaves an isosurface (start just past it); ``lanes``: the
-        frame's :class:`~mi_amr.plugin.wavefront.Lanes` (see :meth:`sample`)."""
+        frame's :class:`~mi_amr.plugin.wavefront.Lanes` (see :meth:`sample`); ``start``
+        (volume mode): the walk whose leaf holds the ray's start, or None (see
+        :func:`~mi_amr.kernels.composite.composite`)."""
         m = self.m
         o, d = self.frame.ray_to_volume(m, ray.o, ray.d)
         t0 = self.dev.layer_offset / dr.norm(d) if from_iso else m.Float(0.0)
         t1 = bridge.to_kernel(m, ray.maxt)
         if self.opt.mode == "volume":
             res = composite(RayContext(self.dev, self.config(), o, d, t0, t1, m.Bool(active)),
-                            m.Float(0.5))
+                            m.Float(0.5), start=start)
             return bridge.to_mi(res.T, mi.Float)
         # Where the frame picks by packet: Russian roulette, a number per packet deciding where
         # the walks stop (the packet's lanes together); else None, the exact transmittance.

@@ -165,12 +165,15 @@ class CachedShadow:
     (``(ray, from_iso, active)``, the exact shadow compositing, see
     :meth:`~mi_amr.plugin.integrator._AMRIso.iso_transmittance`) over the first ``grid.reach``
     of the shadow ray, times the ``grid`` read where that stretch ends; ``to_volume`` takes
-    scene points to the volume's world space and ``m`` is the kernels' backend."""
+    scene points to the volume's world space and ``m`` is the kernels' backend; ``walk``: the
+    camera ray's walk whose leaf holds the points (the exact stretch starts there, with no
+    search from the root), or None."""
 
     m: Any
     grid: TransmittanceGrid
     transmittance: Callable
     to_volume: Any
+    walk: Any = None
 
     def __call__(self, P, ds, active):
         """The transmittance (a Mitsuba ``Float``) from scene points ``P`` towards the light
@@ -179,7 +182,7 @@ class CachedShadow:
         reach = bridge.to_mi(self.grid.reach, mi.Float)
         beyond = active & (ray.maxt > reach)
         ray.maxt = dr.minimum(ray.maxt, reach)
-        near = self.transmittance(ray, True, active)
+        near = self.transmittance(ray, True, active, start=self.walk)
         far = bridge.to_kernel3(self.m, self.to_volume @ (P + ds.d * reach))
         return near * bridge.to_mi(lookup(self.m, self.grid, far, self.m.Bool(beyond)),
                                    mi.Float)
