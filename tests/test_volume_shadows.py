@@ -419,3 +419,15 @@ def test10_a_shadow_ray_started_in_its_leaf_matches_the_search_from_the_root(var
     assert np.max(np.abs(transmittance(leaves) - from_root)) < 1e-5
     wrong = transmittance(np.roll(leaves, 1))
     assert np.max(np.abs(wrong - from_root)) > 0.05, "a wrong leaf must show"
+
+
+def test11_a_thin_band_s_image_gets_the_exact_stretch_where_its_light_counts(variant, folder):
+    """Thinner bands (width 0.005) at 4 spp: the pieces whose light counts
+    (:class:`~mi_amr.kernels.composite.NearStretch`) composite the first grid cell of their
+    shadow ray exactly, and the image is within :data:`~mi_amr.tolerances.SHADOW_THIN_REL_RMSE`
+    of exact shadow rays; reading the grid at every piece is not."""
+    mi = variant
+    images = {s: np.array(mi.render(load(folder, s, band_width=0.005), seed=0, spp=4))
+              for s in ("exact", "cache")}
+    err = rel_rmse(images["cache"], images["exact"])
+    assert err < tol.SHADOW_THIN_REL_RMSE, f"relative RMSE {err:.4f} against exact shadows"

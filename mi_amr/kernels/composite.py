@@ -125,7 +125,7 @@ class Lighting(Protocol):
 
     corrects: bool
 
-    def sample(self, p, lit, visible: bool, walk: Optional[Walk] = None) -> Any: ...
+    def sample(self, p, lit, visible: bool, near: Optional[NearStretch] = None) -> Any: ...
 
     def terms(self, ctx, gradient, lit) -> tuple: ...
 
@@ -145,6 +145,23 @@ class Shading:
     lighting: Lighting
 
 
+@dataclass
+class NearStretch:
+    """What a lit point tells its cached shadows (see the plugin's ``CachedShadow``): the
+    camera ray's ``walk``, whose leaf holds the point, and the lanes ``where`` the first grid
+    cell of the shadow ray is composited exactly: those whose light makes more than
+    :data:`~mi_amr.tolerances.SHADOW_NEAR_WEIGHT` of the pixel (the light reaching them from
+    the eye times their opacity)."""
+
+    walk: Walk
+    where: Bool
+
+    @staticmethod
+    def of(walk: Walk, lit, T, alpha) -> "NearStretch":
+        """For a piece or sample of opacity ``alpha`` behind transmittance ``T``, ``lit``."""
+        return NearStretch(walk=walk, where=lit & (T * alpha > tol.SHADOW_NEAR_WEIGHT))
+
+
 def composite(ray: RayContext, jitter, shading: Optional[Shading] = None,
               start: Optional[Walk] = None) -> Composite:
     """Front-to-back compositing of the opacity bands ``cfg.band`` (one around each isovalue)
@@ -156,8 +173,8 @@ def composite(ray: RayContext, jitter, shading: Optional[Shading] = None,
     bands hold ``shares`` of the optical depth (a list, one per band) and the colour field is
     ``value``; an attribute ``same_for_all_bands`` says it ignores ``shares``.
     ``shading.lighting`` has
-    ``sample(p, lit, visible, walk)``, the light samples at volume point ``p`` (with shadow
-    rays where ``visible``; ``walk``: the march whose leaf holds ``p``, or None), ``terms(ctx, gradient, lit)``, ``(A, S)`` such that the shaded colour
+    ``sample(p, lit, visible, near)``, the light samples at volume point ``p`` (with shadow
+    rays where ``visible``; ``near``: its :class:`NearStretch`, or None), ``terms(ctx, gradient, lit)``, ``(A, S)`` such that the shaded colour
     of a point of colour ``c`` and gradient ``gradient`` lit by those samples is ``c * A + S``
     (the Phong terms), and ``lambert(ctx, gradient)``, the first light's unnormalised diffuse
     term (linear in the gradient).
@@ -564,15 +581,24 @@ class Bands:
         return Bands([0.5 * (tf.get(m, SUPPORT_LO) + tf.get(m, SUPPORT_HI))], shading)
 
 
-def _piece_colour(ray: RayContext, cp: CubicPiece, walk: Walk, turns, have, bands: Bands):
+@dataclass
+class Along:
+    """Where a piece lies on its camera ray: the ray's ``walk`` (its leaf holds the piece) and
+    the transmittance ``T`` in front of the piece."""
+
+    walk: Walk
+    T: Float
+
+
+def _piece_colour(ray: RayContext, cp: CubicPiece, along: Along, turns, have, bands: Bands):
     """The light (premultiplied) and transmittance of the cubic piece ``cp`` (in the kd leaf
-    of ``walk``, its value turning at ``turns``): split, each part's opacity pre-integrated and,
+    of ``along.walk``, its value turning at ``turns``): split, each part's opacity pre-integrated and,
     where it is shaded, lit once where the piece has made half its opacity and shaded at its
     two most opaque parts. Third, its :class:`PieceLight` (:meth:`PieceLight.none` where
     the lighting does not correct)."""
     m, shading = ray.m, bands.shading
     lighting = shading.lighting if shading is not None else None
-    piece = _piece(ray, cp, walk.leaf, turns, lighting, have)
+    piece = _piece(ray, cp, along.walk.leaf, turns, lighting, have)
     subs = _sub_pieces(ray, piece, have, bands.centres)
     if shading is None:
         T_p = m.Float(1.0)
@@ -582,7 +608,7 @@ def _piece_colour(ray: RayContext, cp: CubicPiece, walk: Walk, turns, have, band
     s_best, best_alpha = _light_place(ray, piece, subs, bands.centres)
     lit = have & (best_alpha > tol.ALPHA_LIT)
     p_lit = ray.at(cp.t + s_best)
-    ctx = lighting.sample(p_lit, lit, True, walk)
+    ctx = lighting.sample(p_lit, lit, True, NearStretch.of(along.walk, lit, along.T, best_alpha))
     C_p, T_p, D_p = _piece_light(ray, piece, subs, Lit(shading, ctx, lit, bands.centres))
     if D_p is None:
         return C_p, T_p, PieceLight.none(m)
@@ -625,7 +651,7 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading], start: Optiona
         C_p, T_p = m.Array3f(0.0), m.Float(1.0)
         offer = PieceLight.none(m)
         if near:
-            C_p, T_p, offer = _piece_colour(ray, cp, march.walk, turns, near, bands)
+            C_p, T_p, offer = _piece_colour(ray, cp, Along(march.walk, T), turns, near, bands)
         if dr.hint(corrects, mode="scalar"):
             pick = pick.offer(T, offer)
         C += T * C_p
@@ -794,7 +820,7 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
             if dr.hint(lit, label="shade_sample"):
                 lighting = shading.lighting
                 p_lit = ray.at(t_light)
-                ctx = lighting.sample(p_lit, lit, True)
+                ctx = lighting.sample(p_lit, lit, True, NearStretch.of(march.walk, lit, T, a))
                 A, S = lighting.terms(ctx, smp.grad, lit)
                 color = shading.color_of(shares, smp.cval)
                 C += dr.select(lit, T * a * (color * A + S), 0.0)

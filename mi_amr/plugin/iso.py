@@ -148,17 +148,17 @@ class VolumeLighting:
         """The scene ray's parameter at the volume point ``p`` (a Mitsuba Float)."""
         return bridge.to_mi(dr.dot(p - self.o, self.d) / dr.squared_norm(self.d), mi.Float)
 
-    def sample(self, p, lit, visible: bool, walk=None):
+    def sample(self, p, lit, visible: bool, near=None):
         """The light samples at volume point ``p``, shadowed where ``visible``: through the
-        lights' caches where they have one, else by exact shadow rays. ``walk``: the camera
-        ray's :class:`~mi_amr.kernels.traverse.Walk`, whose leaf holds ``p`` (where the
-        caches' exact stretch begins), or None."""
+        lights' caches where they have one, else by exact shadow rays. ``near``: where and
+        from which leaf the caches' exact stretch is taken
+        (:class:`~mi_amr.kernels.composite.NearStretch`; None: everywhere, from the root)."""
         integ = self.shader.integ
         t = self._t(p)
         shadows = integ.shadows() if visible else False
         cached = [None if g is None or not visible else
                   CachedShadow(self.m, g, self.shader.transmittance, integ.frame.to_volume,
-                               walk)
+                               near)
                   for g in self.grids]
         return shading.light_samples(self.scene, self.light_u, self.ray, self.ray(t),
                                      mi.Bool(lit), shading.Shadowing(

@@ -165,24 +165,27 @@ class CachedShadow:
     (``(ray, from_iso, active)``, the exact shadow compositing, see
     :meth:`~mi_amr.plugin.integrator._AMRIso.iso_transmittance`) over the first ``grid.reach``
     of the shadow ray, times the ``grid`` read where that stretch ends; ``to_volume`` takes
-    scene points to the volume's world space and ``m`` is the kernels' backend; ``walk``: the
-    camera ray's walk whose leaf holds the points (the exact stretch starts there, with no
-    search from the root), or None."""
+    scene points to the volume's world space and ``m`` is the kernels' backend. ``near`` (a
+    :class:`~mi_amr.kernels.composite.NearStretch`) limits the exact stretch to the lanes
+    whose light counts (the others read the grid at the point itself) and starts it in the
+    camera ray's leaf; None: everywhere, searched from the root."""
 
     m: Any
     grid: TransmittanceGrid
     transmittance: Callable
     to_volume: Any
-    walk: Any = None
+    near: Any = None
 
     def __call__(self, P, ds, active):
         """The transmittance (a Mitsuba ``Float``) from scene points ``P`` towards the light
         samples ``ds``, where ``active``."""
         ray = shading.shadow_ray(P, ds)
-        reach = bridge.to_mi(self.grid.reach, mi.Float)
+        exact = mi.Bool(active) if self.near is None else active & mi.Bool(self.near.where)
+        reach = dr.select(exact, bridge.to_mi(self.grid.reach, mi.Float), 0.0)
         beyond = active & (ray.maxt > reach)
         ray.maxt = dr.minimum(ray.maxt, reach)
-        near = self.transmittance(ray, True, active, start=self.walk)
+        near = self.transmittance(ray, True, exact,
+                                  start=None if self.near is None else self.near.walk)
         far = bridge.to_kernel3(self.m, self.to_volume @ (P + ds.d * reach))
         return near * bridge.to_mi(lookup(self.m, self.grid, far, self.m.Bool(beyond)),
                                    mi.Float)
