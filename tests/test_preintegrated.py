@@ -42,7 +42,7 @@ class FlatLight:
 
     corrects = False
 
-    def sample(self, p, lit, visible):
+    def sample(self, p, lit, visible, near=None):
         return None
 
     def terms(self, ctx, grad, lit):

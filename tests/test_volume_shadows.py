@@ -5,7 +5,9 @@
 and within :data:`~mi_amr.tolerances.SHADOW_CACHE_MEAN_ABS` between them; built again for a
 new band or light, not for a camera move, and a new light direction compiles nothing.
 ``volume_shadows="corrected"`` (the cache and one exact shadow ray per camera sample)
-converges to the exact image as the samples grow.
+converges to the exact image as the samples grow. A lit piece whose light counts composites
+the first grid cell of its shadow ray exactly, from its own leaf, and reads the grid beyond:
+on a thin band that is far closer to the exact transmittance than the grid read at the piece.
 """
 
 import textwrap
