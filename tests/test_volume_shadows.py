@@ -433,3 +433,28 @@ def test11_a_thin_band_s_image_gets_the_exact_stretch_where_its_light_counts(var
               for s in ("exact", "cache")}
     err = rel_rmse(images["cache"], images["exact"])
     assert err < tol.SHADOW_THIN_REL_RMSE, f"relative RMSE {err:.4f} against exact shadows"
+
+
+def test12_a_lamp_within_the_exact_stretch_is_never_looked_past(variant, folder):
+    """A point light nearer to a lit point than the grid's reach: the whole shadow ray is the
+    exact stretch, and the grid is not read beyond the lamp (where its points look back at the
+    lamp from the other side)."""
+    mi = variant
+    scene = load(folder, band_width=0.002)
+    params = mi.traverse(scene)
+    params["lamp.position"] = mi.Point3f(0.5, 0.5, 0.715)     # 0.015 above the outer band's top
+    params.update()
+    render(mi, scene)
+    grid = scene.integrator().shadow_caches.grids(scene.integrator(), scene)[1]
+    reach = float(np.array(grid.reach)[0])
+    rng = np.random.default_rng(3)
+    # (points of the outer band's top, within the reach of the lamp)
+    xy = 0.5 + 0.02 * rng.uniform(-1, 1, (400, 2)) * np.array([1.0, 0.8])
+    z = 0.5 + 0.5 * np.sqrt(np.maximum(0.16 - ((xy[:, 0] - 0.5) / 1.0) ** 2 -
+                                       ((xy[:, 1] - 0.5) / 0.8) ** 2, 0.0))
+    pts = np.column_stack([xy, z])
+    dist = np.linalg.norm(pts - [0.5, 0.5, 0.715], axis=1)
+    assert np.all(dist < reach), (dist.max(), reach)
+    near_T, _, exact_T = _cached_shadows(mi, scene, pts)[1]
+    assert np.ptp(exact_T) > 0.01, "the lamp's light must pass some of the band"
+    assert np.max(np.abs(near_T - exact_T)) < 1e-5
