@@ -174,7 +174,8 @@ def composite(ray: RayContext, jitter, shading: Optional[Shading] = None,
     ``value``; an attribute ``same_for_all_bands`` says it ignores ``shares``.
     ``shading.lighting`` has
     ``sample(p, lit, visible, near)``, the light samples at volume point ``p`` (with shadow
-    rays where ``visible``; ``near``: its :class:`NearStretch`, or None), ``terms(ctx, gradient, lit)``, ``(A, S)`` such that the shaded colour
+    rays where ``visible``; ``near``: its :class:`NearStretch`, or None),
+    ``terms(ctx, gradient, lit)``, ``(A, S)`` such that the shaded colour
     of a point of colour ``c`` and gradient ``gradient`` lit by those samples is ``c * A + S``
     (the Phong terms), and ``lambert(ctx, gradient)``, the first light's unnormalised diffuse
     term (linear in the gradient).
@@ -592,10 +593,10 @@ class Along:
 
 def _piece_colour(ray: RayContext, cp: CubicPiece, along: Along, turns, have, bands: Bands):
     """The light (premultiplied) and transmittance of the cubic piece ``cp`` (in the kd leaf
-    of ``along.walk``, its value turning at ``turns``): split, each part's opacity pre-integrated and,
-    where it is shaded, lit once where the piece has made half its opacity and shaded at its
-    two most opaque parts. Third, its :class:`PieceLight` (:meth:`PieceLight.none` where
-    the lighting does not correct)."""
+    of ``along.walk``, behind ``along.T``, its value turning at ``turns``): split, each part's
+    opacity pre-integrated and, where it is shaded, lit once where the piece has made half its
+    opacity and shaded at its two most opaque parts. Third, its :class:`PieceLight`
+    (:meth:`PieceLight.none` where the lighting does not correct)."""
     m, shading = ray.m, bands.shading
     lighting = shading.lighting if shading is not None else None
     piece = _piece(ray, cp, along.walk.leaf, turns, lighting, have)

@@ -20,7 +20,7 @@ program is the same whether or not it built them.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Optional
 
 import drjit as dr
 import mitsuba as mi
@@ -28,6 +28,7 @@ import numpy as np
 
 from mi_amr import tolerances as tol
 from mi_amr.kernels.arrays import device_array
+from mi_amr.kernels.composite import NearStretch
 from mi_amr.kernels.device import opaque_floats
 from mi_amr.kernels.shadow_grid import (GridPlan, TransmittanceGrid, band_leaves, lookup,
                                         needed_points, plan, point_positions)
@@ -174,7 +175,7 @@ class CachedShadow:
     grid: TransmittanceGrid
     transmittance: Callable
     to_volume: Any
-    near: Any = None
+    near: Optional[NearStretch] = None
 
     def __call__(self, P, ds, active):
         """The transmittance (a Mitsuba ``Float``) from scene points ``P`` towards the light
