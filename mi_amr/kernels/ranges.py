@@ -7,9 +7,9 @@ leaf the extremes over its pairs. Here one kernel takes each pair's window (from
 the grid's lattice boxes, :meth:`~mi_amr.core.kdtree.KDTree.window_frame`), widens it and walks
 it cell by cell (a lane a pair); the host hands over only the pairs
 (:meth:`~mi_amr.core.kdtree.KDTree.leaf_pairs`), and takes the per-leaf extremes over them
-(listed leaf after leaf). The values are the field as the kernels read it (float32; rounding to float32 keeps the
-order of values, so the extremes are the float32 roundings of the NumPy ones), and so is the
-result.
+(listed leaf after leaf). The values are the field as the kernels read it (float32; rounding
+to float32 keeps the order of values, so the extremes are the float32 roundings of the NumPy
+ones), and so is the result.
 
 Index coordinates are cells of the pair's grid, ``[i, j, k]`` = x, y, z, C order.
 """
