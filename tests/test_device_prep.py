@@ -167,6 +167,46 @@ def test06b_a_launch_of_one_pair_compiles_no_kernel():
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.parametrize("name", sorted(HIERARCHIES) + ["one grid", "many grids"])
+def test08_ropes_made_on_the_device_are_the_hosts(name):
+    """The kernel's ropes (every face descended from the root) equal the host's top-down ones
+    and their slow twin, on every test hierarchy at two leaf sizes, a lone grid (a handful of
+    nodes) and a thousand tiny grids; the tree's own ropes, made by the maker, too."""
+    from mi_amr.kernels import ropes
+    from mi_amr.synthetic import datasets
+
+    m = dr.llvm.ad
+    grids = {"one grid": lambda: HIERARCHIES["ratio2"]()[:1],
+             "many grids": lambda: datasets.many_grids(10, 300)}.get(name, HIERARCHIES.get(name))
+    for leaf_cells in (2, 8):
+        host = KDTree(AMRVolume.from_grids(grids()), leaf_cells=leaf_cells)
+        made = KDTree(AMRVolume.from_grids(grids()), leaf_cells=leaf_cells,
+                      ropes=ropes.maker(m))
+        got = ropes.node_ropes(m, host)
+        assert got.dtype == np.uint32 and got.shape == (host.num_nodes, 6)
+        np.testing.assert_array_equal(got, host.node_ropes)
+        np.testing.assert_array_equal(got, host._ropes_from_root())
+        np.testing.assert_array_equal(made.node_ropes, host.node_ropes)
+        np.testing.assert_array_equal(made.leaf_node, host.leaf_node)
+    assert host.num_nodes > 1
+
+
+def test08b_a_lattice_too_large_for_the_kernel_gets_the_hosts_ropes(monkeypatch):
+    """A tree whose doubled lattice would overflow the kernel's int32 is given its ropes on
+    the host (the maker declines it), the same ropes."""
+    from mi_amr.kernels import ropes
+
+    vol = AMRVolume.from_grids(HIERARCHIES["random1"]())
+    want = KDTree(vol, leaf_cells=4).node_ropes
+    assert ropes.fits(KDTree(vol, leaf_cells=4))
+    monkeypatch.setattr(ropes, "LATTICE_MAX", 1)
+    asked = []
+    monkeypatch.setattr(ropes, "node_ropes", lambda m, tree: asked.append(tree))
+    tree = KDTree(vol, leaf_cells=4, ropes=ropes.maker(dr.llvm.ad))
+    assert asked == []
+    np.testing.assert_array_equal(tree.node_ropes, want)
+
+
 def test07_a_session_gives_back_what_it_prepared_until_cleared(tmp_path):
     """:class:`~mi_amr.kernels.prepared.Preparations` keeps what it prepared (the same
     object for the same file, fields and backend; another for other fields), tells its

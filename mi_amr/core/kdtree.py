@@ -70,9 +70,12 @@ class KDTree:
 
     def __init__(self, volume, *, leaf_cells: int = params.default("leaf_cells"),
                  max_depth: int = 80, arrays: dict | None = None, chunk: int = CHUNK,
-                 box_block: int = BOX_BLOCK):
+                 box_block: int = BOX_BLOCK, ropes=None):
         """Build the tree of ``volume``; or, given ``arrays`` (:meth:`arrays` of a tree of this
-        volume), take them as they are (:meth:`from_arrays`)."""
+        volume), take them as they are (:meth:`from_arrays`). ``ropes``: a callable that makes
+        :attr:`node_ropes` from the built nodes (``ropes(tree)``, an ``(N, 6)`` uint32 array,
+        or None where it cannot: :func:`mi_amr.kernels.ropes.node_ropes` on the device), or
+        None: :meth:`_ropes`, on the host."""
         self.volume = volume
         self.chunk, self.box_block = int(chunk), int(box_block)
         if arrays is not None:
@@ -112,9 +115,9 @@ class KDTree:
         self.lo, self.hi = self._world(self._root[0]), self._world(self._root[1])
         listed = self._build(max_depth)
         # The ropes need only the nodes, the lists only the pairs: build them side by side.
-        ropes = parallel.beside(self._ropes)
+        made = parallel.beside(self._make_ropes, ropes)
         self._order_active(*listed)
-        ropes.result()
+        made.result()
 
     @classmethod
     def from_arrays(cls, volume, arrays: dict) -> "KDTree":
@@ -399,6 +402,14 @@ class KDTree:
                                               start[a:a + ROPE_BLOCK].ravel()), parts))
                 ).reshape(-1, 6)
         self._set_ropes(ropes)
+
+    def _make_ropes(self, maker) -> None:
+        """Set :attr:`node_ropes` by ``maker`` (see the constructor), else by :meth:`_ropes`."""
+        made = maker(self) if maker is not None else None
+        if made is None:
+            self._ropes()
+        else:
+            self._set_ropes(made)
 
     def _ropes_from_root(self) -> np.ndarray:
         """Slow twin of :meth:`_ropes`: every face's descent starts at the root."""

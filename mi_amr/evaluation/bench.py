@@ -495,9 +495,9 @@ def _scaling_table(out, rows) -> list:
 
 def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
     """Seconds to validate a hierarchy of very many tiny grids (:func:`datasets.many_grids`:
-    10^4 and 10^5 grids), to build its kd-tree with the renderer's ``leaf_cells``, which is
-    then checked (:meth:`KDTree.check`, not timed), and to take its leaf value ranges as the
-    renderer does (on the device, :mod:`mi_amr.kernels.ranges`, the field already there);
+    10^4 and 10^5 grids), to build its kd-tree as the renderer does (its ``leaf_cells``, the
+    ropes on the device), which is then checked (:meth:`KDTree.check`, not timed), and to take
+    its leaf value ranges as the renderer does (on the device, :mod:`mi_amr.kernels.ranges`, the field already there);
     writes ``kdtree.md``; returns the rows."""
     import drjit as dr
 
@@ -505,7 +505,7 @@ def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
     from mi_amr.core import memory
     from mi_amr.core.kdtree import KDTree
     from mi_amr.core.volume import AMRVolume
-    from mi_amr.kernels import ranges
+    from mi_amr.kernels import ranges, ropes
     from mi_amr.synthetic import datasets
 
     memory.keep_freed_memory()      # as every load of a file does (kernels.prepared)
@@ -515,7 +515,7 @@ def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
         t0 = time.perf_counter()
         vol = AMRVolume.from_grids(grids)
         t1 = time.perf_counter()
-        tree = KDTree(vol, leaf_cells=params.default("leaf_cells"))
+        tree = KDTree(vol, leaf_cells=params.default("leaf_cells"), ropes=ropes.maker(dr.llvm.ad))
         t2 = time.perf_counter()
         values = dr.llvm.ad.Float(np.concatenate([g.fields["f"].ravel() for g in vol.grids])
                                   .astype(np.float32))
