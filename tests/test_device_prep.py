@@ -167,44 +167,73 @@ def test06b_a_launch_of_one_pair_compiles_no_kernel():
         np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.parametrize("name", sorted(HIERARCHIES) + ["one grid", "many grids"])
-def test08_ropes_made_on_the_device_are_the_hosts(name):
-    """The kernel's ropes (every face descended from the root) equal the host's top-down ones
-    and their slow twin, on every test hierarchy at two leaf sizes, a lone grid (a handful of
-    nodes) and a thousand tiny grids; the tree's own ropes, made by the maker, too."""
-    from mi_amr.kernels import ropes
+def _grids(name):
     from mi_amr.synthetic import datasets
 
+    return {"one grid": lambda: HIERARCHIES["ratio2"]()[:1],
+            "many grids": lambda: datasets.many_grids(10, 300)}.get(name, HIERARCHIES.get(name))()
+
+
+def _same_tree(got, want):
+    for key in KDTree.STATE + ("leaf_node",):
+        np.testing.assert_array_equal(getattr(got, key), getattr(want, key), err_msg=key)
+
+
+@pytest.mark.parametrize("name", sorted(HIERARCHIES) + ["one grid", "many grids"])
+def test08_a_tree_built_with_the_devices_steps_is_the_hosts(name):
+    """The kernels' ropes (every face descended from the root) equal the host's top-down ones
+    and their slow twin, and the kernel's active grids the host's, on every test hierarchy at
+    two leaf sizes, a lone grid (a handful of nodes) and a thousand tiny grids: the tree built
+    with the device's steps is the host's, array for array."""
+    from mi_amr.kernels import kdsteps
+
     m = dr.llvm.ad
-    grids = {"one grid": lambda: HIERARCHIES["ratio2"]()[:1],
-             "many grids": lambda: datasets.many_grids(10, 300)}.get(name, HIERARCHIES.get(name))
     for leaf_cells in (2, 8):
-        host = KDTree(AMRVolume.from_grids(grids()), leaf_cells=leaf_cells)
-        made = KDTree(AMRVolume.from_grids(grids()), leaf_cells=leaf_cells,
-                      ropes=ropes.maker(m))
-        got = ropes.node_ropes(m, host)
+        host = KDTree(AMRVolume.from_grids(_grids(name)), leaf_cells=leaf_cells)
+        made = KDTree(AMRVolume.from_grids(_grids(name)), leaf_cells=leaf_cells,
+                      device=kdsteps.DeviceSteps(m))
+        got = kdsteps.node_ropes(m, host)
         assert got.dtype == np.uint32 and got.shape == (host.num_nodes, 6)
         np.testing.assert_array_equal(got, host.node_ropes)
         np.testing.assert_array_equal(got, host._ropes_from_root())
-        np.testing.assert_array_equal(made.node_ropes, host.node_ropes)
-        np.testing.assert_array_equal(made.leaf_node, host.leaf_node)
+        _same_tree(made, host)
     assert host.num_nodes > 1
 
 
-def test08b_a_lattice_too_large_for_the_kernel_gets_the_hosts_ropes(monkeypatch):
-    """A tree whose doubled lattice would overflow the kernel's int32 is given its ropes on
-    the host (the maker declines it), the same ropes."""
-    from mi_amr.kernels import ropes
+@pytest.mark.parametrize("name", ["ratio4-2", "random0", "random2"])
+def test08b_the_kernels_active_grids_are_the_hosts(name):
+    """Every (leaf, grid) pair of the leaves' lists: active on the device exactly where the host
+    says so, partly covered grids (a window with and without leaf cells) included; a launch of
+    one pair gives the same."""
+    from mi_amr.kernels import kdsteps
+
+    tree = KDTree(AMRVolume.from_grids(_grids(name)), leaf_cells=4)
+    pl = np.repeat(np.arange(tree.num_leaves), tree.leaf_nsupport)
+    pg = tree.leaf_grids.astype(np.int64)
+    want = tree._active(pl, pg)
+    partly = tree.volume.partly_covered()[pg]
+    assert want[partly].any() and not want[partly].all()      # both kinds are tested
+    got = kdsteps.pair_active(dr.llvm.ad, tree, pl, pg)
+    assert got.dtype == bool
+    np.testing.assert_array_equal(got, want)
+    one = np.flatnonzero(partly & want)[:1]
+    np.testing.assert_array_equal(kdsteps.pair_active(dr.llvm.ad, tree, pl[one], pg[one]), [True])
+
+
+def test08c_a_lattice_too_large_for_the_kernels_gets_the_hosts_steps(monkeypatch):
+    """A tree whose doubled lattice would overflow the kernels' int32 takes every step on the
+    host (the device declines it), the same tree."""
+    from mi_amr.kernels import kdsteps
 
     vol = AMRVolume.from_grids(HIERARCHIES["random1"]())
-    want = KDTree(vol, leaf_cells=4).node_ropes
-    assert ropes.fits(KDTree(vol, leaf_cells=4))
-    monkeypatch.setattr(ropes, "LATTICE_MAX", 1)
+    want = KDTree(vol, leaf_cells=4)
+    assert kdsteps.fits(want)
+    monkeypatch.setattr(kdsteps, "LATTICE_MAX", 1)
     asked = []
-    monkeypatch.setattr(ropes, "node_ropes", lambda m, tree: asked.append(tree))
-    tree = KDTree(vol, leaf_cells=4, ropes=ropes.maker(dr.llvm.ad))
+    monkeypatch.setattr(kdsteps, "node_ropes", lambda *a: asked.append(a))
+    monkeypatch.setattr(kdsteps, "pair_active", lambda *a: asked.append(a))
+    _same_tree(KDTree(vol, leaf_cells=4, device=kdsteps.DeviceSteps(dr.llvm.ad)), want)
     assert asked == []
-    np.testing.assert_array_equal(tree.node_ropes, want)
 
 
 def test07_a_session_gives_back_what_it_prepared_until_cleared(tmp_path):

@@ -70,12 +70,13 @@ class KDTree:
 
     def __init__(self, volume, *, leaf_cells: int = params.default("leaf_cells"),
                  max_depth: int = 80, arrays: dict | None = None, chunk: int = CHUNK,
-                 box_block: int = BOX_BLOCK, ropes=None):
+                 box_block: int = BOX_BLOCK, device=None):
         """Build the tree of ``volume``; or, given ``arrays`` (:meth:`arrays` of a tree of this
-        volume), take them as they are (:meth:`from_arrays`). ``ropes``: a callable that makes
-        :attr:`node_ropes` from the built nodes (``ropes(tree)``, an ``(N, 6)`` uint32 array,
-        or None where it cannot: :func:`mi_amr.kernels.ropes.node_ropes` on the device), or
-        None: :meth:`_ropes`, on the host."""
+        volume), take them as they are (:meth:`from_arrays`). ``device``: what takes steps of
+        the build on a device (:class:`mi_amr.kernels.kdsteps.DeviceSteps`): its
+        ``ropes(tree)`` gives :attr:`node_ropes` (an ``(N, 6)`` uint32 array) and its
+        ``active(tree, leaf, grid)`` what :meth:`_active` gives, each None where it cannot;
+        None: the host takes every step."""
         self.volume = volume
         self.chunk, self.box_block = int(chunk), int(box_block)
         if arrays is not None:
@@ -115,8 +116,8 @@ class KDTree:
         self.lo, self.hi = self._world(self._root[0]), self._world(self._root[1])
         listed = self._build(max_depth)
         # The ropes need only the nodes, the lists only the pairs: build them side by side.
-        made = parallel.beside(self._make_ropes, ropes)
-        self._order_active(*listed)
+        made = parallel.beside(self._make_ropes, device)
+        self._order_active(*listed, device=device)
         made.result()
 
     @classmethod
@@ -265,12 +266,14 @@ class KDTree:
         axis = np.minimum(np.take(self.node_code, nodes) & 3, 2)
         return self._world(np.take(self._node_split, nodes), axis)
 
-    def _order_active(self, pl, pg) -> None:
+    def _order_active(self, pl, pg, device=None) -> None:
         """Sort each leaf's grid list with the active grids first, and summarise them.
         ``(pl, pg)``: the (leaf, grid) pairs of the lists, sorted by leaf and then grid (what
-        :meth:`_build` returns; :meth:`_listed_by_descent` is the slow twin)."""
+        :meth:`_build` returns; :meth:`_listed_by_descent` is the slow twin); ``device``: see
+        the constructor."""
         L, P = self.num_leaves, len(pl)
-        active = self._active(pl, pg)
+        active = device.active(self, pl, pg) if device is not None else None
+        active = self._active(pl, pg) if active is None else active
         # Active first within each leaf, each part in grid order: a stable partition, each
         # pair's place counted from the leaf's start (no sort).
         nsupport = np.bincount(pl, minlength=L).astype(np.int64)
@@ -403,9 +406,9 @@ class KDTree:
                 ).reshape(-1, 6)
         self._set_ropes(ropes)
 
-    def _make_ropes(self, maker) -> None:
-        """Set :attr:`node_ropes` by ``maker`` (see the constructor), else by :meth:`_ropes`."""
-        made = maker(self) if maker is not None else None
+    def _make_ropes(self, device) -> None:
+        """Set :attr:`node_ropes` by ``device`` (see the constructor), else by :meth:`_ropes`."""
+        made = device.ropes(self) if device is not None else None
         if made is None:
             self._ropes()
         else:

@@ -505,7 +505,8 @@ def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
     from mi_amr.core import memory
     from mi_amr.core.kdtree import KDTree
     from mi_amr.core.volume import AMRVolume
-    from mi_amr.kernels import ranges, ropes
+    from mi_amr.kernels import ranges
+    from mi_amr.kernels.kdsteps import DeviceSteps
     from mi_amr.synthetic import datasets
 
     memory.keep_freed_memory()      # as every load of a file does (kernels.prepared)
@@ -515,7 +516,7 @@ def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
         t0 = time.perf_counter()
         vol = AMRVolume.from_grids(grids)
         t1 = time.perf_counter()
-        tree = KDTree(vol, leaf_cells=params.default("leaf_cells"), ropes=ropes.maker(dr.llvm.ad))
+        tree = KDTree(vol, leaf_cells=params.default("leaf_cells"), device=DeviceSteps(dr.llvm.ad))
         t2 = time.perf_counter()
         values = dr.llvm.ad.Float(np.concatenate([g.fields["f"].ravel() for g in vol.grids])
                                   .astype(np.float32))

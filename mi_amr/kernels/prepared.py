@@ -20,8 +20,9 @@ from mi_amr import params
 from mi_amr.core import memory
 from mi_amr.core.derive import DERIVED_FIELDS
 from mi_amr.kernels import derive as device_derive
-from mi_amr.kernels import ropes, snapshot
+from mi_amr.kernels import snapshot
 from mi_amr.kernels.device import DeviceVolume
+from mi_amr.kernels.kdsteps import DeviceSteps
 from mi_amr.errors import AMRError
 from mi_amr.core.kdtree import KDTree
 
@@ -48,7 +49,7 @@ class PreparedVolume:
         self.color_field = color_field or field
         clock = self._lap("derive", clock, quiet=not derived)
         self.tree = KDTree(self.volume, leaf_cells=leaf_cells,
-                           ropes=ropes.maker(m or dr.llvm.ad))
+                           device=DeviceSteps(m or dr.llvm.ad))
         clock = self._lap("tree", clock)
         if volume.num_cells >= memory.RELEASE_CELLS:
             # The pools are new mappings, which cannot reuse what the derivation's kernels and

@@ -1,0 +1,205 @@
+"""Steps of the kd-tree's build made on the device: what
+:class:`~mi_amr.core.kdtree.KDTree` takes as ``device`` (:class:`DeviceSteps`).
+
+* **Ropes.** :meth:`KDTree._ropes <mi_amr.core.kdtree.KDTree._ropes>` (NumPy, top-down, one
+  depth at a time) is the host's way; here one kernel descends every face of every node from
+  the root (a lane a face), as :meth:`~mi_amr.core.kdtree.KDTree._ropes_from_root` does on the
+  host: the rope of face ``2 * axis + side`` of node ``n`` is the deepest node holding the
+  closed box half a finest cell beyond that face (the root for a face on the tree's boundary).
+* **Active grids.** Whether each (leaf, grid) pair of the leaves' lists is active, as
+  :meth:`KDTree._active <mi_amr.core.kdtree.KDTree._active>` decides it: a lane a pair, the
+  support test on the doubled lattice, and for a partly covered grid the leaf cells in its
+  window counted from the host's summed-area tables.
+
+Same numbers as the host (``tests/test_device_prep.py``). Coordinates are the tree's lattice
+(cells of the finest level from the volume's anchor), doubled so that the face planes and the
+hat supports, half a cell off the lattice, are whole numbers: int32, for lattices below
+:data:`LATTICE_MAX` (else the host takes the step). Per-tree numbers are opaque kernel inputs
+and the tree's arrays are gathered from, so every tree runs the kernels compiled once.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import numpy as np
+
+from mi_amr.core import kdtree
+from mi_amr.core.buffers import aligned_copy
+from mi_amr.kernels.arrays import device_array, device_table
+
+LEAF = 3                  # the axis field of a leaf's node code (as in mi_amr.core.kdtree)
+LATTICE_MAX = 1 << 29     # |lattice coordinate| below which doubled faces fit in int32
+
+
+def fits(tree) -> bool:
+    """Can the kernels take ``tree`` (its doubled lattice small enough for int32)?"""
+    root = np.abs(np.concatenate(tree._root))
+    return bool(root.max() < LATTICE_MAX)
+
+
+# ---------------------------------------------------------------------- ropes
+
+def node_ropes(m, tree) -> np.ndarray:
+    """``node_ropes`` of ``tree`` (``(N, 6)`` uint32, aligned, as
+    :meth:`KDTree._ropes <mi_amr.core.kdtree.KDTree._ropes>` sets it), made by a kernel on
+    backend ``m`` (a Dr.Jit module such as ``drjit.llvm.ad``). The tree's lattice must
+    :func:`fit <fits>`."""
+    N = tree.num_nodes
+    code = device_table(m.UInt32, tree.node_code, np.uint32)
+    split = device_table(m.Int32, 2 * tree._node_split, np.int32)
+    lo = [device_table(m.Int32, 2 * tree._node_lo[:, a], np.int32) for a in range(3)]
+    hi = [device_table(m.Int32, 2 * tree._node_hi[:, a], np.int32) for a in range(3)]
+    root = [[dr.opaque(m.Int32, int(2 * tree._root[s][a])) for a in range(3)] for s in (0, 1)]
+    face = dr.arange(m.UInt32, 6 * N)
+    node = face // 6
+    box = _face_box(m, face - 6 * node, [dr.gather(m.Int32, t, node) for t in lo],
+                    [dr.gather(m.Int32, t, node) for t in hi], root)
+    rope = _descend(m, (code, split), box)
+    dr.eval(rope)
+    return aligned_copy(rope.numpy(), np.uint32).reshape(N, 6)
+
+
+def _face_box(m, face, lo, hi, root):
+    """``(lo, hi, inside)``: the closed doubled-lattice box just beyond face ``face`` (0..5,
+    ``2 * axis + side``) of the node box ``[lo, hi]`` (three Int32 arrays each), and whether
+    it lies inside the tree's ``root`` box ``[root[0], root[1]]``."""
+    axis, upper = face >> 1, (face & 1) == 1
+    inside = m.Bool(True)
+    lo, hi = list(lo), list(hi)
+    for a in range(3):
+        on = axis == a
+        plane = dr.select(upper, hi[a] + 1, lo[a] - 1)
+        inside &= ~on | dr.select(upper, plane <= root[1][a], plane >= root[0][a])
+        lo[a] = dr.select(on, plane, lo[a])
+        hi[a] = dr.select(on, plane, hi[a])
+    return lo, hi, inside
+
+
+def _descend(m, nodes, box):
+    """The deepest node holding each closed box of ``box`` (``(lo, hi, inside)`` as
+    :func:`_face_box` gives it), descending from the root; the root where not ``inside``.
+    ``nodes``: the tree's node codes and doubled split planes (device tables)."""
+    code, split = nodes
+    lo, hi, inside = box
+
+    def body(at, going):
+        c = dr.gather(m.UInt32, code, at, going)
+        axis = c & 3
+        inner = going & (axis != LEAF)
+        s = dr.gather(m.Int32, split, at, inner)
+        low = dr.select(axis == 0, lo[0], dr.select(axis == 1, lo[1], lo[2]))
+        high = dr.select(axis == 0, hi[0], dr.select(axis == 1, hi[1], hi[2]))
+        above = inner & (low >= s)
+        go = above | (inner & (high < s))
+        return dr.select(go, (c >> 2) + dr.select(above, 1, 0), at), go
+
+    at, _ = dr.while_loop((dr.zeros(m.UInt32, dr.width(inside)), m.Bool(inside)),
+                          lambda at, going: going, body)
+    return at
+
+
+# ---------------------------------------------------------------------- active grids
+
+def pair_active(m, tree, leaf, grid) -> np.ndarray:
+    """Whether grid ``grid[i]`` is active in leaf ``leaf[i]`` (int arrays of (leaf, grid)
+    pairs whose supports overlap), as :meth:`KDTree._active
+    <mi_amr.core.kdtree.KDTree._active>` gives it: a boolean NumPy array. The tree's lattice
+    must :func:`fit <fits>`."""
+    if len(leaf) == 0:
+        return np.zeros(0, dtype=bool)
+    lanes = np.arange(len(leaf))
+    lanes = np.repeat(lanes, 2) if len(leaf) == 1 else lanes    # (one lane: a broadcast)
+    at = (device_array(m.UInt32, leaf[lanes], np.uint32),
+          device_array(m.UInt32, grid[lanes], np.uint32))
+    frame = _ActiveFrame(m, tree)
+    active = _in_support(m, frame, at)
+    active = dr.select(active & dr.gather(m.Bool, frame.partly, at[1], active),
+                       _holds_leaf_cell(m, frame, at, active), active)
+    dr.eval(active)
+    return active.numpy()[:len(leaf)].astype(bool)
+
+
+class _ActiveFrame:
+    """What :func:`pair_active` gathers from: per leaf its doubled lattice box, per grid its
+    doubled support reach (its box grown by half a cell), lower lattice corner, cell width
+    (finest cells), shape, whether it is partly covered and where its summed-area table of the
+    leaf mask starts (:func:`mi_amr.core.kdtree._leaf_count_tables`, int32)."""
+
+    def __init__(self, m, tree):
+        vol = tree.volume
+        step = tree._step_f
+        self.leaf = [[device_table(m.Int32, 2 * box[:, a], np.int32) for a in range(3)]
+                     for box in (tree._leaf_lo_f, tree._leaf_hi_f)]
+        self.reach = [[device_table(m.Int32, 2 * box[:, a] + sign * step[:, a], np.int32)
+                       for a in range(3)] for box, sign in ((tree._glo, -1), (tree._ghi, 1))]
+        self.glo = [device_table(m.Float64, tree._glo[:, a], np.float64) for a in range(3)]
+        self.step = [device_table(m.Float64, step[:, a], np.float64) for a in range(3)]
+        self.leaf_lo = [device_table(m.Float64, tree._leaf_lo_f[:, a], np.float64)
+                        for a in range(3)]
+        self.leaf_hi = [device_table(m.Float64, tree._leaf_hi_f[:, a], np.float64)
+                        for a in range(3)]
+        self.shape = [device_table(m.Int32, tree.shape[:, a], np.int32) for a in range(3)]
+        partly = vol.partly_covered()
+        self.partly = device_table(m.Bool, partly, np.bool_)
+        sat, offsets = kdtree._leaf_count_tables(vol, np.flatnonzero(partly))
+        self.sat = device_table(m.Int32, sat, np.int32)
+        self.offset = device_table(m.UInt32, np.maximum(offsets, 0), np.uint32)
+
+
+def _in_support(m, frame, at):
+    """Does the leaf's box overlap the grid's support reach (open boxes, doubled lattice)?"""
+    leaf, grid = at
+    out = m.Bool(True)
+    for a in range(3):
+        out &= dr.gather(m.Int32, frame.leaf[0][a], leaf) < \
+            dr.gather(m.Int32, frame.reach[1][a], grid)
+        out &= dr.gather(m.Int32, frame.leaf[1][a], leaf) > \
+            dr.gather(m.Int32, frame.reach[0][a], grid)
+    return out
+
+
+def _holds_leaf_cell(m, frame, at, active):
+    """Does the pair's cell window (the grid's cells whose hat support reaches the leaf, as
+    :meth:`KDTree._windows_part <mi_amr.core.kdtree.KDTree._windows_part>` gives it) hold a
+    leaf cell? Counted from the grid's summed-area table, at the lanes ``active``."""
+    leaf, grid = at
+    lo, hi, n = [], [], []
+    for a in range(3):
+        g_lo = dr.gather(m.Float64, frame.glo[a], grid, active)
+        s = dr.gather(m.Float64, frame.step[a], grid, active)
+        s = dr.select(active, s, 1.0)
+        low = dr.floor((dr.gather(m.Float64, frame.leaf_lo[a], leaf, active) - g_lo - 1.5 * s)
+                       / s)
+        high = dr.ceil((dr.gather(m.Float64, frame.leaf_hi[a], leaf, active) - g_lo + 0.5 * s)
+                       / s)
+        n.append(dr.gather(m.Int32, frame.shape[a], grid, active))
+        lo.append(dr.maximum(m.Int32(low) + 1, 0))
+        hi.append(dr.minimum(m.Int32(high) - 1, n[a] - 1))
+    empty = (hi[0] < lo[0]) | (hi[1] < lo[1]) | (hi[2] < lo[2])
+    reads = active & ~empty
+    base = dr.gather(m.UInt32, frame.offset, grid, reads)
+    total = m.Int32(0)
+    for corner in range(8):
+        pick = [(corner >> (2 - a)) & 1 for a in range(3)]
+        c = [m.UInt32(hi[a] + 1 if pick[a] else lo[a]) for a in range(3)]
+        flat = base + (c[0] * m.UInt32(n[1] + 1) + c[1]) * m.UInt32(n[2] + 1) + c[2]
+        value = dr.gather(m.Int32, frame.sat, flat, reads)
+        total += value if (3 - sum(pick)) % 2 == 0 else -value
+    return reads & (total > 0)
+
+
+class DeviceSteps:
+    """What :class:`~mi_amr.core.kdtree.KDTree` takes as ``device``: the steps above on
+    backend ``m`` (a Dr.Jit module such as ``drjit.llvm.ad``), each None for a tree that does
+    not :func:`fit <fits>` (the tree then takes the step on the host)."""
+
+    def __init__(self, m):
+        self.m = m
+
+    def ropes(self, tree):
+        """:func:`node_ropes`, or None."""
+        return node_ropes(self.m, tree) if fits(tree) else None
+
+    def active(self, tree, leaf, grid):
+        """:func:`pair_active`, or None."""
+        return pair_active(self.m, tree, leaf, grid) if fits(tree) else None
