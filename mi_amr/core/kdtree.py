@@ -114,7 +114,7 @@ class KDTree:
             self._shi.max(axis=0) - corner, corner - self._slo.min(axis=0), np.ones(3)])))
         self._root = (corner - half, corner + half)
         self.lo, self.hi = self._world(self._root[0]), self._world(self._root[1])
-        listed = self._build(max_depth)
+        listed = self._build(max_depth, device)
         # The ropes need only the nodes, the lists only the pairs: build them side by side.
         made = parallel.beside(self._make_ropes, device)
         self._order_active(*listed, device=device)
@@ -139,12 +139,19 @@ class KDTree:
         return self.volume.anchor[axis] + u * self.h_fine[axis]
 
     # ------------------------------------------------------------------ build
-    def _build(self, max_depth: int):
+    def _build(self, max_depth: int, device=None):
         """Build the tree breadth first, one depth at a time, on the integer lattice of the
         finest level (all boxes are whole numbers of finest cells from the anchor). Returns
         the (leaf, grid) pairs of the leaves' lists (every grid whose open support overlaps
         the leaf), sorted by leaf and then grid: the pairs of each depth stay sorted by node
-        and grid (:func:`_children`), and leaves are numbered in node order."""
+        and grid (:func:`_children`), and leaves are numbered in node order. ``device``: see
+        the constructor (its ``build(tree, max_depth)`` makes the same nodes and pairs, the
+        pairs' passes on the device, or declines with None)."""
+        made = device.build(self, max_depth) if device is not None else None
+        if made is not None:
+            out, listed = made
+            self._store(out)
+            return listed
         G = len(self.grid_lo)
         # Lattice coordinates are whole numbers: int32 (when they fit) halves the memory traffic
         # of the pair tests, which dominate the build.
@@ -185,7 +192,7 @@ class KDTree:
         A pair whose grid box misses the node (support only) and that is no finer than the
         owner changes none of these: the owner contains the node, so it bounds the finest
         level from below, and such a grid cuts no face through it."""
-        G, n = len(self.grid_lo), len(f_lo)
+        n = len(f_lo)
         overlap, contains = _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, chunk=self.chunk)
         best = np.full(n, -1, dtype=np.int64)
         has_partial = np.zeros(n, dtype=bool)
@@ -194,15 +201,26 @@ class KDTree:
         first = run_starts(p_node)
         if len(first):
             held = np.take(p_node, first)
-            # Per grid, its owner key: finer first, then the lowest index.
-            level = self.level.astype(np.int64)
-            grid_key = level * G + (G - 1 - np.arange(G))
-            key = np.take(grid_key, p_grid)
+            key = np.take(self.owner_keys(), p_grid)
             key[~contains] = -1
             best[held] = np.maximum.reduceat(key, first)
             overlap &= ~contains
             has_partial[held] = np.logical_or.reduceat(overlap, first)
-            finest[held] = np.maximum.reduceat(np.take(level, p_grid), first)
+            finest[held] = np.maximum.reduceat(np.take(self.level.astype(np.int64), p_grid),
+                                               first)
+        return self.node_summary(best, has_partial, finest)
+
+    def owner_keys(self) -> np.ndarray:
+        """Per grid, its key as a node's owner (int64): the greatest key among the grids
+        containing a node is its owner's, finer grids first, then the lowest index."""
+        G = len(self.grid_lo)
+        return self.level.astype(np.int64) * G + (G - 1 - np.arange(G))
+
+    def node_summary(self, best, has_partial, finest):
+        """``(owner, has_partial, node_h)`` of nodes (see :meth:`_classify`) from the greatest
+        :meth:`owner_keys` of the grids containing each (-1: none), whether a grid face cuts it,
+        and the finest level whose support reaches it (-1: none)."""
+        G = len(self.grid_lo)
         owner = np.where(best >= 0, G - 1 - best % G, -1)
         level_h = self._level_h
         node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
@@ -765,14 +783,7 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = 
     each side's pairs keep their order, and are placed after the other side's pairs of the
     earlier parents."""
     _, _, slo, shi = lattice
-    sp = np.flatnonzero(axis != LEAF)
-    a, pos = axis[sp], plane[sp]
-    c_lo = np.repeat(f_lo[sp], 2, axis=0)
-    c_hi = np.repeat(f_hi[sp], 2, axis=0)
-    c_hi[0::2][np.arange(len(sp)), a] = pos
-    c_lo[1::2][np.arange(len(sp)), a] = pos
-    child_of = np.full(len(f_lo), -1, dtype=np.int64)
-    child_of[sp] = 2 * np.arange(len(sp))
+    c_lo, c_hi, child_of = child_boxes(f_lo, f_hi, axis, plane)
     slo_flat, shi_flat = slo.reshape(-1), shi.reshape(-1)
 
     def sides(start):
@@ -789,7 +800,7 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = 
     parts = list(parallel.map_ordered(sides, range(0, len(p_node), chunk)))
     if not parts:
         return c_lo, c_hi, p_node[:0], p_grid[:0]
-    S = len(sp)
+    S = len(c_lo) // 2
     n_left, n_right = np.zeros(S, dtype=np.int64), np.zeros(S, dtype=np.int64)
     for ln, _, rn, _ in parts:
         for side, count in ((ln, n_left), (rn, n_right)):
@@ -807,6 +818,21 @@ def _children(f_lo, f_hi, axis, plane, p_node, p_grid, lattice, *, chunk: int = 
         p_node[at], p_grid[at] = rn, rg
         done_left, done_right = done_left + len(ln), done_right + len(rn)
     return c_lo, c_hi, p_node, p_grid
+
+
+def child_boxes(f_lo, f_hi, axis, plane):
+    """``(c_lo, c_hi, child_of)``: the boxes of the children of one depth's split nodes (two
+    each, low side first, cut at ``plane`` on ``axis``) and each node's first child among
+    them (-1 for a leaf)."""
+    sp = np.flatnonzero(axis != LEAF)
+    a, pos = axis[sp], plane[sp]
+    c_lo = np.repeat(f_lo[sp], 2, axis=0)
+    c_hi = np.repeat(f_hi[sp], 2, axis=0)
+    c_hi[0::2][np.arange(len(sp)), a] = pos
+    c_lo[1::2][np.arange(len(sp)), a] = pos
+    child_of = np.full(len(f_lo), -1, dtype=np.int64)
+    child_of[sp] = 2 * np.arange(len(sp))
+    return c_lo, c_hi, child_of
 
 
 def _pair_boxes(f_lo, f_hi, p_node, p_grid, lattice, *, chunk: int = CHUNK):

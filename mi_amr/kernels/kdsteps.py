@@ -25,6 +25,7 @@ import numpy as np
 
 from mi_amr.core import kdtree
 from mi_amr.core.buffers import aligned_copy
+from mi_amr.kernels import kdbuild
 from mi_amr.kernels.arrays import device_array, device_table
 
 LEAF = 3                  # the axis field of a leaf's node code (as in mi_amr.core.kdtree)
@@ -203,3 +204,7 @@ class DeviceSteps:
     def active(self, tree, leaf, grid):
         """:func:`pair_active`, or None."""
         return pair_active(self.m, tree, leaf, grid) if fits(tree) else None
+
+    def build(self, tree, max_depth: int):
+        """:func:`mi_amr.kernels.kdbuild.build`, or None."""
+        return kdbuild.build(self.m, tree, max_depth) if kdbuild.fits(tree) else None
