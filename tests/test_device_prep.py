@@ -204,7 +204,7 @@ def test08_a_tree_built_with_the_devices_steps_is_the_hosts(name):
 def test08b_the_kernels_active_grids_are_the_hosts(name):
     """Every (leaf, grid) pair of the leaves' lists: active on the device exactly where the host
     says so, partly covered grids (a window with and without leaf cells) included; a launch of
-    one pair gives the same."""
+    one pair gives the same; the leaves' lists put in order from them are the host's."""
     from mi_amr.kernels import kdsteps
 
     tree = KDTree(AMRVolume.from_grids(_grids(name)), leaf_cells=4)
@@ -218,20 +218,27 @@ def test08b_the_kernels_active_grids_are_the_hosts(name):
     np.testing.assert_array_equal(got, want)
     one = np.flatnonzero(partly & want)[:1]
     np.testing.assert_array_equal(kdsteps.pair_active(dr.llvm.ad, tree, pl[one], pg[one]), [True])
+    made, host = kdsteps.leaf_lists(dr.llvm.ad, tree, pl, pg), tree._leaf_lists(pl, pg)
+    assert sorted(made) == sorted(host)
+    for key, value in host.items():
+        assert made[key].dtype == value.dtype, key
+        np.testing.assert_array_equal(made[key], value, err_msg=key)
+    assert (host["leaf_nactive"] < host["leaf_nsupport"]).any()     # some grids move
 
 
 def test08c_a_lattice_too_large_for_the_kernels_gets_the_hosts_steps(monkeypatch):
     """A tree whose doubled lattice would overflow the kernels' int32 takes every step on the
     host (the device declines it), the same tree."""
-    from mi_amr.kernels import kdsteps
+    from mi_amr.kernels import kdbuild, kdsteps
 
     vol = AMRVolume.from_grids(HIERARCHIES["random1"]())
     want = KDTree(vol, leaf_cells=4)
-    assert kdsteps.fits(want)
-    monkeypatch.setattr(kdsteps, "LATTICE_MAX", 1)
+    assert kdsteps.fits(want) and kdbuild.fits(want)
+    for module in (kdsteps, kdbuild):
+        monkeypatch.setattr(module, "LATTICE_MAX", 1)
     asked = []
-    monkeypatch.setattr(kdsteps, "node_ropes", lambda *a: asked.append(a))
-    monkeypatch.setattr(kdsteps, "pair_active", lambda *a: asked.append(a))
+    for module, name in ((kdsteps, "node_ropes"), (kdsteps, "leaf_lists"), (kdbuild, "build")):
+        monkeypatch.setattr(module, name, lambda *a: asked.append(a))
     _same_tree(KDTree(vol, leaf_cells=4, device=kdsteps.DeviceSteps(dr.llvm.ad)), want)
     assert asked == []
 

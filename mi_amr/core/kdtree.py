@@ -74,9 +74,10 @@ class KDTree:
         """Build the tree of ``volume``; or, given ``arrays`` (:meth:`arrays` of a tree of this
         volume), take them as they are (:meth:`from_arrays`). ``device``: what takes steps of
         the build on a device (:class:`mi_amr.kernels.kdsteps.DeviceSteps`): its
-        ``ropes(tree)`` gives :attr:`node_ropes` (an ``(N, 6)`` uint32 array) and its
-        ``active(tree, leaf, grid)`` what :meth:`_active` gives, each None where it cannot;
-        None: the host takes every step."""
+        ``build(tree, max_depth)`` does what :meth:`_build` does, ``ropes(tree)`` gives
+        :attr:`node_ropes` (an ``(N, 6)`` uint32 array) and ``leaf_lists(tree, leaf, grid)``
+        what :meth:`_leaf_lists` gives, each None where it cannot; None: the host takes every
+        step."""
         self.volume = volume
         self.chunk, self.box_block = int(chunk), int(box_block)
         if arrays is not None:
@@ -289,9 +290,16 @@ class KDTree:
         ``(pl, pg)``: the (leaf, grid) pairs of the lists, sorted by leaf and then grid (what
         :meth:`_build` returns; :meth:`_listed_by_descent` is the slow twin); ``device``: see
         the constructor."""
+        made = device.leaf_lists(self, pl, pg) if device is not None else None
+        for name, value in (made or self._leaf_lists(pl, pg)).items():
+            setattr(self, name, value)
+
+    def _leaf_lists(self, pl, pg) -> dict:
+        """What :meth:`_order_active` sets, by name: ``leaf_grids`` (int32, aligned),
+        ``leaf_nsupport``, ``leaf_nactive``, ``leaf_start``, ``leaf_levels`` (int64) and
+        ``leaf_min_h`` (float64, ``(L, 3)``), on the host."""
         L, P = self.num_leaves, len(pl)
-        active = device.active(self, pl, pg) if device is not None else None
-        active = self._active(pl, pg) if active is None else active
+        active = self._active(pl, pg)
         # Active first within each leaf, each part in grid order: a stable partition, each
         # pair's place counted from the leaf's start (no sort).
         nsupport = np.bincount(pl, minlength=L).astype(np.int64)
@@ -308,19 +316,19 @@ class KDTree:
         moved = np.flatnonzero(place != np.arange(P))
         pg = aligned_copy(pg, np.int32)         # (aligned: the device maps it)
         pg[place[moved]] = pg[moved]
-        self.leaf_grids = pg
-        self.leaf_nsupport, self.leaf_nactive, self.leaf_start = nsupport, nactive, start
         # The active pairs are contiguous per leaf: reduce over those runs.
-        has = self.leaf_nactive > 0
-        runs = (np.cumsum(self.leaf_nactive) - self.leaf_nactive)[has]
-        self.leaf_levels = np.zeros(L, dtype=np.int64)
-        self.leaf_min_h = np.full((L, 3), np.inf)
+        has = nactive > 0
+        runs = (np.cumsum(nactive) - nactive)[has]
+        levels = np.zeros(L, dtype=np.int64)
+        min_h = np.full((L, 3), np.inf)
         if len(runs):
             bits = np.left_shift(1, self.level.astype(np.int64))
-            self.leaf_levels[has] = _reduce_runs(np.bitwise_or, bits, ga, runs, self.chunk)
+            levels[has] = _reduce_runs(np.bitwise_or, bits, ga, runs, self.chunk)
             for a in range(3):
-                self.leaf_min_h[has, a] = _reduce_runs(
+                min_h[has, a] = _reduce_runs(
                     np.minimum, np.ascontiguousarray(self.spacing[:, a]), ga, runs, self.chunk)
+        return {"leaf_grids": pg, "leaf_nsupport": nsupport, "leaf_nactive": nactive,
+                "leaf_start": start, "leaf_levels": levels, "leaf_min_h": min_h}
 
     def _listed_by_descent(self):
         """Slow twin of the pairs :meth:`_build` returns: every leaf overlapping each grid's

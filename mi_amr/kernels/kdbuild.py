@@ -103,7 +103,7 @@ def _classify(m, grids, box, pairs):
     containing it, and the finest level whose support reaches it (-1: none). ``box``: the
     nodes' lattice boxes ``(lo, hi)`` (host, ``(N, 3)``); ``pairs``: ``(node, grid)``."""
     n = len(box[0])
-    best, cut, finest = (_zeros(m, n) for _ in range(3))
+    best, cut, finest = (zeros_target(m, n) for _ in range(3))
     p_node, p_grid = pairs
     if dr.width(p_node):
         node_lo = [device_table(m.Int32, box[0][:, a], np.int32) for a in range(3)]
@@ -180,11 +180,11 @@ def _children(m, grids, node, children: int, pairs):
     split = child >= 0
     sides = (split & (lo < plane), split & (hi > plane))
     first = m.UInt32(dr.maximum(child, 0))
-    count = _zeros(m, children)
+    count = zeros_target(m, children)
     for side, go in enumerate(sides):
         dr.scatter_reduce(dr.ReduceOp.Add, count, m.UInt32(1), first + side, go, mode=DIRECT)
     # Where each node's pairs begin: the pairs before it (sorted by node).
-    begin = _zeros(m, dr.width(node.child))
+    begin = zeros_target(m, dr.width(node.child))
     dr.scatter_reduce(dr.ReduceOp.Add, begin, m.UInt32(1), p_node, mode=DIRECT)
     begin = dr.prefix_reduce(dr.ReduceOp.Add, begin)
     start = dr.prefix_reduce(dr.ReduceOp.Add, count)
@@ -203,7 +203,7 @@ def _children(m, grids, node, children: int, pairs):
     return nxt
 
 
-def _zeros(m, n: int):
+def zeros_target(m, n: int):
     """A new ``m.UInt32`` of at least two zeros (``n`` wanted) that kernels scatter into
     (evaluated first: a literal target would be made inside the kernel)."""
     out = dr.zeros(m.UInt32, max(n, 2))

@@ -6,10 +6,12 @@
   the root (a lane a face), as :meth:`~mi_amr.core.kdtree.KDTree._ropes_from_root` does on the
   host: the rope of face ``2 * axis + side`` of node ``n`` is the deepest node holding the
   closed box half a finest cell beyond that face (the root for a face on the tree's boundary).
-* **Active grids.** Whether each (leaf, grid) pair of the leaves' lists is active, as
+* **The leaves' lists.** Whether each (leaf, grid) pair of the leaves' lists is active, as
   :meth:`KDTree._active <mi_amr.core.kdtree.KDTree._active>` decides it: a lane a pair, the
   support test on the doubled lattice, and for a partly covered grid the leaf cells in its
-  window counted from the host's summed-area tables.
+  window counted from the host's summed-area tables; then each leaf's grids active first and
+  the per-leaf summaries (:func:`leaf_lists`).
+* **The build** itself: :mod:`mi_amr.kernels.kdbuild`.
 
 Same numbers as the host (``tests/test_device_prep.py``). Coordinates are the tree's lattice
 (cells of the finest level from the volume's anchor), doubled so that the face planes and the
@@ -112,12 +114,58 @@ def pair_active(m, tree, leaf, grid) -> np.ndarray:
     lanes = np.repeat(lanes, 2) if len(leaf) == 1 else lanes    # (one lane: a broadcast)
     at = (device_array(m.UInt32, leaf[lanes], np.uint32),
           device_array(m.UInt32, grid[lanes], np.uint32))
-    frame = _ActiveFrame(m, tree)
-    active = _in_support(m, frame, at)
-    active = dr.select(active & dr.gather(m.Bool, frame.partly, at[1], active),
-                       _holds_leaf_cell(m, frame, at, active), active)
+    active = _active(m, _ActiveFrame(m, tree), at)
     dr.eval(active)
     return active.numpy()[:len(leaf)].astype(bool)
+
+
+def _active(m, frame, at):
+    """The active mask (``m.Bool``) of the (leaf, grid) pairs ``at`` (device UInt32 arrays)."""
+    active = _in_support(m, frame, at)
+    return dr.select(active & dr.gather(m.Bool, frame.partly, at[1], active),
+                     _holds_leaf_cell(m, frame, at, active), active)
+
+
+def leaf_lists(m, tree, leaf, grid) -> dict:
+    """What :meth:`KDTree._leaf_lists <mi_amr.core.kdtree.KDTree._leaf_lists>` gives for
+    the (leaf, grid) pairs ``leaf``, ``grid`` (int arrays, at least two, sorted by leaf and
+    grid), on backend ``m``: the pairs' active grids decided as :func:`pair_active` does, each
+    leaf's grids put active first (stable: each pair's place from prefix sums over the pairs
+    and the leaves), and per leaf the counts, the bitmask of its active grids' levels (levels
+    below 32) and their least cell width per axis (atomic reductions)."""
+    L, P = tree.num_leaves, len(leaf)
+    at = (device_array(m.UInt32, leaf, np.uint32), device_array(m.UInt32, grid, np.uint32))
+    active = _active(m, _ActiveFrame(m, tree), at)
+    dr.eval(active)                 # (once: each kernel below reads it)
+    counts = [kdbuild.zeros_target(m, L) for _ in range(2)]     # support, active
+    for count, mask in zip(counts, (m.Bool(True), active)):
+        dr.scatter_reduce(dr.ReduceOp.Add, count, m.UInt32(1), at[0], mask, mode=kdbuild.DIRECT)
+    start, active_before = (dr.prefix_reduce(dr.ReduceOp.Add, c) for c in counts)
+    seen = dr.prefix_reduce(dr.ReduceOp.Add, m.UInt32(active))    # active pairs before each
+    first = dr.gather(m.UInt32, start, at[0])
+    before = dr.gather(m.UInt32, active_before, at[0])
+    place = dr.select(active, first + seen - before,
+                      before + dr.gather(m.UInt32, counts[1], at[0]) + dr.arange(m.UInt32, P) - seen)
+    grids = dr.empty(m.UInt32, P)
+    dr.scatter(grids, at[1], place)
+    levels = kdbuild.zeros_target(m, L)
+    bits = device_table(m.UInt32, np.left_shift(1, tree.level.astype(np.int64)), np.uint32)
+    dr.scatter_reduce(dr.ReduceOp.Or, levels, dr.gather(m.UInt32, bits, at[1], active), at[0],
+                      active, mode=kdbuild.DIRECT)
+    min_h = []
+    for a in range(3):
+        h = dr.full(m.Float64, np.inf, max(L, 2))
+        dr.make_opaque(h)
+        spacing = device_table(m.Float64, tree.spacing[:, a], np.float64)
+        dr.scatter_reduce(dr.ReduceOp.Min, h, dr.gather(m.Float64, spacing, at[1], active),
+                          at[0], active, mode=kdbuild.DIRECT)
+        min_h.append(h)
+    dr.eval(grids, counts, start, levels, min_h)
+    host = lambda a: a.numpy()[:L].astype(np.int64)        # noqa: E731
+    return {"leaf_grids": aligned_copy(grids.numpy(), np.int32),
+            "leaf_nsupport": host(counts[0]), "leaf_nactive": host(counts[1]),
+            "leaf_start": host(start), "leaf_levels": host(levels),
+            "leaf_min_h": np.stack([h.numpy()[:L] for h in min_h], axis=1)}
 
 
 class _ActiveFrame:
@@ -201,9 +249,10 @@ class DeviceSteps:
         """:func:`node_ropes`, or None."""
         return node_ropes(self.m, tree) if fits(tree) else None
 
-    def active(self, tree, leaf, grid):
-        """:func:`pair_active`, or None."""
-        return pair_active(self.m, tree, leaf, grid) if fits(tree) else None
+    def leaf_lists(self, tree, leaf, grid):
+        """:func:`leaf_lists`, or None (also for fewer than two pairs, or levels from 32)."""
+        takes = fits(tree) and len(leaf) >= 2 and tree.level.max(initial=0) < 32
+        return leaf_lists(self.m, tree, leaf, grid) if takes else None
 
     def build(self, tree, max_depth: int):
         """:func:`mi_amr.kernels.kdbuild.build`, or None."""
