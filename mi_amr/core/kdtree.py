@@ -27,7 +27,7 @@ import numpy as np
 
 from mi_amr import params
 from mi_amr.core import parallel
-from mi_amr.core.buffers import aligned_copy, aligned_full, joined
+from mi_amr.core.buffers import aligned_copy, aligned_empty, aligned_full, joined
 from mi_amr.core.boxes import contains_points
 from mi_amr.core.points import (as_points, finest_of,  # noqa: F401  (twins: tests)
                                 finest_grid_bruteforce, support_grids_bruteforce)
@@ -886,9 +886,10 @@ def _grid_offsets(volume) -> np.ndarray:
 
 
 def _leaf_count_tables(volume, grids):
-    """Summed-area tables of the leaf masks of ``grids`` (shape + 1 per axis), concatenated;
-    returns the tables and the offset of each grid's table (indexed by grid, -1 if absent).
-    Grids of one shape are stacked and summed together; :func:`_leaf_count_tables_reference`
+    """Summed-area tables of the leaf masks of ``grids`` (shape + 1 per axis), concatenated in
+    one aligned int32 array (a grid holds fewer than 2^31 cells); returns the tables and the
+    offset of each grid's table (indexed by grid, -1 if absent). Grids of one shape are
+    stacked and summed together, in place in the result; :func:`_leaf_count_tables_reference`
     is the slow twin (one grid at a time, tables in the order of ``grids``)."""
     shapes = volume.grid_columns()["shape"]
     cell_start = volume.grid_columns()["offset"]
@@ -896,17 +897,23 @@ def _leaf_count_tables(volume, grids):
     offsets = np.full(len(volume.grids), -1, dtype=np.int64)
     grids = np.asarray(grids, dtype=np.int64)
     kinds, kind_of = _shape_kinds(shapes[grids])
-    tables, at = [np.zeros(0, dtype=np.int64)], 0
-    for kind, shape in enumerate(kinds):
-        members = grids[kind_of == kind]
-        cells = (cell_start[members][:, None] + np.arange(int(np.prod(shape)))).ravel()
-        mask = np.take(flat, cells).reshape(len(members), *shape)
-        sat = np.zeros((len(members),) + tuple(int(n) + 1 for n in shape), dtype=np.int64)
-        sat[:, 1:, 1:, 1:] = mask.cumsum(1).cumsum(2).cumsum(3)
-        offsets[members] = at + np.arange(len(members)) * sat[0].size
-        tables.append(sat.ravel())
-        at += sat.size
-    return np.concatenate(tables), offsets
+    members = [grids[kind_of == kind] for kind in range(len(kinds))]
+    sizes = [len(g) * int(np.prod(np.asarray(shape) + 1)) for g, shape in zip(members, kinds)]
+    out = aligned_empty(int(sum(sizes)), np.int32)
+    at = 0
+    for shape, group, size in zip(kinds, members, sizes):
+        sat = out[at:at + size].reshape((len(group),) + tuple(int(n) + 1 for n in shape))
+        sat[:, 0] = 0
+        sat[:, :, 0] = 0
+        sat[:, :, :, 0] = 0
+        cells = (cell_start[group][:, None] + np.arange(int(np.prod(shape)))).ravel()
+        inner = sat[:, 1:, 1:, 1:]
+        inner[...] = np.take(flat, cells).reshape(len(group), *shape)
+        for axis in (1, 2, 3):
+            np.cumsum(inner, axis=axis, out=inner)
+        offsets[group] = at + np.arange(len(group)) * sat[0].size
+        at += size
+    return out, offsets
 
 
 def _leaf_count_tables_reference(volume, grids):

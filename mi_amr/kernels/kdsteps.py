@@ -28,7 +28,7 @@ import numpy as np
 from mi_amr.core import kdtree
 from mi_amr.core.buffers import aligned_copy
 from mi_amr.kernels import kdbuild
-from mi_amr.kernels.arrays import device_array, device_table
+from mi_amr.kernels.arrays import device_array, device_table, mapped_array
 
 LEAF = 3                  # the axis field of a leaf's node code (as in mi_amr.core.kdtree)
 LATTICE_MAX = 1 << 29     # |lattice coordinate| below which doubled faces fit in int32
@@ -172,7 +172,7 @@ class _ActiveFrame:
     """What :func:`pair_active` gathers from: per leaf its doubled lattice box, per grid its
     doubled support reach (its box grown by half a cell), lower lattice corner, cell width
     (finest cells), shape, whether it is partly covered and where its summed-area table of the
-    leaf mask starts (:func:`mi_amr.core.kdtree._leaf_count_tables`, int32)."""
+    leaf mask starts (:func:`mi_amr.core.kdtree._leaf_count_tables`, int32, mapped)."""
 
     def __init__(self, m, tree):
         vol = tree.volume
@@ -191,7 +191,9 @@ class _ActiveFrame:
         partly = vol.partly_covered()
         self.partly = device_table(m.Bool, partly, np.bool_)
         sat, offsets = kdtree._leaf_count_tables(vol, np.flatnonzero(partly))
-        self.sat = device_table(m.Int32, sat, np.int32)
+        self.host_sat = sat         # (kept while the device maps it)
+        self.sat = mapped_array(m.Int32, sat, np.int32) if len(sat) >= 2 else \
+            device_table(m.Int32, sat, np.int32)
         self.offset = device_table(m.UInt32, np.maximum(offsets, 0), np.uint32)
 
 
