@@ -41,7 +41,7 @@ def velocity_fields(volume, velocity=None) -> tuple:
                    f"{list(volume.field_names)}")
 
 
-def derive(volume, *names: str, velocity=None, gradient_fields=None,
+def derive(volume, *names: str, velocity=None, gradient_fields=None, speed_field=None,
            chunk_cells: int = levels.CHUNK_CELLS):
     """A volume with the derived fields ``names`` added (any of :data:`DERIVED_FIELDS`).
 
@@ -52,7 +52,9 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None,
     ``gradient_fields``, when given, computes the fields that need the velocity gradient
     instead of :func:`gradient.map_chunks`: called as ``gradient_fields(volume, comps, names,
     flat)``, it writes field ``name`` of level ``l`` into ``flat[name][l]`` (the device path,
-    :mod:`mi_amr.kernels.derive`, gives the same numbers).
+    :mod:`mi_amr.kernels.derive`, gives the same numbers). ``speed_field(volume, comps,
+    parts)``, when given, writes the speed of level ``l`` into ``parts[l]`` the same way and
+    returns True, or returns False (the host computes it then).
 
     ``chunk_cells`` bounds the host gradient's passes (:func:`gradient.map_chunks`): whole
     grids of a level holding at least that many cells each, which bounds its temporaries;
@@ -63,7 +65,7 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None,
         raise AMRError(f"cannot derive {unknown}; derived fields are {list(DERIVED_FIELDS)}")
     comps = velocity_fields(volume, velocity)
     flat = _level_buffers(volume, names, comps)
-    if "speed" in names:
+    if "speed" in names and not (speed_field and speed_field(volume, comps, flat["speed"])):
         for level in range(volume.num_levels):
             _speed([levels.level_values(volume, level, n) for n in comps], flat["speed"][level])
     wanted = [(n, f) for n, f in (("q_criterion", q_criterion),

@@ -51,7 +51,30 @@ def derive(volume, *names: str, m, velocity=None, chunk_cells: int = CHUNK_CELLS
                 LEVEL_CELLS_MAX for t in tables)
     fill = (lambda vol, comps, wanted, flat: _fill(vol, comps, wanted, flat, m, chunk_cells)) \
         if dense else None
-    return host_derive.derive(volume, *names, velocity=velocity, gradient_fields=fill)
+    return host_derive.derive(volume, *names, velocity=velocity, gradient_fields=fill,
+                              speed_field=lambda vol, comps, parts: _speed(vol, comps, parts, m))
+
+
+def _speed(volume, comps, parts, m) -> bool:
+    """Write ``sqrt(vx^2 + vy^2 + vz^2)`` of each level into ``parts[level]`` (one kernel a
+    level, scattering into the host buffer: :func:`_written`), in the velocity's own dtype as
+    :func:`mi_amr.core.derive._speed` rounds it; True where done. Where the components or the
+    levels differ in dtype (the host's promotions then), nothing is done: False."""
+    values = [[levels.level_values(volume, level, n) for n in comps]
+              for level in range(volume.num_levels)]
+    if len({a.dtype for v in values for a in v} | {parts[0].dtype}) != 1:
+        return False
+    target, record = _written(m, parts)
+    at = 0
+    for v in values:
+        if len(v[0]):
+            x, y, z = (_mapped(m, a) for a in v)
+            lane = dr.opaque(m.UInt32, at) + dr.arange(m.UInt32, len(v[0]))
+            dr.scatter(target, dr.sqrt(x * x + y * y + z * z), lane)
+            dr.eval(target)
+        at += len(v[0])
+    _settle(m, target, record)
+    return True
 
 
 def _fill(volume, comps, wanted, flat, m, chunk_cells: int = CHUNK_CELLS):
