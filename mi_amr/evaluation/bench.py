@@ -497,7 +497,8 @@ def kdtree_build(out_dir="out/bench", sizes=((20, 2000), (40, 36000))) -> list:
     """Seconds to validate a hierarchy of very many tiny grids (:func:`datasets.many_grids`:
     10^4 and 10^5 grids), to build its kd-tree as the renderer does (its ``leaf_cells``, the
     ropes on the device), which is then checked (:meth:`KDTree.check`, not timed), and to take
-    its leaf value ranges as the renderer does (on the device, :mod:`mi_amr.kernels.ranges`, the field already there);
+    its leaf value ranges as the renderer does (on the device, :mod:`mi_amr.kernels.ranges`,
+    the field already there);
     writes ``kdtree.md``; returns the rows."""
     import drjit as dr
 

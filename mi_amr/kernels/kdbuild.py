@@ -110,8 +110,10 @@ def _classify(m, grids, box, pairs):
         node_hi = [device_table(m.Int32, box[1][:, a], np.int32) for a in range(3)]
         overlap, inside = m.Bool(True), m.Bool(True)
         for a in range(3):
-            nl, nh = dr.gather(m.Int32, node_lo[a], p_node), dr.gather(m.Int32, node_hi[a], p_node)
-            gl, gh = dr.gather(m.Int32, grids.lo[a], p_grid), dr.gather(m.Int32, grids.hi[a], p_grid)
+            nl = dr.gather(m.Int32, node_lo[a], p_node)
+            nh = dr.gather(m.Int32, node_hi[a], p_node)
+            gl = dr.gather(m.Int32, grids.lo[a], p_grid)
+            gh = dr.gather(m.Int32, grids.hi[a], p_grid)
             overlap &= dr.minimum(gh, nh) > dr.maximum(gl, nl)
             inside &= (gl <= nl) & (gh >= nh)
         key = dr.select(inside, dr.gather(m.UInt32, grids.key, p_grid), 0)

@@ -144,8 +144,8 @@ def leaf_lists(m, tree, leaf, grid) -> dict:
     seen = dr.prefix_reduce(dr.ReduceOp.Add, m.UInt32(active))    # active pairs before each
     first = dr.gather(m.UInt32, start, at[0])
     before = dr.gather(m.UInt32, active_before, at[0])
-    place = dr.select(active, first + seen - before,
-                      before + dr.gather(m.UInt32, counts[1], at[0]) + dr.arange(m.UInt32, P) - seen)
+    through = before + dr.gather(m.UInt32, counts[1], at[0])     # active through the leaf
+    place = dr.select(active, first + seen - before, through + dr.arange(m.UInt32, P) - seen)
     grids = dr.empty(m.UInt32, P)
     dr.scatter(grids, at[1], place)
     levels = kdbuild.zeros_target(m, L)
