@@ -162,8 +162,7 @@ class KDTree:
         f_lo, f_hi = self._root[0][None, :].astype(ity), self._root[1][None, :].astype(ity)
         # (node, grid) pairs whose open support overlaps the node.
         p_node, p_grid = np.zeros(G, dtype=np.int64), np.arange(G, dtype=np.int64)
-        out = {k: [] for k in ("split", "code", "lo", "hi", "depth", "leaf_lo", "leaf_hi",
-                               "leaf_owner")}
+        out = emitted()
         listed = []
         # Each depth's pairs go into one of two buffers, in turn: reused, not new memory.
         buffers = (_Buffer(), _Buffer())
@@ -736,6 +735,12 @@ class KDTree:
 # ---------------------------------------------------------------------- brute-force twins
 
 # ---------------------------------------------------------------------- helpers
+
+def emitted() -> dict:
+    """The empty columns that :func:`_emit` appends each depth's node arrays to."""
+    return {k: [] for k in ("split", "code", "lo", "hi", "depth", "leaf_lo", "leaf_hi",
+                            "leaf_owner")}
+
 
 def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
     """Append one depth's nodes to ``out``: split nodes point at their children (stored right

@@ -76,8 +76,7 @@ def build(m, tree, max_depth: int):
     f_lo = tree._root[0][None, :].astype(np.int32)
     f_hi = tree._root[1][None, :].astype(np.int32)
     pairs = (dr.zeros(m.UInt32, G), dr.arange(m.UInt32, G))     # the root and every grid
-    out = {k: [] for k in ("split", "code", "lo", "hi", "depth", "leaf_lo", "leaf_hi",
-                           "leaf_owner")}
+    out = kdtree.emitted()
     listed, base, n_leaves = [], 0, 0
     for depth in range(max_depth + 1):
         owner, has_partial, node_h = tree.node_summary(
