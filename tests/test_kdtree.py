@@ -9,8 +9,8 @@ from hypothesis import given, settings, strategies as st
 
 from mi_amr import AMRError, AMRVolume, KDTree
 from mi_amr.synthetic import datasets
-from mi_amr.core.kdtree import (CHUNK, _box_sum, _leaf_count_tables,
-                                _leaf_count_tables_reference, _window_min_max,
+from mi_amr.core.kdtree import (CHUNK, _box_sum, leaf_count_tables,
+                                leaf_count_tables_reference, _window_min_max,
                                 _window_min_max_reference, finest_grid_bruteforce,
                                 support_grids_bruteforce)
 from conftest import random_grids, reference_grids
@@ -371,7 +371,7 @@ def test15b2_leaf_count_tables_equal_their_slow_twin(seed):
     hi = rng.integers(-1, shape)
     want = np.array([vol.leaf_mask(g)[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1].sum()
                      if np.all(b >= a) else 0 for g, a, b in zip(grid, lo, hi)])
-    for tables in (_leaf_count_tables, _leaf_count_tables_reference):
+    for tables in (leaf_count_tables, leaf_count_tables_reference):
         sat, offsets = tables(vol, grids)
         np.testing.assert_array_equal(_box_sum(sat, offsets[grid], shape, lo, hi), want)
 
@@ -559,7 +559,7 @@ def test31_check_finds_a_broken_tree():
     good = KDTree(vol)
     good.check("f")
     breakers = {
-        "tiling": lambda t: t._node_split.__setitem__(0, t._node_split[0] + 1),
+        "tiling": lambda t: t.lattice_node_split.__setitem__(0, t.lattice_node_split[0] + 1),
         "owned by": lambda t: t.leaf_owner.__setitem__(np.flatnonzero(t.leaf_owner >= 0)[0], -1),
         "rope": lambda t: t.node_ropes.__setitem__((1, 1), 0),
         "range": lambda t: t.__setattr__("leaf_ranges", lambda *a, **k: (

@@ -49,19 +49,20 @@ def test01_each_cell_starts_where_a_plain_descent_stops(opaque, iso, max_cells):
     idx = np.indices(dims[::-1]).reshape(3, -1)[::-1].T
     c_lo = lo + idx * cell
     c_hi = c_lo + cell
-    assert np.all(tree._node_lo[nodes] <= c_lo) and np.all(c_hi <= tree._node_hi[nodes])
+    assert np.all(tree.lattice_node_lo[nodes] <= c_lo)
+    assert np.all(c_hi <= tree.lattice_node_hi[nodes])
     pick = np.random.default_rng(1).choice(len(nodes), 3000, replace=False)
     slow = [starts.descend_box_reference(tree, c_lo[i], c_hi[i], empty) for i in pick]
     np.testing.assert_array_equal(nodes[pick], slow)
     # Every active leaf lies inside the table's box; they come in several sizes (a table cell
     # is at most the smallest's: a larger leaf spans many cells, each of which must find it).
     active = np.flatnonzero(~empty & ((tree.node_code & 3) == 3))
-    sizes = np.unique(tree._node_hi[active] - tree._node_lo[active], axis=0)
+    sizes = np.unique(tree.lattice_node_hi[active] - tree.lattice_node_lo[active], axis=0)
     assert len(sizes) > 1
     if max_cells == starts.MAX_START_CELLS:
         np.testing.assert_array_equal(cell, sizes.min(axis=0))
-    assert np.all(tree._node_lo[active] >= lo)
-    assert np.all(tree._node_hi[active] <= lo + dims * cell)
+    assert np.all(tree.lattice_node_lo[active] >= lo)
+    assert np.all(tree.lattice_node_hi[active] <= lo + dims * cell)
     if max_cells == starts.MAX_START_CELLS:     # the smallest active leaves' cells
         assert final.mean() > 0.9
 

@@ -42,8 +42,8 @@ def _tiling(tree) -> int:
     code = tree.node_code
     inner = np.flatnonzero((code & 3) != LEAF)
     axis = code[inner] & 3
-    lo, hi = tree._node_lo, tree._node_hi
-    plane = tree._node_split[inner]
+    lo, hi = tree.lattice_node_lo, tree.lattice_node_hi
+    plane = tree.lattice_node_split[inner]
     rows = np.arange(len(inner))
     for side in (0, 1):
         child = (code[inner] >> 2) + side
@@ -55,7 +55,7 @@ def _tiling(tree) -> int:
                                f"its parent's box cut at the split")
     leaves = np.flatnonzero((code & 3) == LEAF)
     volume = np.prod(hi[leaves] - lo[leaves], axis=1).sum()
-    root = np.prod(tree._root[1] - tree._root[0])
+    root = np.prod(tree.lattice_root[1] - tree.lattice_root[0])
     assert volume == root, f"kd-tree: the leaves' volume {volume} is not the root's {root}"
     return len(inner)
 
@@ -65,12 +65,12 @@ def _owners(tree, rng, sample) -> int:
     if len(leaves) > sample:
         leaves = np.sort(rng.choice(leaves, sample, replace=False))
     node = tree.leaf_node[leaves]
-    lo, hi = tree._node_lo[node], tree._node_hi[node]
+    lo, hi = tree.lattice_node_lo[node], tree.lattice_node_hi[node]
     G = len(tree.grid_lo)
     for start in range(0, len(leaves), 256):
         part = slice(start, start + 256)
-        inside = np.all((tree._glo[None] <= lo[part, None]) & (tree._ghi[None] >= hi[part, None]),
-                        axis=2)
+        inside = np.all((tree.lattice_grid_lo[None] <= lo[part, None])
+                        & (tree.lattice_grid_hi[None] >= hi[part, None]), axis=2)
         score = np.where(inside, tree.level[None] * G + (G - 1 - np.arange(G))[None], -1)
         best = score.max(axis=1)
         want = np.where(best >= 0, G - 1 - best % G, -1)
@@ -85,14 +85,14 @@ def _ropes(tree) -> int:
     nodes = np.arange(tree.num_nodes)
     lo, hi, outside = tree.face_boxes(nodes)
     rope = tree.node_ropes.reshape(-1)
-    r_lo, r_hi = tree._node_lo[rope], tree._node_hi[rope]
+    r_lo, r_hi = tree.lattice_node_lo[rope], tree.lattice_node_hi[rope]
     holds = np.all((r_lo <= lo) & (r_hi >= hi), axis=1)
     # Deeper: a child of the rope would hold the face box too (a point on a split plane
     # belongs to the upper child, as in the descent).
     code = tree.node_code[rope]
     axis = np.minimum(code & 3, 2)
     rows = np.arange(len(rope))
-    split = tree._node_split[rope]
+    split = tree.lattice_node_split[rope]
     deeper = ((code & 3) != LEAF) & ((hi[rows, axis] < split) | (lo[rows, axis] >= split))
     bad = np.flatnonzero(np.where(outside, rope != 0, ~holds | deeper))
     assert len(bad) == 0, (f"kd-tree: the rope of face {bad[0] % 6} of node {bad[0] // 6} is "

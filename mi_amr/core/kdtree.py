@@ -54,15 +54,22 @@ class KDTree:
     """kd-tree over the grid supports of ``volume`` (see the module docstring).
 
     ``leaf_cells`` bounds the leaf size in cells of the finest level present at the leaf.
-    All positions are world space. ``chunk`` ((node or leaf, grid) pairs, or boxes) and
+    Positions given and returned are world space. The ``lattice_*`` arrays are the same boxes
+    on the build's exact lattice (float64 counts of finest-level cells from the volume's
+    anchor): ``lattice_root`` (low and high corner), ``lattice_grid_lo/hi`` and
+    ``lattice_support_lo/hi`` and ``lattice_step`` (cell widths) per grid, ``(G, 3)``,
+    ``lattice_node_lo/hi/split`` per node and ``lattice_leaf_lo/hi`` per leaf; the device
+    kernels (:mod:`mi_amr.kernels.kdbuild`, :mod:`mi_amr.kernels.kdsteps`) read them.
+    ``chunk`` ((node or leaf, grid) pairs, or boxes) and
     ``box_block`` (boxes) are the blocks the build and the queries work through at a time
     (:data:`CHUNK`, :data:`BOX_BLOCK`): they bound the temporaries, not the result.
     """
 
     # What a built tree holds besides its volume: :meth:`arrays` gives them, and
     # :meth:`from_arrays` makes the tree from them again without building it.
-    STATE = ("_ghi", "_glo", "_leaf_hi_f", "_leaf_lo_f", "_level_h",
-             "_node_hi", "_node_lo", "_node_split", "_root", "_shi", "_slo", "_step_f", "depth",
+    STATE = ("_level_h", "depth", "lattice_grid_hi", "lattice_grid_lo", "lattice_leaf_hi",
+             "lattice_leaf_lo", "lattice_node_hi", "lattice_node_lo", "lattice_node_split",
+             "lattice_root", "lattice_step", "lattice_support_hi", "lattice_support_lo",
              "grid_hi", "grid_lo", "h_fine", "hi", "leaf_cells", "leaf_grids",
              "leaf_levels", "leaf_min_h", "leaf_nactive", "leaf_node",
              "leaf_nsupport", "leaf_owner", "leaf_start", "level", "lo", "node_code",
@@ -100,21 +107,23 @@ class KDTree:
         # anchor. Every grid face and support face is on that lattice.
         self.h_fine = volume.level_spacing(volume.num_levels - 1)
         lattice = lambda x: np.round((x - volume.anchor) / self.h_fine)  # noqa: E731
-        self._glo, self._ghi = lattice(self.grid_lo), lattice(self.grid_hi)
+        self.lattice_grid_lo, self.lattice_grid_hi = lattice(self.grid_lo), lattice(self.grid_hi)
         step = np.round(self.spacing / self.h_fine)
-        self._step_f = step
+        self.lattice_step = step
         # Cell width of each level in finest cells, per axis.
         self._level_h = np.array([np.round(volume.level_spacing(l) / self.h_fine)
                                   for l in range(volume.num_levels)])
-        self._slo, self._shi = self._glo - step, self._ghi + step
+        self.lattice_support_lo = self.lattice_grid_lo - step
+        self.lattice_support_hi = self.lattice_grid_hi + step
         # The root's middle is the lower corner of the grids: its halves, and every node below,
         # then split on the lattice of power-of-two blocks from that corner, where grid faces
         # lie, and not through the middle of grids. The low half holds only support margins.
-        corner = self._glo.min(axis=0)
+        corner = self.lattice_grid_lo.min(axis=0)
         half = 2.0 ** np.ceil(np.log2(np.maximum.reduce([
-            self._shi.max(axis=0) - corner, corner - self._slo.min(axis=0), np.ones(3)])))
-        self._root = (corner - half, corner + half)
-        self.lo, self.hi = self._world(self._root[0]), self._world(self._root[1])
+            self.lattice_support_hi.max(axis=0) - corner,
+            corner - self.lattice_support_lo.min(axis=0), np.ones(3)])))
+        self.lattice_root = (corner - half, corner + half)
+        self.lo, self.hi = self._world(self.lattice_root[0]), self._world(self.lattice_root[1])
         listed = self._build(max_depth, device)
         # The ropes need only the nodes, the lists only the pairs: build them side by side.
         made = parallel.beside(self._make_ropes, device)
@@ -156,10 +165,11 @@ class KDTree:
         G = len(self.grid_lo)
         # Lattice coordinates are whole numbers: int32 (when they fit) halves the memory traffic
         # of the pair tests, which dominate the build.
-        ity = np.int32 if np.abs(np.concatenate(self._root)).max() < 2 ** 30 else np.int64
-        lattice = (self._glo.astype(ity), self._ghi.astype(ity), self._slo.astype(ity),
-                   self._shi.astype(ity))
-        f_lo, f_hi = self._root[0][None, :].astype(ity), self._root[1][None, :].astype(ity)
+        ity = np.int32 if np.abs(np.concatenate(self.lattice_root)).max() < 2 ** 30 else np.int64
+        lattice = tuple(box.astype(ity) for box in (self.lattice_grid_lo, self.lattice_grid_hi,
+                                                    self.lattice_support_lo, self.lattice_support_hi))
+        f_lo = self.lattice_root[0][None, :].astype(ity)
+        f_hi = self.lattice_root[1][None, :].astype(ity)
         # (node, grid) pairs whose open support overlaps the node.
         p_node, p_grid = np.zeros(G, dtype=np.int64), np.arange(G, dtype=np.int64)
         out = emitted()
@@ -169,11 +179,11 @@ class KDTree:
         base, n_leaves = 0, 0
         for depth in range(max_depth + 1):
             owner, has_partial, node_h = self._classify(f_lo, f_hi, p_node, p_grid, lattice)
-            axis, plane = self._split_planes(f_lo, f_hi, owner, has_partial, node_h, ity)
+            axis, plane = self.split_planes(f_lo, f_hi, owner, has_partial, node_h, ity)
             if depth == max_depth:
                 axis[:] = LEAF
             listed.append(_leaf_pairs(axis, n_leaves, p_node, p_grid))
-            n_leaves = _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner)
+            n_leaves = emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner)
             base += len(f_lo)
             if np.all(axis == LEAF):
                 break
@@ -226,7 +236,7 @@ class KDTree:
         node_h = np.where(finest[:, None] >= 0, level_h[np.maximum(finest, 0)], np.inf)
         return owner, has_partial, node_h
 
-    def _split_planes(self, f_lo, f_hi, owner, has_partial, node_h, ity):
+    def split_planes(self, f_lo, f_hi, owner, has_partial, node_h, ity):
         """Split nodes cut by a grid face, and clean nodes with data that are too large, in the
         middle of their longest axis (in cells of the volume's finest level). Nodes are then
         power-of-two boxes of that lattice, as in an octree, so neighbouring subtrees are cut
@@ -249,29 +259,29 @@ class KDTree:
         """The emitted depths as the tree's arrays, in lattice coordinates (the world boxes
         and splits are computed from them when asked for: :attr:`node_lo` and the others)."""
         self.node_code = np.concatenate(out["code"])
-        self._node_split = np.concatenate(out["split"], dtype=np.float64)
-        self._node_lo = np.concatenate(out["lo"], dtype=np.float64)
-        self._node_hi = np.concatenate(out["hi"], dtype=np.float64)
+        self.lattice_node_split = np.concatenate(out["split"], dtype=np.float64)
+        self.lattice_node_lo = np.concatenate(out["lo"], dtype=np.float64)
+        self.lattice_node_hi = np.concatenate(out["hi"], dtype=np.float64)
         self.node_depth = np.concatenate(out["depth"])
         self.depth = len(out["code"])
-        self._leaf_lo_f = np.concatenate(out["leaf_lo"], dtype=np.float64)
-        self._leaf_hi_f = np.concatenate(out["leaf_hi"], dtype=np.float64)
+        self.lattice_leaf_lo = np.concatenate(out["leaf_lo"], dtype=np.float64)
+        self.lattice_leaf_hi = np.concatenate(out["leaf_hi"], dtype=np.float64)
         self.leaf_owner = np.concatenate(out["leaf_owner"])
 
     # World boxes and splits: computed from the lattice ones on each use, not stored (a copy
     # of each would hold a third of the tree's memory). Each is float64 in world units.
-    node_lo = _world_array("_node_lo", "Lower corner of each node's box, ``(N, 3)``.")
-    node_hi = _world_array("_node_hi", "Upper corner of each node's box, ``(N, 3)``.")
-    leaf_lo = _world_array("_leaf_lo_f", "Lower corner of each leaf's box, ``(L, 3)``.")
-    leaf_hi = _world_array("_leaf_hi_f", "Upper corner of each leaf's box, ``(L, 3)``.")
+    node_lo = _world_array("lattice_node_lo", "Lower corner of each node's box, ``(N, 3)``.")
+    node_hi = _world_array("lattice_node_hi", "Upper corner of each node's box, ``(N, 3)``.")
+    leaf_lo = _world_array("lattice_leaf_lo", "Lower corner of each leaf's box, ``(L, 3)``.")
+    leaf_hi = _world_array("lattice_leaf_hi", "Upper corner of each leaf's box, ``(L, 3)``.")
 
     def node_boxes(self, nodes):
         """``(lo, hi)`` (world) of the boxes of ``nodes`` alone."""
-        return self._world(self._node_lo[nodes]), self._world(self._node_hi[nodes])
+        return self._world(self.lattice_node_lo[nodes]), self._world(self.lattice_node_hi[nodes])
 
     def leaf_boxes(self, leaves):
         """``(lo, hi)`` (world) of the boxes of ``leaves`` alone."""
-        return self._world(self._leaf_lo_f[leaves]), self._world(self._leaf_hi_f[leaves])
+        return self._world(self.lattice_leaf_lo[leaves]), self._world(self.lattice_leaf_hi[leaves])
 
     @property
     def node_split(self) -> np.ndarray:
@@ -282,7 +292,7 @@ class KDTree:
     def split_of(self, nodes) -> np.ndarray:
         """:attr:`node_split` of ``nodes`` alone."""
         axis = np.minimum(np.take(self.node_code, nodes) & 3, 2)
-        return self._world(np.take(self._node_split, nodes), axis)
+        return self._world(np.take(self.lattice_node_split, nodes), axis)
 
     def _order_active(self, pl, pg, device=None) -> None:
         """Sort each leaf's grid list with the active grids first, and summarise them.
@@ -351,15 +361,14 @@ class KDTree:
         # Grids with covered cells: is there a leaf cell in the window? (Count it from a
         # summed-area table of the leaf mask.)
         partly = self.volume.partly_covered()
-        tables = _leaf_count_tables(self.volume, np.flatnonzero(partly)) \
+        tables = leaf_count_tables(self.volume, np.flatnonzero(partly)) \
             if partly[grid].any() else None
         # Per axis, contiguous int32 columns (lattice coordinates below 2^30, doubled).
-        ity = np.int32 if max(np.abs(self._root[0]).max(), np.abs(self._root[1]).max()) < \
-            2 ** 29 else np.int64
+        ity = np.int32 if np.abs(np.concatenate(self.lattice_root)).max() < 2 ** 29 else np.int64
         column = lambda x, a: np.ascontiguousarray(x[:, a], dtype=ity)  # noqa: E731
-        reach = [(column(2.0 * self._glo - self._step_f, a),
-                  column(2.0 * self._ghi + self._step_f, a)) for a in range(3)]
-        leaf2 = [(column(2.0 * self._leaf_lo_f, a), column(2.0 * self._leaf_hi_f, a))
+        reach = [(column(2.0 * self.lattice_grid_lo - self.lattice_step, a),
+                  column(2.0 * self.lattice_grid_hi + self.lattice_step, a)) for a in range(3)]
+        leaf2 = [(column(2.0 * self.lattice_leaf_lo, a), column(2.0 * self.lattice_leaf_hi, a))
                  for a in range(3)]
         chunk = self.chunk
 
@@ -447,7 +456,7 @@ class KDTree:
     def face_boxes(self, nodes):
         """Closed lattice boxes half a finest cell beyond each face of ``nodes`` (6 rows per
         node, face ``2 * axis + side``), and whether each lies outside the tree's box."""
-        node_lo, node_hi = self._node_lo[nodes], self._node_hi[nodes]
+        node_lo, node_hi = self.lattice_node_lo[nodes], self.lattice_node_hi[nodes]
         lo = np.repeat(node_lo[:, None, :], 6, axis=1)
         hi = np.repeat(node_hi[:, None, :], 6, axis=1)
         outside = np.empty((len(nodes), 6), dtype=bool)
@@ -456,10 +465,10 @@ class KDTree:
             # Off the face's axis the box is the node's, inside the tree's box.
             if side:
                 plane = node_hi[:, axis] + 0.5
-                outside[:, face] = plane > self._root[1][axis]
+                outside[:, face] = plane > self.lattice_root[1][axis]
             else:
                 plane = node_lo[:, axis] - 0.5
-                outside[:, face] = plane < self._root[0][axis]
+                outside[:, face] = plane < self.lattice_root[0][axis]
             lo[:, face, axis] = plane
             hi[:, face, axis] = plane
         return lo.reshape(-1, 3), hi.reshape(-1, 3), outside.reshape(-1)
@@ -485,7 +494,7 @@ class KDTree:
         while len(todo):
             code = np.take(self.node_code, at)
             ax = code & 3
-            split = np.take(self._node_split, at)
+            split = np.take(self.lattice_node_split, at)
             inner = ax != LEAF
             if stop is not None:
                 inner &= ~np.take(stop, at)
@@ -542,10 +551,10 @@ class KDTree:
     def _windows_part(self, leaf, grid):
         # (In float64: a quotient of whole numbers below 2^26 is rounded exactly, and never
         # across a whole number, so floor and ceil of it are exact; integer division is slow.)
-        g_lo = np.take(self._glo, grid, axis=0)
-        s = np.take(self._step_f, grid, axis=0)
-        lo = np.floor((np.take(self._leaf_lo_f, leaf, axis=0) - g_lo - 1.5 * s) / s)
-        hi = np.ceil((np.take(self._leaf_hi_f, leaf, axis=0) - g_lo + 0.5 * s) / s)
+        g_lo = np.take(self.lattice_grid_lo, grid, axis=0)
+        s = np.take(self.lattice_step, grid, axis=0)
+        lo = np.floor((np.take(self.lattice_leaf_lo, leaf, axis=0) - g_lo - 1.5 * s) / s)
+        hi = np.ceil((np.take(self.lattice_leaf_hi, leaf, axis=0) - g_lo + 0.5 * s) / s)
         return (np.maximum(lo.astype(np.int64) + 1, 0),
                 np.minimum(hi.astype(np.int64) - 1, np.take(self.shape, grid, axis=0) - 1))
 
@@ -580,7 +589,7 @@ class KDTree:
 
     @property
     def num_leaves(self) -> int:
-        return len(self._leaf_lo_f)
+        return len(self.lattice_leaf_lo)
 
     @property
     def num_nodes(self) -> int:
@@ -728,8 +737,8 @@ class KDTree:
         the leaves' boxes ``leaf_lo``/``leaf_hi`` and the grids' lower corners ``grid_lo`` and
         cell widths ``step`` (lattice coordinates, float64, ``(L, 3)`` and ``(G, 3)``), and
         the grids' ``shape``."""
-        return {"leaf_lo": self._leaf_lo_f, "leaf_hi": self._leaf_hi_f, "grid_lo": self._glo,
-                "step": self._step_f, "shape": self.shape}
+        return {"leaf_lo": self.lattice_leaf_lo, "leaf_hi": self.lattice_leaf_hi,
+                "grid_lo": self.lattice_grid_lo, "step": self.lattice_step, "shape": self.shape}
 
 
 # ---------------------------------------------------------------------- brute-force twins
@@ -737,12 +746,12 @@ class KDTree:
 # ---------------------------------------------------------------------- helpers
 
 def emitted() -> dict:
-    """The empty columns that :func:`_emit` appends each depth's node arrays to."""
+    """The empty columns that :func:`emit` appends each depth's node arrays to."""
     return {k: [] for k in ("split", "code", "lo", "hi", "depth", "leaf_lo", "leaf_hi",
                             "leaf_owner")}
 
 
-def _emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
+def emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
     """Append one depth's nodes to ``out``: split nodes point at their children (stored right
     after this depth), leaves at their leaf index. Returns the new leaf count."""
     n = len(f_lo)
@@ -768,7 +777,7 @@ def run_starts(keys) -> np.ndarray:
 
 def _leaf_pairs(axis, n_leaves, p_node, p_grid):
     """The pairs of one depth's leaves (``axis`` :data:`LEAF`) as (leaf, grid), the leaves
-    numbered from ``n_leaves`` in node order (as :func:`_emit` numbers them)."""
+    numbered from ``n_leaves`` in node order (as :func:`emit` numbers them)."""
     is_leaf = axis == LEAF
     leaf_id = np.cumsum(is_leaf) - 1 + n_leaves
     keep = np.flatnonzero(np.take(is_leaf, p_node))
@@ -890,11 +899,11 @@ def _grid_offsets(volume) -> np.ndarray:
     return volume.cell_offsets()
 
 
-def _leaf_count_tables(volume, grids):
+def leaf_count_tables(volume, grids):
     """Summed-area tables of the leaf masks of ``grids`` (shape + 1 per axis), concatenated in
     one aligned int32 array (a grid holds fewer than 2^31 cells); returns the tables and the
     offset of each grid's table (indexed by grid, -1 if absent). Grids of one shape are
-    stacked and summed together, in place in the result; :func:`_leaf_count_tables_reference`
+    stacked and summed together, in place in the result; :func:`leaf_count_tables_reference`
     is the slow twin (one grid at a time, tables in the order of ``grids``)."""
     shapes = volume.grid_columns()["shape"]
     cell_start = volume.grid_columns()["offset"]
@@ -921,8 +930,8 @@ def _leaf_count_tables(volume, grids):
     return out, offsets
 
 
-def _leaf_count_tables_reference(volume, grids):
-    """Slow twin of :func:`_leaf_count_tables`: one grid's table after the other."""
+def leaf_count_tables_reference(volume, grids):
+    """Slow twin of :func:`leaf_count_tables`: one grid's table after the other."""
     tables, offsets, at = [], np.full(len(volume.grids), -1, dtype=np.int64), 0
     for i in grids:
         g = volume.grids[i]

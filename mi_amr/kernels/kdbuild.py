@@ -13,8 +13,8 @@ grid. Here the pairs live on the device, and per depth two kernels take them, a 
   children before it (a prefix sum over the children's counts). So the next depth's pairs are
   sorted by child and grid again, with no sort.
 
-The host keeps what is per node (the split planes: :meth:`KDTree._split_planes
-<mi_amr.core.kdtree.KDTree._split_planes>`, the children's boxes, the emitted arrays), and
+The host keeps what is per node (the split planes: :meth:`KDTree.split_planes
+<mi_amr.core.kdtree.KDTree.split_planes>`, the children's boxes, the emitted arrays), and
 takes the pairs of each depth's leaves. The numbers are the host's (``tests/test_device_prep.py``).
 
 Coordinates are the tree's lattice (cells of the finest level from the volume's anchor), int32:
@@ -41,7 +41,7 @@ DIRECT = dr.ReduceMode.Direct
 
 def fits(tree) -> bool:
     """Can :func:`build` take ``tree`` (its lattice and owner keys small enough)?"""
-    root = np.abs(np.concatenate(tree._root))
+    root = np.abs(np.concatenate(tree.lattice_root))
     keys = tree.owner_keys()
     return bool(root.max() < LATTICE_MAX and (len(keys) == 0 or keys.max() + 1 < KEY_MAX))
 
@@ -62,7 +62,8 @@ class _Grids:
     def of(cls, m, tree):
         columns = lambda box: [device_table(m.Int32, box[:, a], np.int32)  # noqa: E731
                                for a in range(3)]
-        return cls(columns(tree._glo), columns(tree._ghi), columns(tree._slo), columns(tree._shi),
+        return cls(columns(tree.lattice_grid_lo), columns(tree.lattice_grid_hi),
+                   columns(tree.lattice_support_lo), columns(tree.lattice_support_hi),
                    device_table(m.UInt32, tree.owner_keys() + 1, np.uint32),
                    device_table(m.UInt32, tree.level.astype(np.int64) + 1, np.uint32))
 
@@ -73,21 +74,21 @@ def build(m, tree, max_depth: int):
     grid) pairs (int64 NumPy arrays, by leaf and grid), the pair passes on backend ``m``."""
     G = len(tree.grid_lo)
     grids = _Grids.of(m, tree)
-    f_lo = tree._root[0][None, :].astype(np.int32)
-    f_hi = tree._root[1][None, :].astype(np.int32)
+    f_lo = tree.lattice_root[0][None, :].astype(np.int32)
+    f_hi = tree.lattice_root[1][None, :].astype(np.int32)
     pairs = (dr.zeros(m.UInt32, G), dr.arange(m.UInt32, G))     # the root and every grid
     out = kdtree.emitted()
     listed, base, n_leaves = [], 0, 0
     for depth in range(max_depth + 1):
         owner, has_partial, node_h = tree.node_summary(
             *_classify(m, grids, (f_lo, f_hi), pairs))
-        axis, plane = tree._split_planes(f_lo, f_hi, owner, has_partial, node_h, np.int32)
+        axis, plane = tree.split_planes(f_lo, f_hi, owner, has_partial, node_h, np.int32)
         if depth == max_depth:
             axis[:] = kdtree.LEAF
         c_lo, c_hi, child_of = kdtree.child_boxes(f_lo, f_hi, axis, plane)
         node = _Nodes.of(m, child_of, axis, plane)
         listed.append(_leaf_pairs(m, node, child_of, n_leaves, pairs))
-        n_leaves = kdtree._emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner)
+        n_leaves = kdtree.emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner)
         base += len(f_lo)
         if len(c_lo) == 0:
             break
@@ -144,7 +145,7 @@ class _Nodes:
 
 def _leaf_pairs(m, node, child_of, n_leaves: int, pairs):
     """The pairs of one depth's leaves as (leaf, grid) int64 NumPy arrays, the leaves numbered
-    from ``n_leaves`` in node order (as :func:`~mi_amr.core.kdtree._emit` numbers them)."""
+    from ``n_leaves`` in node order (as :func:`~mi_amr.core.kdtree.emit` numbers them)."""
     p_node, p_grid = pairs
     is_leaf = child_of < 0
     if not dr.width(p_node) or not is_leaf.any():

@@ -36,7 +36,7 @@ LATTICE_MAX = 1 << 29     # |lattice coordinate| below which doubled faces fit i
 
 def fits(tree) -> bool:
     """Can the kernels take ``tree`` (its doubled lattice small enough for int32)?"""
-    root = np.abs(np.concatenate(tree._root))
+    root = np.abs(np.concatenate(tree.lattice_root))
     return bool(root.max() < LATTICE_MAX)
 
 
@@ -49,10 +49,11 @@ def node_ropes(m, tree) -> np.ndarray:
     :func:`fit <fits>`."""
     N = tree.num_nodes
     code = device_table(m.UInt32, tree.node_code, np.uint32)
-    split = device_table(m.Int32, 2 * tree._node_split, np.int32)
-    lo = [device_table(m.Int32, 2 * tree._node_lo[:, a], np.int32) for a in range(3)]
-    hi = [device_table(m.Int32, 2 * tree._node_hi[:, a], np.int32) for a in range(3)]
-    root = [[dr.opaque(m.Int32, int(2 * tree._root[s][a])) for a in range(3)] for s in (0, 1)]
+    split = device_table(m.Int32, 2 * tree.lattice_node_split, np.int32)
+    lo = [device_table(m.Int32, 2 * tree.lattice_node_lo[:, a], np.int32) for a in range(3)]
+    hi = [device_table(m.Int32, 2 * tree.lattice_node_hi[:, a], np.int32) for a in range(3)]
+    root = [[dr.opaque(m.Int32, int(2 * tree.lattice_root[s][a])) for a in range(3)]
+            for s in (0, 1)]
     face = dr.arange(m.UInt32, 6 * N)
     node = face // 6
     box = _face_box(m, face - 6 * node, [dr.gather(m.Int32, t, node) for t in lo],
@@ -172,25 +173,27 @@ class _ActiveFrame:
     """What :func:`pair_active` gathers from: per leaf its doubled lattice box, per grid its
     doubled support reach (its box grown by half a cell), lower lattice corner, cell width
     (finest cells), shape, whether it is partly covered and where its summed-area table of the
-    leaf mask starts (:func:`mi_amr.core.kdtree._leaf_count_tables`, int32, mapped)."""
+    leaf mask starts (:func:`mi_amr.core.kdtree.leaf_count_tables`, int32, mapped)."""
 
     def __init__(self, m, tree):
         vol = tree.volume
-        step = tree._step_f
+        step = tree.lattice_step
         self.leaf = [[device_table(m.Int32, 2 * box[:, a], np.int32) for a in range(3)]
-                     for box in (tree._leaf_lo_f, tree._leaf_hi_f)]
+                     for box in (tree.lattice_leaf_lo, tree.lattice_leaf_hi)]
         self.reach = [[device_table(m.Int32, 2 * box[:, a] + sign * step[:, a], np.int32)
-                       for a in range(3)] for box, sign in ((tree._glo, -1), (tree._ghi, 1))]
-        self.glo = [device_table(m.Float64, tree._glo[:, a], np.float64) for a in range(3)]
+                       for a in range(3)]
+                      for box, sign in ((tree.lattice_grid_lo, -1), (tree.lattice_grid_hi, 1))]
+        self.glo = [device_table(m.Float64, tree.lattice_grid_lo[:, a], np.float64)
+                    for a in range(3)]
         self.step = [device_table(m.Float64, step[:, a], np.float64) for a in range(3)]
-        self.leaf_lo = [device_table(m.Float64, tree._leaf_lo_f[:, a], np.float64)
+        self.leaf_lo = [device_table(m.Float64, tree.lattice_leaf_lo[:, a], np.float64)
                         for a in range(3)]
-        self.leaf_hi = [device_table(m.Float64, tree._leaf_hi_f[:, a], np.float64)
+        self.leaf_hi = [device_table(m.Float64, tree.lattice_leaf_hi[:, a], np.float64)
                         for a in range(3)]
         self.shape = [device_table(m.Int32, tree.shape[:, a], np.int32) for a in range(3)]
         partly = vol.partly_covered()
         self.partly = device_table(m.Bool, partly, np.bool_)
-        sat, offsets = kdtree._leaf_count_tables(vol, np.flatnonzero(partly))
+        sat, offsets = kdtree.leaf_count_tables(vol, np.flatnonzero(partly))
         self.host_sat = sat         # (kept while the device maps it)
         self.sat = mapped_array(m.Int32, sat, np.int32) if len(sat) >= 2 else \
             device_table(m.Int32, sat, np.int32)

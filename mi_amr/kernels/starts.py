@@ -61,10 +61,10 @@ def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_
     nodes have :data:`FINAL` set."""
     if len(active_nodes) == 0:
         return np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64), np.zeros(1, np.uint32)
-    lo = tree._node_lo[active_nodes].min(axis=0)
-    hi = tree._node_hi[active_nodes].max(axis=0)
-    cell = (tree._node_hi[active_nodes] - tree._node_lo[active_nodes]).min(axis=0)
-    origin = tree._root[0]
+    lo = tree.lattice_node_lo[active_nodes].min(axis=0)
+    hi = tree.lattice_node_hi[active_nodes].max(axis=0)
+    cell = (tree.lattice_node_hi[active_nodes] - tree.lattice_node_lo[active_nodes]).min(axis=0)
+    origin = tree.lattice_root[0]
     while True:
         # The corner on the cells' lattice from the root's corner (node boxes are aligned so).
         start = origin + np.floor((lo - origin) / cell) * cell
@@ -89,7 +89,7 @@ def descend_box_reference(tree, lo, hi, stop=None) -> int:
     node = 0
     while (tree.node_code[node] & 3) != 3 and not (stop is not None and stop[node]):
         axis = tree.node_code[node] & 3
-        split = tree._node_split[node]
+        split = tree.lattice_node_split[node]
         if lo[axis] >= split:
             node = (tree.node_code[node] >> 2) + 1
         elif hi[axis] <= split:
