@@ -25,7 +25,7 @@ from __future__ import annotations
 import drjit as dr
 import numpy as np
 
-from mi_amr.core import kdtree
+from mi_amr.core import kdtree, memory
 from mi_amr.core.buffers import aligned_copy
 from mi_amr.kernels import kdbuild
 from mi_amr.kernels.arrays import device_array, device_table, mapped_array
@@ -261,4 +261,12 @@ class DeviceSteps:
 
     def build(self, tree, max_depth: int):
         """:func:`mi_amr.kernels.kdbuild.build`, or None."""
-        return kdbuild.build(self.m, tree, max_depth) if kdbuild.fits(tree) else None
+        if not kdbuild.fits(tree):
+            return None
+        built = kdbuild.build(self.m, tree, max_depth)
+        if tree.volume.num_cells >= memory.RELEASE_CELLS:
+            # The depths' pair arrays stay in Dr.Jit's cache once freed, where the host arrays
+            # that follow (nodes, leaf lists, ropes) cannot reuse them: a large tree's peak
+            # memory would hold both.
+            dr.flush_malloc_cache()
+        return built
