@@ -71,7 +71,7 @@ class _Grids:
 def build(m, tree, max_depth: int):
     """``(out, (leaf, grid))``: what :meth:`KDTree._build <mi_amr.core.kdtree.KDTree._build>`
     emits for ``tree`` (the depths' node arrays, for its ``_store``) and the leaves' (leaf,
-    grid) pairs (int64 NumPy arrays, by leaf and grid), the pair passes on backend ``m``."""
+    grid) pairs (int32 NumPy arrays, by leaf and grid), the pair passes on backend ``m``."""
     G = len(tree.grid_lo)
     grids = _Grids.of(m, tree)
     f_lo = tree.lattice_root[0][None, :].astype(np.int32)
@@ -144,24 +144,26 @@ class _Nodes:
 
 
 def _leaf_pairs(m, node, child_of, n_leaves: int, pairs):
-    """The pairs of one depth's leaves as (leaf, grid) int64 NumPy arrays, the leaves numbered
+    """The pairs of one depth's leaves as (leaf, grid) int32 NumPy arrays, the leaves numbered
     from ``n_leaves`` in node order (as :func:`~mi_amr.core.kdtree.emit` numbers them)."""
     p_node, p_grid = pairs
     is_leaf = child_of < 0
     if not dr.width(p_node) or not is_leaf.any():
-        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+        return np.zeros(0, dtype=np.int32), np.zeros(0, dtype=np.int32)
     numbers = np.cumsum(is_leaf) - 1 + n_leaves
     kept = dr.compress(dr.gather(m.Int32, node.child, p_node) < 0)
     if dr.width(kept) < 2:          # (none: leaves with no data hold no pair)
         # One pair read on the host: a one-lane gather would compile into another kernel.
         at = [int(kept[0])] if dr.width(kept) else []
-        return (np.array([numbers[int(p_node[i])] for i in at], dtype=np.int64),
-                np.array([int(p_grid[i]) for i in at], dtype=np.int64))
+        return (np.array([numbers[int(p_node[i])] for i in at], dtype=np.int32),
+                np.array([int(p_grid[i]) for i in at], dtype=np.int32))
     leaf_id = device_table(m.UInt32, numbers, np.uint32)
     leaf = dr.gather(m.UInt32, leaf_id, dr.gather(m.UInt32, p_node, kept))
     grid = dr.gather(m.UInt32, p_grid, kept)
     dr.eval(leaf, grid)
-    return leaf.numpy().astype(np.int64), grid.numpy().astype(np.int64)
+    # int32, not int64: a large tree holds tens of millions of pairs here (leaves and grids
+    # both number far below 2^31).
+    return leaf.numpy().view(np.int32), grid.numpy().view(np.int32)
 
 
 def _children(m, grids, node, children: int, pairs):
