@@ -639,7 +639,8 @@ def test21_a_result_lost_with_its_worker_is_watched_too():
     """A frame can finish, then lose its result with its worker before the client fetches it
     (the race of test19 when the cluster shrinks between the frame's file and its result): the
     fetch waits for a new worker, and with none for ``worker_wait`` it is the movie's one
-    AMRError. A task's own TimeoutError is its error, not a wait."""
+    AMRError. A task's own TimeoutError is its error, not a wait; a finished frame whose fetch
+    times out (its result lost mid-fetch, computed again elsewhere) is waited for."""
     from mi_amr.workflows.movie.farm import _Watch
 
     class NoWorkers:
@@ -649,6 +650,7 @@ def test21_a_result_lost_with_its_worker_is_watched_too():
     class Lost:
         def __init__(self, done):
             self.finished = done
+            self.status = "error" if done else "pending"
 
         def result(self, timeout):
             time.sleep(min(timeout, 0.02))
@@ -656,6 +658,19 @@ def test21_a_result_lost_with_its_worker_is_watched_too():
 
         def done(self):
             return self.finished
+
+    class Refetched:
+        """Finished (as Dask still says) but its fetch waits for the frame computed again."""
+        status, waits = "finished", 2
+
+        def result(self, timeout):
+            if self.waits:
+                self.waits -= 1
+                raise TimeoutError("")
+            return "frame"
+
+        def done(self):
+            return True
 
     def fetch(done):
         raised = []
@@ -674,3 +689,4 @@ def test21_a_result_lost_with_its_worker_is_watched_too():
 
     assert isinstance(fetch(False), AMRError) and "every Dask worker" in str(fetch(False))
     assert isinstance(fetch(True), TimeoutError) and "its own" in str(fetch(True))
+    assert _Watch(NoWorkers(), None, worker_wait=30).result(Refetched(), 5) == "frame"

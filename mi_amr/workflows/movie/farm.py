@@ -288,7 +288,10 @@ class _Watch:
             try:
                 return future.result(timeout=RESULT_WAIT)
             except TimeoutError:
-                if future.done():       # the task's own TimeoutError, not the wait's
+                # The task's own TimeoutError, not the wait's. (A finished future can still be
+                # waiting: its result was lost with its worker while being fetched, and is
+                # computed again elsewhere; its status changes only when the scheduler says.)
+                if future.status == "error":
                     raise
                 self._look(left)
 
