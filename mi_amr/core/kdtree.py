@@ -37,6 +37,9 @@ LEAF = 3
 # Rows per block of the long per-pair computations: temporaries of a block stay below the
 # allocator's mmap threshold, so they reuse memory instead of page-faulting fresh memory
 # (which cost 5x the arithmetic on 2.8M pairs).
+# |lattice coordinate| below which boxes (and sums of two coordinates) fit in int32; doubled
+# coordinates need half of it.
+INT32_LATTICE = 1 << 30
 CHUNK = 1 << 16
 # Boxes descended together by KDTree.overlapping_leaves: their (box, node) pairs stay a few
 # CHUNKs long however many boxes there are.
@@ -165,7 +168,7 @@ class KDTree:
         G = len(self.grid_lo)
         # Lattice coordinates are whole numbers: int32 (when they fit) halves the memory traffic
         # of the pair tests, which dominate the build.
-        ity = np.int32 if np.abs(np.concatenate(self.lattice_root)).max() < 2 ** 30 else np.int64
+        ity = np.int32 if self.lattice_reach < INT32_LATTICE else np.int64
         lattice = tuple(box.astype(ity) for box in (self.lattice_grid_lo, self.lattice_grid_hi,
                                                     self.lattice_support_lo, self.lattice_support_hi))
         f_lo = self.lattice_root[0][None, :].astype(ity)
@@ -363,8 +366,8 @@ class KDTree:
         partly = self.volume.partly_covered()
         tables = leaf_count_tables(self.volume, np.flatnonzero(partly)) \
             if partly[grid].any() else None
-        # Per axis, contiguous int32 columns (lattice coordinates below 2^30, doubled).
-        ity = np.int32 if np.abs(np.concatenate(self.lattice_root)).max() < 2 ** 29 else np.int64
+        # Per axis, contiguous int32 columns of doubled lattice coordinates, where they fit.
+        ity = np.int32 if 2 * self.lattice_reach < INT32_LATTICE else np.int64
         column = lambda x, a: np.ascontiguousarray(x[:, a], dtype=ity)  # noqa: E731
         reach = [(column(2.0 * self.lattice_grid_lo - self.lattice_step, a),
                   column(2.0 * self.lattice_grid_hi + self.lattice_step, a)) for a in range(3)]
@@ -590,6 +593,11 @@ class KDTree:
     @property
     def num_leaves(self) -> int:
         return len(self.lattice_leaf_lo)
+
+    @property
+    def lattice_reach(self) -> float:
+        """The largest |lattice coordinate| of the tree (its root's corners bound every box)."""
+        return float(np.abs(np.concatenate(self.lattice_root)).max())
 
     @property
     def num_nodes(self) -> int:

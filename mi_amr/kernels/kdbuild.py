@@ -32,7 +32,7 @@ import numpy as np
 from mi_amr.core import kdtree
 from mi_amr.kernels.arrays import device_table
 
-LATTICE_MAX = 1 << 30     # |lattice coordinate| below which boxes fit in int32
+LATTICE_MAX = kdtree.INT32_LATTICE   # |lattice coordinate| below which boxes fit in int32
 KEY_MAX = 1 << 31         # owner keys (plus one) below this fit in uint32 with room to spare
 # Atomic reductions into the per-node arrays: the default on the CPU keeps a copy of the target
 # per thread, whose size the kernel would then hold (a kernel per depth and tree).
@@ -41,9 +41,8 @@ DIRECT = dr.ReduceMode.Direct
 
 def fits(tree) -> bool:
     """Can :func:`build` take ``tree`` (its lattice and owner keys small enough)?"""
-    root = np.abs(np.concatenate(tree.lattice_root))
     keys = tree.owner_keys()
-    return bool(root.max() < LATTICE_MAX and (len(keys) == 0 or keys.max() + 1 < KEY_MAX))
+    return bool(tree.lattice_reach < LATTICE_MAX and (len(keys) == 0 or keys.max() + 1 < KEY_MAX))
 
 
 @dataclass

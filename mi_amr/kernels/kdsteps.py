@@ -31,13 +31,12 @@ from mi_amr.kernels import kdbuild
 from mi_amr.kernels.arrays import device_array, device_table, mapped_array
 
 LEAF = 3                  # the axis field of a leaf's node code (as in mi_amr.core.kdtree)
-LATTICE_MAX = 1 << 29     # |lattice coordinate| below which doubled faces fit in int32
+LATTICE_MAX = kdtree.INT32_LATTICE // 2   # |lattice coordinate| below which doubled faces fit in int32
 
 
 def fits(tree) -> bool:
     """Can the kernels take ``tree`` (its doubled lattice small enough for int32)?"""
-    root = np.abs(np.concatenate(tree.lattice_root))
-    return bool(root.max() < LATTICE_MAX)
+    return tree.lattice_reach < LATTICE_MAX
 
 
 # ---------------------------------------------------------------------- ropes
