@@ -416,26 +416,6 @@ def test34_the_thread_map_keeps_order_and_bounds_what_is_in_flight():
     assert 1 <= parallel.thread_count() <= parallel.MAX_THREADS
 
 
-def test34b_work_beside_the_caller_gives_its_result_or_its_error(monkeypatch):
-    """parallel.beside runs a job in a thread of its own (in the caller's with one CPU); its
-    result, or the error it raised, comes back from result()."""
-    import threading
-
-    from mi_amr.core import parallel
-
-    def job(x, fail=False):
-        if fail:
-            raise ValueError(f"bad {x}")
-        return x + 1, threading.get_ident()
-
-    for cpus in (2, 1):
-        monkeypatch.setattr(parallel, "thread_count", lambda: cpus)
-        value, ident = parallel.beside(job, 41).result()
-        assert value == 42 and (ident == threading.get_ident()) == (cpus == 1)
-        with pytest.raises(ValueError, match="bad 7"):
-            parallel.beside(job, 7, fail=True).result()
-
-
 def test05b_chunked_speed_rounds_as_the_whole_array_expression():
     # The slow twin is NumPy's one-line expression over the whole level; mixed dtypes and a
     # length that is not a whole number of chunks included.

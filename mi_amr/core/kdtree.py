@@ -128,10 +128,10 @@ class KDTree:
         self.lattice_root = (corner - half, corner + half)
         self.lo, self.hi = self._world(self.lattice_root[0]), self._world(self.lattice_root[1])
         listed = self._build(max_depth, device)
-        # The ropes need only the nodes, the lists only the pairs: build them side by side.
-        made = parallel.beside(self._make_ropes, device)
+        # One after the other, in this thread: Dr.Jit work from two threads at once is a
+        # hazard (a test run crashed once with the ropes in a thread of their own) for no gain.
         self._order_active(*listed, device=device)
-        made.result()
+        self._make_ropes(device)
 
     @classmethod
     def from_arrays(cls, volume, arrays: dict) -> "KDTree":

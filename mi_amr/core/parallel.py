@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 from collections import deque
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 
 MAX_THREADS = 8     # at most this many threads: each holds its chunk's temporaries
 
@@ -44,20 +44,3 @@ def for_each(fn, items, threads: int | None = None) -> None:
     write their own part of a shared output and return nothing."""
     for _ in map_ordered(fn, items, threads):
         pass
-
-
-def beside(fn, *args, **kwargs) -> Future:
-    """``fn(*args, **kwargs)`` started in a thread of its own, beside what the caller does next
-    (with one CPU: run now); :meth:`Future.result` waits for it and gives its result, or
-    raises what it raised."""
-    if thread_count() <= 1:
-        done = Future()
-        try:
-            done.set_result(fn(*args, **kwargs))
-        except Exception as error:      # raised again by result(), as the thread's would be
-            done.set_exception(error)
-        return done
-    pool = ThreadPoolExecutor(1)
-    job = pool.submit(fn, *args, **kwargs)
-    pool.shutdown(wait=False)           # the thread ends when the job does
-    return job
