@@ -141,10 +141,10 @@ def test_kernels_write_the_host_buffers_or_are_copied_over(how):
     sizes = [5, 300, 41]
     parts = [np.empty(n, np.float32) for n in sizes] if how == "no-buffer" else \
         aligned_parts(sizes, np.float32)
-    target, record = device_derive._written(m, parts)
-    assert (record[1] is None) == (how == "no-buffer")
+    target, record = device_derive._written(m, parts, [0, 1, 2])
+    assert (record[2] is None) == (how == "no-buffer")
     if how == "copied":
-        target = type(target)(record[1].copy())
+        target = type(target)(record[2].copy())
     values = np.arange(sum(sizes), dtype=np.float32) * 0.5 - 7.0
     dr.scatter(target, m.Float32(values), dr.arange(m.UInt32, len(values)))
     dr.eval(target)
@@ -153,3 +153,61 @@ def test_kernels_write_the_host_buffers_or_are_copied_over(how):
         np.testing.assert_array_equal(np.concatenate(parts), values)
     device_derive._settle(m, target, record)
     np.testing.assert_array_equal(np.concatenate(parts), values)
+
+
+@pytest.mark.parametrize("device", [True, False])
+def test_consumed_velocity_is_freed_level_by_level_with_the_same_numbers(tmp_path, device):
+    """``consume``: the levels are derived finest first and each level's velocity buffers
+    (read one per level) are freed once it is done, before the next level is derived; the
+    fields are the same bits as without, the result holds no velocity (host and device)."""
+    import gc
+    import weakref
+
+    from mi_amr.core import levels
+    from mi_amr.kernels import derive as device_derive
+    from mi_amr.readers import native
+
+    vol = _velocity_hierarchy(2, (2, 4), np.float32, True)
+    vol.save(tmp_path / "v.npz")
+    expected = mi_amr.derive(vol, *NAMES)
+    got = native.load(tmp_path / "v.npz", level_buffers={"vx", "vy", "vz"})
+    owners = [weakref.ref(levels.level_values(got, level, "vy").base)
+              for level in range(got.num_levels)]
+    seen = []
+
+    def spy(volume, *args, **kwargs):
+        gc.collect()
+        seen.append([o() is not None for o in owners])
+        return real(volume, *args, **kwargs)
+
+    real = levels.grid_chunks
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(levels, "grid_chunks", spy)
+        out = device_derive.derive(got, *NAMES, m=drjit.llvm.ad, consume=True) if device \
+            else mi_amr.derive(got, *NAMES, consume=True)
+    gc.collect()
+    assert not any(o() for o in owners)
+    # Each level's chunks were made while its own and the coarser levels' buffers lived and
+    # every finer level's were gone already.
+    alive = {tuple(x) for x in seen}
+    top = got.num_levels - 1
+    assert alive == {tuple(k <= level for k in range(top + 1)) for level in range(top + 1)}
+    assert set(out.field_names) == set(NAMES)
+    for a, b in zip(out.grids, expected.grids):
+        for name in NAMES:
+            np.testing.assert_array_equal(a.fields[name], b.fields[name])
+
+
+def test_a_velocity_the_scene_shows_is_not_consumed(tmp_path):
+    """Preparing a file whose scene shows a velocity component, coloured by a derived field,
+    keeps that component whole (nothing is dropped), with the derived values of a plain
+    derivation."""
+    from mi_amr.kernels.prepared import prepare_file
+
+    vol = _velocity_hierarchy(0, (2, 2), np.float32, False)
+    vol.save(tmp_path / "v.npz")
+    expected = mi_amr.derive(vol, "q_criterion")
+    prep = prepare_file(tmp_path / "v.npz", "vy", "q_criterion", m=drjit.llvm.ad)
+    for a, b, c in zip(prep.volume.grids, expected.grids, vol.grids):
+        np.testing.assert_array_equal(a.fields["vy"], c.fields["vy"])
+        np.testing.assert_array_equal(a.fields["q_criterion"], b.fields["q_criterion"])

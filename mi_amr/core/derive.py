@@ -42,7 +42,7 @@ def velocity_fields(volume, velocity=None) -> tuple:
 
 
 def derive(volume, *names: str, velocity=None, gradient_fields=None, speed_field=None,
-           chunk_cells: int = levels.CHUNK_CELLS):
+           chunk_cells: int = levels.CHUNK_CELLS, consume: bool = False):
     """A volume with the derived fields ``names`` added (any of :data:`DERIVED_FIELDS`).
 
     ``velocity`` names the three velocity components; by default they are found by name
@@ -51,10 +51,18 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None, speed_field
 
     ``gradient_fields``, when given, computes the fields that need the velocity gradient
     instead of :func:`gradient.map_chunks`: called as ``gradient_fields(volume, comps, names,
-    flat)``, it writes field ``name`` of level ``l`` into ``flat[name][l]`` (the device path,
-    :mod:`mi_amr.kernels.derive`, gives the same numbers). ``speed_field(volume, comps,
-    parts)``, when given, writes the speed of level ``l`` into ``parts[l]`` the same way and
-    returns True, or returns False (the host computes it then).
+    flat, todo)``, it writes field ``name`` of each level ``l`` of ``todo`` (a list of levels)
+    into ``flat[name][l]`` (the device path, :mod:`mi_amr.kernels.derive`, gives the same
+    numbers). ``speed_field(volume, comps, parts, todo)``, when given, writes the speed of
+    each level ``l`` of ``todo`` into ``parts[l]`` the same way and returns True, or returns
+    False (the host computes it then).
+
+    ``consume``: the caller gives ``volume`` up. The levels are derived finest first, and
+    once a level is done its velocity arrays are dropped from ``volume``
+    (:meth:`AMRVolume.drop_level_fields`): a finer level's ghosts come from coarser levels
+    only, so no later level reads them, and where nothing else holds them (a file read with a
+    buffer per level) their memory is freed during the derivation, not after it. The result
+    then holds no velocity, and ``volume`` must not be used again.
 
     ``chunk_cells`` bounds the host gradient's passes (:func:`gradient.map_chunks`): whole
     grids of a level holding at least that many cells each, which bounds its temporaries;
@@ -65,13 +73,31 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None, speed_field
         raise AMRError(f"cannot derive {unknown}; derived fields are {list(DERIVED_FIELDS)}")
     comps = velocity_fields(volume, velocity)
     flat = _level_buffers(volume, names, comps)
-    if "speed" in names and not (speed_field and speed_field(volume, comps, flat["speed"])):
-        for level in range(volume.num_levels):
+    dtypes = [np.result_type(*(g.fields[n].dtype for n in comps)) for g in volume.grids]
+    every = list(range(volume.num_levels))
+    for todo in ([[level] for level in reversed(every)] if consume else [every]):
+        _derive_levels(volume, comps, flat, todo, (gradient_fields, speed_field, chunk_cells))
+        if consume:
+            volume.drop_level_fields(todo[0], comps)
+    out = volume.with_fields({n: _per_grid(volume, arrays, dtypes)
+                              for n, arrays in flat.items()})
+    for name, arrays in flat.items():
+        for level, values in enumerate(arrays):
+            levels.share_level_values(out, level, name, values)
+    return out
+
+
+def _derive_levels(volume, comps, flat, todo, how) -> None:
+    """Write the fields ``flat`` holds buffers for, of the levels ``todo``, into them; ``how``
+    is :func:`derive`'s ``(gradient_fields, speed_field, chunk_cells)``."""
+    gradient_fields, speed_field, chunk_cells = how
+    if "speed" in flat and not (speed_field and speed_field(volume, comps, flat["speed"], todo)):
+        for level in todo:
             _speed([levels.level_values(volume, level, n) for n in comps], flat["speed"][level])
     wanted = [(n, f) for n, f in (("q_criterion", q_criterion),
-                                  ("vorticity_magnitude", vorticity_magnitude)) if n in names]
+                                  ("vorticity_magnitude", vorticity_magnitude)) if n in flat]
     if wanted and gradient_fields is not None:
-        gradient_fields(volume, comps, [n for n, _ in wanted], flat)
+        gradient_fields(volume, comps, [n for n, _ in wanted], flat, todo)
     elif wanted:
         # A few chunks' float64 gradients at a time (9 values a cell), not the whole volume's;
         # each thread writes its chunk's cells of the level arrays.
@@ -79,13 +105,8 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None, speed_field
             for name, of in wanted:
                 flat[name][level][at:at + grad.shape[-1]] = of(grad)
 
-        for _ in gradient.map_chunks(volume, comps, write, chunk_cells=chunk_cells):
+        for _ in gradient.map_chunks(volume, comps, write, chunk_cells=chunk_cells, todo=todo):
             pass
-    out = volume.with_fields({n: _per_grid(volume, arrays, comps) for n, arrays in flat.items()})
-    for name, arrays in flat.items():
-        for level, values in enumerate(arrays):
-            levels.share_level_values(out, level, name, values)
-    return out
 
 
 def _speed(v, out) -> None:
@@ -150,14 +171,14 @@ def _level_dtype(volume, level, comps):
     return np.result_type(*(levels.level_values(volume, level, n).dtype for n in comps))
 
 
-def _per_grid(volume, level_arrays, comps) -> list:
-    """One array per grid (a view of its level's flat array, cast to the grid's velocity dtype
-    where a level mixes dtypes) from the per-level flat arrays."""
+def _per_grid(volume, level_arrays, dtypes) -> list:
+    """One array per grid (a view of its level's flat array, cast to ``dtypes[grid]``, the
+    grid's velocity dtype, where a level mixes dtypes) from the per-level flat arrays."""
     out = [None] * len(volume.grids)
     for level, flat in enumerate(level_arrays):
         table = levels.level_index(volume, level)
         for gi, start in zip(table.grids, levels.grid_offsets(volume, level)):
             g = volume.grids[gi]
-            dtype = np.result_type(*(g.fields[n].dtype for n in comps))
-            out[gi] = flat[start:start + g.num_cells].reshape(g.shape).astype(dtype, copy=False)
+            out[gi] = flat[start:start + g.num_cells].reshape(g.shape).astype(dtypes[gi],
+                                                                              copy=False)
     return out

@@ -44,27 +44,30 @@ def level_gradients(volume, comps, chunk_cells: int = levels.CHUNK_CELLS):
 
 
 def map_chunks(volume, comps, fn, threads: int | None = None,
-               chunk_cells: int = levels.CHUNK_CELLS):
+               chunk_cells: int = levels.CHUNK_CELLS, todo=None):
     """``fn(level, at, grad)`` for the chunks of :func:`level_gradients` (``at``: where the
     chunk's cells start in the level's :func:`levels.level_values`), yielded in the same
-    order, the chunks computed side by side (:func:`parallel.map_ordered`)."""
+    order, the chunks computed side by side (:func:`parallel.map_ordered`); only those of the
+    levels ``todo`` (a list) where given."""
     def work(job):
         grad, at = _job_gradient(volume, comps, job)
         return fn(job[0], at, grad)
 
     with levels.fields_fixed(volume):
-        yield from parallel.map_ordered(work, _chunk_jobs(volume, comps, chunk_cells), threads)
+        yield from parallel.map_ordered(work, _chunk_jobs(volume, comps, chunk_cells, todo),
+                                        threads)
 
 
-def _chunk_jobs(volume, comps, chunk_cells):
-    """``(level, start, stop)`` of every chunk; the level tables and flat values every chunk
-    reads (its level's, and the coarser ones interpolation reads) are cached first, so
-    threads only read them."""
-    for level in range(volume.num_levels):
+def _chunk_jobs(volume, comps, chunk_cells, todo=None):
+    """``(level, start, stop)`` of every chunk of the levels ``todo`` (default: all); the
+    level tables and flat values every chunk reads (its level's, and the coarser ones
+    interpolation reads) are cached first, so threads only read them."""
+    todo = list(range(volume.num_levels)) if todo is None else list(todo)
+    for level in range(max(todo, default=-1) + 1):
         levels.level_index(volume, level)
         for name in comps:
             levels.level_values(volume, level, name)
-    for level in range(volume.num_levels):
+    for level in todo:
         for start, stop in levels.grid_chunks(levels.level_index(volume, level), chunk_cells):
             yield level, start, stop
 

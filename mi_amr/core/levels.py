@@ -172,6 +172,12 @@ def share_level_values(volume, level: int, name: str, flat: np.ndarray) -> None:
             [id(a) for a in arrays], arrays, flat)
 
 
+def forget_level_values(volume, level: int, names) -> None:
+    """Drop the cached :func:`level_values` of fields ``names`` on ``level``."""
+    for name in names:
+        volume.level_caches.values.pop((level, name), None)
+
+
 def adopt_caches(volume, source) -> None:
     """Give ``volume`` the level tables and the flat level values of its fields cached on
     ``source``, a volume of the same hierarchy (values are checked against the arrays before

@@ -202,6 +202,16 @@ class AMRVolume:
         levels.adopt_caches(out, self)
         return out
 
+    def drop_level_fields(self, level: int, names: Sequence[str]) -> None:
+        """Drop fields ``names`` from every grid of ``level`` and from the level's cached flat
+        values, so that their memory is freed where nothing else holds it. The volume is left
+        holding those fields on some levels only: for a volume given up to
+        :func:`mi_amr.core.derive.derive` (``consume``), which drops every level's."""
+        for i in np.flatnonzero(self.levels == level):
+            for name in names:
+                self.grids[i].fields.pop(name, None)
+        levels.forget_level_values(self, level, names)
+
     # ------------------------------------------------------------------ hierarchy queries
     @property
     def field_names(self) -> tuple:

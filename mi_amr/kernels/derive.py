@@ -40,78 +40,88 @@ PROBES = 64                 # positions of a field's host buffer checked after t
 _PAYLOAD = {4: np.uint32(0x7FA5A5A5), 8: np.uint64(0x7FF5A5A5A5A5A5A5)}
 
 
-def derive(volume, *names: str, m, velocity=None, chunk_cells: int = CHUNK_CELLS):
-    """:func:`mi_amr.core.derive.derive` with Q and vorticity computed on backend ``m`` (a
-    Dr.Jit module such as ``drjit.llvm.ad``), whole grids of a level holding at least
-    ``chunk_cells`` cells at a time. A level too sparse for a dense block table
-    (:class:`levels.LevelIndex`) has no device lookup, and one of :data:`LEVEL_CELLS_MAX` cells
-    or more would overflow its positions: such a volume is derived on the host."""
+def derive(volume, *names: str, m, velocity=None, chunk_cells: int = CHUNK_CELLS,
+           consume: bool = False):
+    """:func:`mi_amr.core.derive.derive` (``consume`` as there) with Q and vorticity computed
+    on backend ``m`` (a Dr.Jit module such as ``drjit.llvm.ad``), whole grids of a level
+    holding at least ``chunk_cells`` cells at a time. A level too sparse for a dense block
+    table (:class:`levels.LevelIndex`) has no device lookup, and one of
+    :data:`LEVEL_CELLS_MAX` cells or more would overflow its positions: such a volume is
+    derived on the host."""
     tables = [levels.level_index(volume, level) for level in range(volume.num_levels)]
     dense = all(t.table is not None and int(np.prod(t.hi - t.lo, axis=1).sum()) <
                 LEVEL_CELLS_MAX for t in tables)
-    fill = (lambda vol, comps, wanted, flat: _fill(vol, comps, wanted, flat, m, chunk_cells)) \
-        if dense else None
-    return host_derive.derive(volume, *names, velocity=velocity, gradient_fields=fill,
-                              speed_field=lambda vol, comps, parts: _speed(vol, comps, parts, m))
+    fill = (lambda vol, comps, wanted, flat, todo:
+            _fill(vol, comps, wanted, flat, (m, chunk_cells, todo))) if dense else None
+    return host_derive.derive(
+        volume, *names, velocity=velocity, gradient_fields=fill, consume=consume,
+        speed_field=lambda vol, comps, parts, todo: _speed(vol, comps, parts, (m, todo)))
 
 
-def _speed(volume, comps, parts, m) -> bool:
-    """Write ``sqrt(vx^2 + vy^2 + vz^2)`` of each level into ``parts[level]`` (one kernel a
-    level, scattering into the host buffer: :func:`_written`), in the velocity's own dtype as
-    :func:`mi_amr.core.derive._speed` rounds it; True where done. Where the components or the
-    levels differ in dtype (the host's promotions then), nothing is done: False."""
-    values = [[levels.level_values(volume, level, n) for n in comps]
-              for level in range(volume.num_levels)]
-    if len({a.dtype for v in values for a in v} | {parts[0].dtype}) != 1:
+def _speed(volume, comps, parts, how) -> bool:
+    """Write ``sqrt(vx^2 + vy^2 + vz^2)`` of each level of ``todo`` into ``parts[level]`` (one
+    kernel a level, scattering into the host buffer: :func:`_written`), in the velocity's own
+    dtype as :func:`mi_amr.core.derive._speed` rounds it; True where done. Where the
+    components or the levels differ in dtype (the host's promotions then), nothing is done:
+    False. ``how``: ``(m, todo)``, the backend and a list of levels."""
+    m, todo = how
+    values = {level: [levels.level_values(volume, level, n) for n in comps] for level in todo}
+    if len({a.dtype for v in values.values() for a in v} | {parts[0].dtype}) != 1:
         return False
-    target, record = _written(m, parts)
-    at = 0
-    for v in values:
+    target, record = _written(m, parts, todo)
+    starts = np.concatenate([[0], np.cumsum([len(a) for a in parts])])
+    for level, v in values.items():
         if len(v[0]):
             x, y, z = (_mapped(m, a) for a in v)
-            lane = dr.opaque(m.UInt32, at) + dr.arange(m.UInt32, len(v[0]))
+            lane = dr.opaque(m.UInt32, int(starts[level])) + dr.arange(m.UInt32, len(v[0]))
             dr.scatter(target, dr.sqrt(x * x + y * y + z * z), lane)
             dr.eval(target)
-        at += len(v[0])
     _settle(m, target, record)
     return True
 
 
-def _fill(volume, comps, wanted, flat, m, chunk_cells: int = CHUNK_CELLS):
-    """Write fields ``wanted`` (Q, vorticity: those needing the gradient) of every level into
-    ``flat[name][level]`` (NumPy arrays of the level's values), chunk by chunk (at least
-    ``chunk_cells`` cells, :func:`levels.grid_chunks`): the kernels
-    scatter straight into the host buffer, which Dr.Jit maps (:func:`_written`)."""
+def _fill(volume, comps, wanted, flat, how):
+    """Write fields ``wanted`` (Q, vorticity: those needing the gradient) of the levels
+    ``todo`` into ``flat[name][level]`` (NumPy arrays of the level's values), chunk by chunk
+    (at least ``chunk_cells`` cells, :func:`levels.grid_chunks`): the kernels scatter straight
+    into the host buffer, which Dr.Jit maps (:func:`_written`). ``how``: ``(m, chunk_cells,
+    todo)``. Only the levels up to the finest of ``todo`` are looked up (ghosts come from
+    coarser levels), so finer ones may already be gone (:func:`derive`'s ``consume``)."""
+    m, chunk_cells, todo = how
     with levels.fields_fixed(volume):
-        tables = [_Level(volume, level, comps, m) for level in range(volume.num_levels)]
-        targets = {name: _written(m, flat[name]) for name in wanted}
+        tables = [_Level(volume, level, comps, m) for level in range(max(todo) + 1)]
+        targets = {name: _written(m, flat[name], todo) for name in wanted}
         out = {name: t[0] for name, t in targets.items()}
-        level_start = 0                 # where the level's values begin in the buffers
-        for level, lv in enumerate(tables):
+        starts = np.concatenate([[0], np.cumsum([len(a) for a in flat[wanted[0]]])])
+        for level in todo:
+            lv = tables[level]
             dtypes = {name: flat[name][level].dtype for name in wanted}
             for start, stop in levels.grid_chunks(lv.host, chunk_cells):
                 _chunk_fields(tables, level, (start, stop), dtypes, out,
-                              level_start + int(lv.host.offsets[start]))
-            level_start += len(flat[wanted[0]][level])
+                              int(starts[level]) + int(lv.host.offsets[start]))
         for target, record in targets.values():
             _settle(m, target, record)
 
 
-def _written(m, parts):
-    """``(target, record)``: a Dr.Jit array the kernels scatter a field into, and what
-    :func:`_settle` needs. ``parts`` are a field's per-level arrays, consecutive slices of one
-    host buffer (:func:`mi_amr.core.derive._level_buffers`): the target maps that buffer, so
-    what is scattered lands there. A few probe positions of it are first set to a NaN payload
-    that no arithmetic gives, to tell afterwards that it did. Without one buffer, the target
-    is a new array, copied over at the end."""
+def _written(m, parts, todo):
+    """``(target, record)``: a Dr.Jit array the kernels scatter the levels ``todo`` of a field
+    into, and what :func:`_settle` needs. ``parts`` are the field's per-level arrays,
+    consecutive slices of one host buffer (:func:`mi_amr.core.derive._level_buffers`): the
+    target maps that buffer, so what is scattered lands there. A few probe positions of the
+    levels ``todo`` are first set to a NaN payload that no arithmetic gives, to tell
+    afterwards that it did. Without one buffer, the target is a new array, whose levels
+    ``todo`` are copied over at the end."""
     dtype = parts[0].dtype
     T = _float_type(m, dtype)
     host = joined(parts, dtype)
     if host is None or host.size < 2:
-        return dr.empty(T, max(sum(len(a) for a in parts), 2)), (parts, None, None)
-    probe = np.unique(np.linspace(0, host.size - 1, PROBES).astype(np.int64))
+        return dr.empty(T, max(sum(len(a) for a in parts), 2)), (parts, todo, None, None)
+    starts = np.concatenate([[0], np.cumsum([len(a) for a in parts])])
+    probe = np.unique(np.concatenate([np.zeros(0, np.int64)] + [
+        np.linspace(starts[level], starts[level + 1] - 1, min(PROBES, len(parts[level])))
+        .astype(np.int64) for level in todo]))
     _bits(host)[probe] = _PAYLOAD[dtype.itemsize]
-    return _map(T, host), (parts, host, probe)
+    return _map(T, host), (parts, todo, host, probe)
 
 
 def _float_type(m, dtype):
@@ -133,19 +143,16 @@ def _map(T, host):
 def _settle(m, target, record) -> None:
     """Make sure the host holds what the kernels scattered into ``target``: where the target
     did not map the host buffer (no single buffer, or Dr.Jit copied it: a probe still holds
-    its payload), the values are copied over."""
-    parts, host, probe = record
+    its payload), the values of the levels written are copied over."""
+    parts, todo, host, probe = record
     dr.eval(target)
     dr.sync_thread()
-    if host is not None:
-        if np.all(_bits(host)[probe] != _PAYLOAD[host.dtype.itemsize]):
-            return
-        host[:] = target.numpy()[:host.size]
+    if host is not None and np.all(_bits(host)[probe] != _PAYLOAD[host.dtype.itemsize]):
         return
-    values, at = target.numpy(), 0
-    for a in parts:
-        a[:] = values[at:at + len(a)]
-        at += len(a)
+    values = target.numpy()
+    starts = np.concatenate([[0], np.cumsum([len(a) for a in parts])])
+    for level in todo:
+        parts[level][:] = values[starts[level]:starts[level + 1]]
 
 
 def _mapped(m, values):

@@ -18,7 +18,7 @@ import drjit as dr
 
 from mi_amr import params
 from mi_amr.core import memory
-from mi_amr.core.derive import DERIVED_FIELDS
+from mi_amr.core.derive import DERIVED_FIELDS, velocity_fields
 from mi_amr.kernels import derive as device_derive
 from mi_amr.kernels import snapshot
 from mi_amr.kernels.device import DeviceVolume
@@ -99,13 +99,15 @@ _STEPS = {"derive": "  derived fields", "tree": "  kd-tree", "device": "  device
           "snapshot": "  prepared volume read back from its snapshot"}
 
 
-def needed_fields(volume, field: str, color_field: str | None, m=None):
+def needed_fields(volume, field: str, color_field: str | None, m=None, consume=False):
     """``(volume, derived)``: ``volume`` with exactly the fields ``field`` and ``color_field``
     (derived from the velocity where it lacks them, by Dr.Jit kernels on backend ``m``
     (:mod:`mi_amr.kernels.derive`), on the host when ``m`` is None; ``derived``: some were),
     arrays shared.
     Whatever else ``volume`` held is not referenced by the result, so a caller that drops its
-    own reference frees it (the velocity a derived field was computed from)."""
+    own reference frees it (the velocity a derived field was computed from). ``consume``: the
+    caller gives ``volume`` up, and a velocity that neither field shows is dropped from it
+    level by level during the derivation (:func:`mi_amr.core.derive.derive`)."""
     wanted = [f for f in dict.fromkeys([field, color_field]) if f is not None]
     missing = [f for f in wanted if f not in volume.field_names]
     derivable = [f for f in missing if f in DERIVED_FIELDS]
@@ -114,11 +116,13 @@ def needed_fields(volume, field: str, color_field: str | None, m=None):
         raise AMRError(f"{volume.source_prefix()}unknown field(s) {unknown}: the volume holds "
                        f"{list(volume.field_names)}; derived fields are "
                        f"{list(DERIVED_FIELDS)}")
+    if derivable:
+        consume = consume and not set(velocity_fields(volume)) & set(wanted)
     if derivable and m is not None:
-        volume = device_derive.derive(volume, *derivable, m=m)
+        volume = device_derive.derive(volume, *derivable, m=m, consume=consume)
     elif derivable:
         from mi_amr.core.derive import derive
-        volume = derive(volume, *derivable)
+        volume = derive(volume, *derivable, consume=consume)
     return volume.select_fields(wanted), bool(derivable)
 
 
@@ -233,14 +237,16 @@ def _prepare_from_file(path, field, color_field, leaf_cells, m, report) -> Prepa
     memory.keep_freed_memory()          # the read's buffers too
     names = fields_to_read(field, color_field, available_fields(path))
     t0 = time.perf_counter()
-    volume = load(path, fields=names)
+    volume = load(path, fields=names, level_buffers=set(names) - {field, color_field})
     read = time.perf_counter() - t0
     say(f"  read {os.path.basename(path)} ({', '.join(names)}: {volume.num_cells:,} cells, "
         f"{len(volume.grids):,} grids) in {read:.2f} s")
     # Derived here, so that the velocity read for it is freed before the kd-tree and the
-    # device arrays are built (a third of the peak memory of a large load).
+    # device arrays are built (a third of the peak memory of a large load), and level by
+    # level during the derivation (read with a buffer per level for that).
     t0 = time.perf_counter()
-    volume, derived = needed_fields(volume, field, color_field, m=m or dr.llvm.ad)
+    volume, derived = needed_fields(volume, field, color_field, m=m or dr.llvm.ad,
+                                    consume=True)
     derive_s = time.perf_counter() - t0
     if derived:
         say(f"{_STEPS['derive']} in {derive_s:.2f} s")

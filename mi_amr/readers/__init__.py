@@ -12,7 +12,7 @@ from mi_amr.errors import AMRError
 from mi_amr.readers import amrex, native, vdb, ytsource
 
 
-def load(path, fields=None, **options):
+def load(path, fields=None, *, level_buffers=(), **options):
     """Read an AMR volume from ``path``.
 
     Recognised: mi_amr's ``.npz`` files (see :mod:`mi_amr.readers.native`), AMReX plotfile
@@ -20,7 +20,9 @@ def load(path, fields=None, **options):
     ``.vdb`` files, one grid per patch (see :mod:`mi_amr.readers.vdb`); last, when yt is
     installed, every grid-based format yt reads (see :mod:`mi_amr.readers.ytsource`; the
     ``options`` go to ``yt.load``). ``fields``
-    (a name or a list of names) reads only those fields from disk. Derived fields (``speed``,
+    (a name or a list of names) reads only those fields from disk. ``level_buffers`` names
+    fields whose levels may be dropped one at a time (see :func:`native.load`); the other
+    readers' arrays are freed level by level already, or not at all (yt's). Derived fields (``speed``,
     ``q_criterion``) are not read here; see :func:`mi_amr.derive`. Raises
     :class:`~mi_amr.AMRError` for a missing file, something that is neither a regular file nor
     a folder (a FIFO or a device, which would block or never end), an unrecognised format or a
@@ -31,7 +33,7 @@ def load(path, fields=None, **options):
         fields = [fields]
     if native.is_native(path):
         _no_options(path, options, "an mi_amr .npz file")
-        return native.load(path, fields)
+        return native.load(path, fields, level_buffers=level_buffers)
     if amrex.is_plotfile(path):
         _no_options(path, options, "an AMReX plotfile")
         return amrex.load(path, fields)

@@ -72,20 +72,27 @@ def field_names(path) -> list:
         return _names(path, _entry(path, archive, "field_names"))
 
 
-def load(path, fields=None) -> AMRVolume:
+def load(path, fields=None, *, level_buffers=()) -> AMRVolume:
     """Read a file written by :func:`mi_amr.core.npz.save`; ``fields`` (a name or a list of
-    names) limits what is read from disk."""
+    names) limits what is read from disk. Each field is read into one buffer, its levels
+    aligned slices of it; a field named in ``level_buffers`` gets a buffer per level instead,
+    so that a level's arrays, once dropped, free their memory on their own (the velocity that
+    :func:`mi_amr.core.derive.derive` consumes level by level)."""
     path = Path(path)
     with _archive(path) as archive, _damage(path):
         index = _read_index(path, archive)
         wanted = _wanted(path, fields, index["names"])
-        runs, starts = _level_layout(index)
-        data = {n: _field(path, archive, n, index["offsets"][-1], runs) for n in wanted}
+        layout = _level_layout(index)
+        data = {n: _field(path, archive, n, index["offsets"][-1], (layout, n in level_buffers))
+                for n in wanted}
     offsets, shape = index["offsets"], index["shape"]
+    _, starts, spans = layout
+    rank = np.unique(np.asarray(index["level"]), return_inverse=True)[1].ravel().tolist()
     # Plain Python numbers (lists, ints), the form AMRVolume.from_grids checks fastest.
     level, origin, spacing = (index[k].tolist() for k in ("level", "origin", "spacing"))
+    within = [starts[i] - spans[rank[i]][0] for i in range(len(shape))]
     grids = [{"level": level[i], "origin": origin[i], "spacing": spacing[i],
-              "fields": {n: data[n][starts[i]:starts[i] + offsets[i + 1] - offsets[i]]
+              "fields": {n: data[n][rank[i]][within[i]:within[i] + offsets[i + 1] - offsets[i]]
                          .reshape(shape[i]) for n in wanted}}
              for i in range(len(shape))]
     return AMRVolume.from_grids(grids, allow_nonfinite=index["allow_nonfinite"],
@@ -137,16 +144,17 @@ class _damage:
 
 
 def _level_layout(index) -> tuple:
-    """Where each grid's values go in the buffer a field is read into: ``(runs, starts)``, with
-    ``runs`` the ``(first, stop, at)`` element ranges of the file's field row (consecutive grids
-    of one level) and where each begins in the buffer, and ``starts`` each grid's first
-    element there. Levels lie one after the other in the buffer, each starting on an
+    """Where each grid's values go in the buffer a field is read into: ``(runs, starts,
+    spans)``, with ``runs`` the ``(first, stop, at, rank)`` element ranges of the file's field
+    row (consecutive grids of one level), where each begins in the buffer and the rank of its
+    level, ``starts`` each grid's first element there, and ``spans`` the ``(start, size)`` of
+    each level. Levels lie one after the other in the buffer, each starting on an
     :data:`~mi_amr.core.buffers.ALIGN` byte boundary (for 1-byte values) and its grids in file
     order, so every level's values are one aligned slice that the device maps without a copy
     (:func:`mi_amr.core.levels.level_values`)."""
     level = np.asarray(index["level"], dtype=np.int64)
     if len(level) == 0:
-        return [], []
+        return [], [], []
     offsets = np.asarray(index["offsets"], dtype=np.int64)
     counts = np.diff(offsets)
     # Levels ranked (so that a bad level number is left for the volume's checks to name).
@@ -159,15 +167,19 @@ def _level_layout(index) -> tuple:
         within[mine] = np.cumsum(counts[mine]) - counts[mine]
     starts = level_start[rank] + within
     cut = np.flatnonzero(np.diff(level) != 0) + 1
-    runs = [(int(offsets[a]), int(offsets[b]), int(starts[a]))
+    runs = [(int(offsets[a]), int(offsets[b]), int(starts[a]), int(rank[a]))
             for a, b in zip(np.concatenate([[0], cut]), np.concatenate([cut, [len(level)]]))]
-    return runs, [int(x) for x in starts]
+    spans = [(int(a), int(n)) for a, n in zip(level_start, sizes)]
+    return runs, [int(x) for x in starts], spans
 
 
-def _field(path: Path, archive, name: str, total: int, runs) -> np.ndarray:
-    """Field ``name`` (one row of every grid's values in the file) read into a new aligned
-    buffer laid out by :func:`_level_layout`'s ``runs``, the zip entry streamed (CRC checked)
-    into its places a chunk at a time, as ``np.load`` reads an entry: the same one copy."""
+def _field(path: Path, archive, name: str, total: int, how) -> list:
+    """Field ``name`` (one row of every grid's values in the file), one array per level (see
+    :func:`load`), the zip entry streamed (CRC checked) into its places a chunk at a time, as
+    ``np.load`` reads an entry: the same one copy. ``how``: ``(layout, split)``, the
+    :func:`_level_layout` and whether each level gets a buffer of its own (else the levels
+    are aligned slices of one new aligned buffer)."""
+    (runs, _, spans), split = how
     key = f"field:{name}"
     info, shape, dtype, header_size = _entry_header(path, archive, key)
     if len(shape) != 1:
@@ -177,13 +189,17 @@ def _field(path: Path, archive, name: str, total: int, runs) -> np.ndarray:
         raise AMRError(f"{path}: field '{name}' holds {shape[0]} values, the grids need {total}")
     if dtype.hasobject or dtype.itemsize == 0:
         raise AMRError(f"{path}: field '{name}' has dtype {dtype}, expected real numbers")
-    size = max((at + stop - first for first, stop, at in runs), default=0)
-    out = aligned_empty(size, dtype)
-    raw = out.view(np.uint8)
+    if split:
+        out = [aligned_empty(size, dtype) for _, size in spans]
+    else:
+        whole = aligned_empty(max((at + size for at, size in spans), default=0), dtype)
+        out = [whole[at:at + size] for at, size in spans]
     step = dtype.itemsize
     with archive.zip.open(info) as f:
         f.read(header_size)
-        for first, stop, at in runs:
+        for first, stop, at, rank in runs:
+            raw = out[rank].view(np.uint8)
+            at -= spans[rank][0]
             _read_into(f, raw[at * step:(at + stop - first) * step])
         if f.read(1):           # the whole entry read, so that its CRC was checked
             raise AMRError(f"{path}: damaged mi_amr volume: entry '{key}' is longer than "
