@@ -72,7 +72,8 @@ def test03_the_load_rows_time_a_snapshot_read_back_and_leave_the_setting_alone(t
 
 def test04_the_scaling_table_shows_the_peak_memory_of_each_load(tmp_path):
     """The peak resident memory grows when a load allocates and is measured afresh after a
-    reset; the table shows it, or a dash where it could not be measured."""
+    reset, the resident memory now falls when it frees; the table shows the peak and the
+    bytes a cell above the load's start, or a dash where they could not be measured."""
     import sys
 
     import numpy as np
@@ -87,13 +88,16 @@ def test04_the_scaling_table_shows_the_peak_memory_of_each_load(tmp_path):
     block = np.ones(2 ** 28 // 8)              # 256 MiB, written
     grown = bench.peak_rss_gb()
     assert grown >= before + 0.2
+    now = bench.rss_gb()
+    assert grown - 0.05 <= now <= grown + 0.05      # the block is resident now
     del block
+    assert bench.rss_gb() < now - 0.2
     assert bench.reset_peak_rss() and bench.peak_rss_gb() < grown
     rows = [{"what": "cells", "value": "10 (tiny)", "resolution": 64, "load_s": 0.5,
-             "peak_gb": 1.234, "frame_s": 0.1},
+             "peak_gb": 1.234, "frame_s": 0.1, "per_cell": 21.04},
             {"what": "cells", "value": "20 (tiny)", "resolution": 64, "load_s": 0.6,
-             "peak_gb": None, "frame_s": 0.2}]
+             "peak_gb": None, "frame_s": 0.2, "per_cell": None}]
     bench._scaling_table(tmp_path, rows)
     table = (tmp_path / "scaling.md").read_text()
-    assert "peak resident while loading (GB)" in table
-    assert "| 0.5 | 1.23 | 0.10 |" in table and "| 0.6 | - | 0.20 |" in table
+    assert "peak resident while loading (GB)" in table and "(bytes a cell)" in table
+    assert "| 0.5 | 1.23 | 21.0 | 0.10 |" in table and "| 0.6 | - | - | 0.20 |" in table

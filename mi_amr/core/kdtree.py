@@ -572,13 +572,15 @@ class KDTree:
 
     def _listed_pairs(self, count):
         """The first ``count[l]`` listed grids of each owned leaf ``l``: ``(leaf, grid)``, leaf
-        after leaf."""
+        after leaf (int32 where the pairs' positions fit: 10^8 cells list about 10^7)."""
         taken = np.where(self.leaf_owner >= 0, np.minimum(count, self.leaf_nsupport), 0)
-        leaf = np.repeat(np.arange(self.num_leaves), taken)
+        fits = max(len(self.leaf_grids), self.num_leaves) < np.iinfo(np.int32).max
+        index = np.int32 if fits else np.int64
+        leaf = np.repeat(np.arange(self.num_leaves, dtype=index), taken)
         # each taken pair's place in leaf_grids: its leaf's start plus its rank in the leaf
-        at = np.repeat(self.leaf_start - (np.cumsum(taken) - taken), taken)
-        at += np.arange(len(at))
-        return leaf, np.take(self.leaf_grids, at).astype(np.int64)
+        at = np.repeat((self.leaf_start - (np.cumsum(taken) - taken)).astype(index), taken)
+        at += np.arange(len(at), dtype=index)
+        return leaf, np.take(self.leaf_grids, at)
 
     # ------------------------------------------------------------------ queries
     def check(self, field: str | None = None, **kw) -> dict:

@@ -50,13 +50,24 @@ def reset_peak_rss() -> bool:
         return False
 
 
+def rss_gb():
+    """This process's resident memory now, in GB (10^9 bytes; ``VmRSS`` of
+    ``/proc/self/status``), or None where there is no such file."""
+    return _status_gb("VmRSS:")
+
+
 def peak_rss_gb():
     """This process's peak resident memory since :func:`reset_peak_rss`, in GB (10^9 bytes;
     ``VmHWM`` of ``/proc/self/status``), or None where there is no such file."""
+    return _status_gb("VmHWM:")
+
+
+def _status_gb(key: str):
+    """The figure ``key`` of ``/proc/self/status`` (kB there) in GB, or None."""
     try:
         with open("/proc/self/status") as f:
             for line in f:
-                if line.startswith("VmHWM:"):
+                if line.startswith(key):
                     return int(line.split()[1]) * 1024 / 1e9
     except OSError:
         pass
@@ -465,14 +476,18 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
         gc.collect()
         _dr().flush_malloc_cache()      # memory the cases before freed, not counted again
         measured = reset_peak_rss()
+        start = rss_gb()
         t0 = time.perf_counter()
         scene = load_scene(scene_file, resx=res, resy=res, spp=1)
         load_s = time.perf_counter() - t0
         peak = peak_rss_gb() if measured else None
+        cells = scene.integrator().prep.volume.num_cells
         _frame(mi, _dr(), scene, 0)
         times = [_frame(mi, _dr(), scene, i + 1)[0] for i in range(frames)]
         rows.append({"what": what, "value": value, "resolution": res, "load_s": load_s,
-                     "peak_gb": peak, "frame_s": statistics.median(times)})
+                     "peak_gb": peak, "frame_s": statistics.median(times),
+                     "per_cell": None if peak is None or start is None else
+                     (peak - start) * 1e9 / cells})
         del scene
     return _scaling_table(out, rows)
 
@@ -480,11 +495,13 @@ def scaling(out_dir="out/bench", variant: str = "llvm_ad_rgb", frames: int = 3) 
 def _scaling_table(out, rows) -> list:
     """Write :func:`scaling`'s ``scaling.md`` (and print it); returns the rows."""
     lines = ["| varied | value | image | scene load (s) | peak resident while loading (GB) | "
-             "warm frame (s) |", "|---|---|---|---|---|---|"]
+             "peak above the load's start (bytes a cell) | warm frame (s) |",
+             "|---|---|---|---|---|---|---|"]
     for r in rows:
         peak = "-" if r["peak_gb"] is None else f"{r['peak_gb']:.2f}"
+        per_cell = "-" if r["per_cell"] is None else f"{r['per_cell']:.1f}"
         lines.append(f"| {r['what']} | {r['value']} | {r['resolution']}x{r['resolution']} | "
-                     f"{r['load_s']:.1f} | {peak} | {r['frame_s']:.2f} |")
+                     f"{r['load_s']:.1f} | {peak} | {per_cell} | {r['frame_s']:.2f} |")
     table = "\n".join(lines)
     from mi_amr.workflows.movie.output import write_bytes_atomic
 

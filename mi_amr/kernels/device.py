@@ -284,16 +284,19 @@ class DeviceVolume:
         :class:`~mi_amr.kernels.config.SearchPlan`)."""
         key = "basis" if basis else "finest"
         if key not in self._search:
-            own = np.empty((len(self._host_code_split), 4), dtype=np.uint32)
+            node_ranges = self.node_ranges(basis)   # (first: its temporaries are freed)
+            # Made in aligned memory and mapped, not copied: on 10^8 cells it is 0.16 GB.
+            n = len(self._host_code_split)
+            table = aligned_empty(n * NODE_RECORDS * 4, np.uint32).reshape(n, NODE_RECORDS, 4)
+            own = table[:, 0]
             own[:, :2] = self._host_code_split
-            own[:, 2:] = self.node_ranges(basis).reshape(-1, 2).view(np.uint32)
-            table = np.zeros((len(own), NODE_RECORDS, 4), dtype=np.uint32)
-            table[:, 0] = own
+            own[:, 2:] = node_ranges.reshape(-1, 2).view(np.uint32)
+            table[:, 1:] = 0
             inner = np.flatnonzero((own[:, 0] & 3) != 3)
             first = (own[inner, 0] >> 2).astype(np.int64)
             table[inner, 1] = own[first]
             table[inner, 2] = own[first + 1]
-            self._search[key] = self._uints(table.ravel())
+            self._search[key] = mapped_array(self.m.UInt32, table.reshape(-1), np.uint32)
         return self._search[key]
 
     def active_box(self, isovalues):
