@@ -20,10 +20,10 @@ def load(path, fields=None, *, level_buffers=(), **options):
     ``.vdb`` files, one grid per patch (see :mod:`mi_amr.readers.vdb`); last, when yt is
     installed, every grid-based format yt reads (see :mod:`mi_amr.readers.ytsource`; the
     ``options`` go to ``yt.load``). ``fields``
-    (a name or a list of names) reads only those fields from disk. ``level_buffers`` names
-    fields whose levels may be dropped one at a time (see :func:`native.load`); the other
-    readers' arrays are freed level by level already, or not at all (yt's). Derived fields (``speed``,
-    ``q_criterion``) are not read here; see :func:`mi_amr.derive`. Raises
+    (a name or a list of names) reads only those fields from disk. ``level_buffers``: fields
+    that mi_amr's ``.npz`` reader gives a buffer per level (see :func:`native.load`); the
+    other readers ignore it. Derived fields (``speed``, ``q_criterion``) are not read here;
+    see :func:`mi_amr.derive`. Raises
     :class:`~mi_amr.AMRError` for a missing file, something that is neither a regular file nor
     a folder (a FIFO or a device, which would block or never end), an unrecognised format or a
     malformed file.
