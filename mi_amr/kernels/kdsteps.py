@@ -256,25 +256,16 @@ class DeviceSteps:
     def leaf_lists(self, tree, leaf, grid):
         """:func:`leaf_lists`, or None (also for fewer than two pairs, or levels from 32)."""
         takes = fits(tree) and len(leaf) >= 2 and tree.level.max(initial=0) < 32
-        if not takes:
-            return None
-        out = leaf_lists(self.m, tree, leaf, grid)
-        _release(tree)
-        return out
+        return leaf_lists(self.m, tree, leaf, grid) if takes else None
 
     def build(self, tree, max_depth: int):
         """:func:`mi_amr.kernels.kdbuild.build`, or None."""
         if not kdbuild.fits(tree):
             return None
         built = kdbuild.build(self.m, tree, max_depth)
-        _release(tree)
+        if tree.volume.num_cells >= memory.RELEASE_CELLS:
+            # The depths' pair arrays stay in Dr.Jit's cache once freed, where the host arrays
+            # that follow (nodes, leaf lists, ropes) cannot reuse them: a large tree's peak
+            # memory would hold both.
+            dr.flush_malloc_cache()
         return built
-
-
-def _release(tree) -> None:
-    """Hand Dr.Jit's cached allocations back after a step on a large tree: the step's pair
-    arrays stay in that cache once freed, where the arrays that follow (the nodes, the leaf
-    lists, the ropes' lanes, all of other sizes) cannot reuse them, and a large tree's peak
-    memory would hold both."""
-    if tree.volume.num_cells >= memory.RELEASE_CELLS:
-        dr.flush_malloc_cache()
