@@ -226,6 +226,31 @@ def test08b_the_kernels_active_grids_are_the_hosts(name):
     assert (host["leaf_nactive"] < host["leaf_nsupport"]).any()     # some grids move
 
 
+def test08b2_only_partly_covered_grids_read_a_summed_area_table(capfd):
+    """The active-grid kernel reads the leaf-count tables only for partly covered grids: a large
+    uncovered grid beside a small partly covered one (the only table, 5^3 entries) makes no
+    out-of-bounds read (Dr.Jit's debug mode checks every gather), with the host's answers."""
+    from conftest import grid
+    from mi_amr.kernels import kdsteps
+
+    vol = AMRVolume.from_grids([grid(0, (0, 0, 0), (4, 4, 4), 1.0),
+                                grid(0, (4, 0, 0), (20, 16, 16), 1.0),
+                                grid(1, (1, 1, 1), (3, 3, 3), 0.5)])
+    tree = KDTree(vol, leaf_cells=4)
+    assert list(vol.partly_covered()) == [True, False, False]
+    pl = np.repeat(np.arange(tree.num_leaves), tree.leaf_nsupport)
+    pg = tree.leaf_grids.astype(np.int64)
+    capfd.readouterr()
+    dr.set_flag(dr.JitFlag.Debug, True)
+    try:
+        got = kdsteps.pair_active(dr.llvm.ad, tree, pl, pg)
+        dr.sync_thread()
+    finally:
+        dr.set_flag(dr.JitFlag.Debug, False)
+    assert "out-of-bounds" not in capfd.readouterr().err
+    np.testing.assert_array_equal(got, tree._active(pl, pg))
+
+
 def test08c_a_lattice_too_large_for_the_kernels_gets_the_hosts_steps(monkeypatch):
     """A tree whose doubled lattice would overflow the kernels' int32 takes every step on the
     host (the device declines it), the same tree."""

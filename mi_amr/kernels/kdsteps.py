@@ -122,8 +122,10 @@ def pair_active(m, tree, leaf, grid) -> np.ndarray:
 def _active(m, frame, at):
     """The active mask (``m.Bool``) of the (leaf, grid) pairs ``at`` (device UInt32 arrays)."""
     active = _in_support(m, frame, at)
-    return dr.select(active & dr.gather(m.Bool, frame.partly, at[1], active),
-                     _holds_leaf_cell(m, frame, at, active), active)
+    # Only a partly covered grid has a summed-area table: another grid's lanes must not read
+    # one (its offset is clamped to 0, and its window would reach past the tables' end).
+    partly = active & dr.gather(m.Bool, frame.partly, at[1], active)
+    return dr.select(partly, _holds_leaf_cell(m, frame, at, partly), active)
 
 
 def leaf_lists(m, tree, leaf, grid) -> dict:
