@@ -241,12 +241,13 @@ def test08b2_only_partly_covered_grids_read_a_summed_area_table(capfd):
     pl = np.repeat(np.arange(tree.num_leaves), tree.leaf_nsupport)
     pg = tree.leaf_grids.astype(np.int64)
     capfd.readouterr()
+    was = dr.flag(dr.JitFlag.Debug)
     dr.set_flag(dr.JitFlag.Debug, True)
     try:
         got = kdsteps.pair_active(dr.llvm.ad, tree, pl, pg)
         dr.sync_thread()
     finally:
-        dr.set_flag(dr.JitFlag.Debug, False)
+        dr.set_flag(dr.JitFlag.Debug, was)
     assert "out-of-bounds" not in capfd.readouterr().err
     np.testing.assert_array_equal(got, tree._active(pl, pg))
 
