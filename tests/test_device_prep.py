@@ -252,6 +252,32 @@ def test08b2_only_partly_covered_grids_read_a_summed_area_table(capfd):
     np.testing.assert_array_equal(got, tree._active(pl, pg))
 
 
+@pytest.mark.parametrize("name", ["ratio4-2", "random0", "random2"])
+def test08b3_a_load_reads_and_writes_nothing_out_of_bounds(name, capfd):
+    """Preparing a volume (derivation, kd-tree steps on the device, device arrays, brick pools,
+    leaf ranges for both reconstructions, the nodes' search tables) in Dr.Jit's debug mode,
+    which checks every gather and scatter: none is out of bounds."""
+    from mi_amr.kernels.prepared import PreparedVolume
+
+    from test_derive import _velocity_hierarchy
+
+    grids = with_missing(HIERARCHIES[name](), 3)
+    vols = [AMRVolume.from_grids(grids, allow_nonfinite=True),
+            _velocity_hierarchy(2, (2, 4), np.float32, True)]
+    capfd.readouterr()
+    was = dr.flag(dr.JitFlag.Debug)
+    dr.set_flag(dr.JitFlag.Debug, True)
+    try:
+        for vol, field in zip(vols, ("f", "q_criterion")):
+            prep = PreparedVolume(vol, field, m=dr.llvm.ad)
+            for basis in (True, False):
+                prep.device.node_search(basis)
+        dr.sync_thread()
+    finally:
+        dr.set_flag(dr.JitFlag.Debug, was)
+    assert "out-of-bounds" not in capfd.readouterr().err
+
+
 def test08c_a_lattice_too_large_for_the_kernels_gets_the_hosts_steps(monkeypatch):
     """A tree whose doubled lattice would overflow the kernels' int32 takes every step on the
     host (the device declines it), the same tree."""
