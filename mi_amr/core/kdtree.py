@@ -34,12 +34,12 @@ from mi_amr.core.points import (as_points, finest_of,  # noqa: F401  (twins: tes
 from mi_amr.errors import AMRError
 
 LEAF = 3
-# Rows per block of the long per-pair computations: temporaries of a block stay below the
-# allocator's mmap threshold, so they reuse memory instead of page-faulting fresh memory
-# (which cost 5x the arithmetic on 2.8M pairs).
 # |lattice coordinate| below which boxes (and sums of two coordinates) fit in int32; doubled
 # coordinates need half of it.
 INT32_LATTICE = 1 << 30
+# Rows per block of the long per-pair computations: temporaries of a block stay below the
+# allocator's mmap threshold, so they reuse memory instead of page-faulting fresh memory
+# (which cost 5x the arithmetic on 2.8M pairs).
 CHUNK = 1 << 16
 # Boxes descended together by KDTree.overlapping_leaves: their (box, node) pairs stay a few
 # CHUNKs long however many boxes there are.
@@ -169,8 +169,9 @@ class KDTree:
         # Lattice coordinates are whole numbers: int32 (when they fit) halves the memory traffic
         # of the pair tests, which dominate the build.
         ity = np.int32 if self.lattice_reach < INT32_LATTICE else np.int64
-        lattice = tuple(box.astype(ity) for box in (self.lattice_grid_lo, self.lattice_grid_hi,
-                                                    self.lattice_support_lo, self.lattice_support_hi))
+        lattice = tuple(box.astype(ity) for box in (
+            self.lattice_grid_lo, self.lattice_grid_hi,
+            self.lattice_support_lo, self.lattice_support_hi))
         f_lo = self.lattice_root[0][None, :].astype(ity)
         f_hi = self.lattice_root[1][None, :].astype(ity)
         # (node, grid) pairs whose open support overlaps the node.

@@ -69,7 +69,7 @@ def _speed(volume, comps, parts, how) -> bool:
     if len({a.dtype for v in values.values() for a in v} | {parts[0].dtype}) != 1:
         return False
     target, record = _written(m, parts, todo)
-    starts = np.concatenate([[0], np.cumsum([len(a) for a in parts])])
+    starts = _level_starts(parts)
     for level, v in values.items():
         if len(v[0]):
             x, y, z = (_mapped(m, a) for a in v)
@@ -92,7 +92,7 @@ def _fill(volume, comps, wanted, flat, how):
         tables = [_Level(volume, level, comps, m) for level in range(max(todo) + 1)]
         targets = {name: _written(m, flat[name], todo) for name in wanted}
         out = {name: t[0] for name, t in targets.items()}
-        starts = np.concatenate([[0], np.cumsum([len(a) for a in flat[wanted[0]]])])
+        starts = _level_starts(flat[wanted[0]])
         for level in todo:
             lv = tables[level]
             dtypes = {name: flat[name][level].dtype for name in wanted}
@@ -116,12 +116,18 @@ def _written(m, parts, todo):
     host = joined(parts, dtype)
     if host is None or host.size < 2:
         return dr.empty(T, max(sum(len(a) for a in parts), 2)), (parts, todo, None, None)
-    starts = np.concatenate([[0], np.cumsum([len(a) for a in parts])])
+    starts = _level_starts(parts)
     probe = np.unique(np.concatenate([np.zeros(0, np.int64)] + [
         np.linspace(starts[level], starts[level + 1] - 1, min(PROBES, len(parts[level])))
         .astype(np.int64) for level in todo]))
     _bits(host)[probe] = _PAYLOAD[dtype.itemsize]
     return _map(T, host), (parts, todo, host, probe)
+
+
+def _level_starts(parts) -> np.ndarray:
+    """Where each level's values begin in a field's buffer (``parts``: its per-level arrays,
+    end to end), and the end."""
+    return np.concatenate([[0], np.cumsum([len(a) for a in parts])]).astype(np.int64)
 
 
 def _float_type(m, dtype):
@@ -150,7 +156,7 @@ def _settle(m, target, record) -> None:
     if host is not None and np.all(_bits(host)[probe] != _PAYLOAD[host.dtype.itemsize]):
         return
     values = target.numpy()
-    starts = np.concatenate([[0], np.cumsum([len(a) for a in parts])])
+    starts = _level_starts(parts)
     for level in todo:
         parts[level][:] = values[starts[level]:starts[level + 1]]
 

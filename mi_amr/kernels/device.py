@@ -284,13 +284,13 @@ class DeviceVolume:
         :class:`~mi_amr.kernels.config.SearchPlan`)."""
         key = "basis" if basis else "finest"
         if key not in self._search:
-            node_ranges = self.node_ranges(basis)   # (first: its temporaries are freed)
+            bounds = self.node_ranges(basis)   # (first: its temporaries are freed)
             # Made in aligned memory and mapped, not copied: on 10^8 cells it is 0.16 GB.
             n = len(self._host_code_split)
             table = aligned_empty(n * NODE_RECORDS * 4, np.uint32).reshape(n, NODE_RECORDS, 4)
             own = table[:, 0]
             own[:, :2] = self._host_code_split
-            own[:, 2:] = node_ranges.reshape(-1, 2).view(np.uint32)
+            own[:, 2:] = bounds.reshape(-1, 2).view(np.uint32)
             table[:, 1:] = 0
             inner = np.flatnonzero((own[:, 0] & 3) != 3)
             first = (own[inner, 0] >> 2).astype(np.int64)

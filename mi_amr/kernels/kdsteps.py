@@ -31,7 +31,7 @@ from mi_amr.kernels import kdbuild
 from mi_amr.kernels.arrays import device_array, device_table, mapped_array
 
 LEAF = 3                  # the axis field of a leaf's node code (as in mi_amr.core.kdtree)
-LATTICE_MAX = kdtree.INT32_LATTICE // 2   # |lattice coordinate| below which doubled faces fit in int32
+LATTICE_MAX = kdtree.INT32_LATTICE // 2   # |lattice coordinate|: doubled faces fit in int32
 
 
 def fits(tree) -> bool:

@@ -86,11 +86,9 @@ def load(path, fields=None, *, level_buffers=()) -> AMRVolume:
         data = {n: _field(path, archive, n, index["offsets"][-1], (layout, n in level_buffers))
                 for n in wanted}
     offsets, shape = index["offsets"], index["shape"]
-    _, starts, spans = layout
-    rank = np.unique(np.asarray(index["level"]), return_inverse=True)[1].ravel().tolist()
+    _, (rank, within), _ = layout
     # Plain Python numbers (lists, ints), the form AMRVolume.from_grids checks fastest.
     level, origin, spacing = (index[k].tolist() for k in ("level", "origin", "spacing"))
-    within = [starts[i] - spans[rank[i]][0] for i in range(len(shape))]
     grids = [{"level": level[i], "origin": origin[i], "spacing": spacing[i],
               "fields": {n: data[n][rank[i]][within[i]:within[i] + offsets[i + 1] - offsets[i]]
                          .reshape(shape[i]) for n in wanted}}
@@ -144,17 +142,18 @@ class _damage:
 
 
 def _level_layout(index) -> tuple:
-    """Where each grid's values go in the buffer a field is read into: ``(runs, starts,
-    spans)``, with ``runs`` the ``(first, stop, at, rank)`` element ranges of the file's field
-    row (consecutive grids of one level), where each begins in the buffer and the rank of its
-    level, ``starts`` each grid's first element there, and ``spans`` the ``(start, size)`` of
-    each level. Levels lie one after the other in the buffer, each starting on an
+    """Where each grid's values go in the buffer a field is read into: ``(runs, (rank,
+    within), spans)``, with ``runs`` the ``(first, stop, at, rank)`` element ranges of the
+    file's field row (consecutive grids of one level), where each begins within its level and
+    the rank of that level; per grid the rank of its level and its first element within the
+    level (``rank``, ``within``: lists); and ``spans`` the ``(start, size)`` of each level in
+    one buffer. Levels lie one after the other there, each starting on an
     :data:`~mi_amr.core.buffers.ALIGN` byte boundary (for 1-byte values) and its grids in file
     order, so every level's values are one aligned slice that the device maps without a copy
     (:func:`mi_amr.core.levels.level_values`)."""
     level = np.asarray(index["level"], dtype=np.int64)
     if len(level) == 0:
-        return [], [], []
+        return [], ([], []), []
     offsets = np.asarray(index["offsets"], dtype=np.int64)
     counts = np.diff(offsets)
     # Levels ranked (so that a bad level number is left for the volume's checks to name).
@@ -165,12 +164,11 @@ def _level_layout(index) -> tuple:
     for r in range(len(sizes)):
         mine = np.flatnonzero(rank == r)
         within[mine] = np.cumsum(counts[mine]) - counts[mine]
-    starts = level_start[rank] + within
     cut = np.flatnonzero(np.diff(level) != 0) + 1
-    runs = [(int(offsets[a]), int(offsets[b]), int(starts[a]), int(rank[a]))
+    runs = [(int(offsets[a]), int(offsets[b]), int(within[a]), int(rank[a]))
             for a, b in zip(np.concatenate([[0], cut]), np.concatenate([cut, [len(level)]]))]
     spans = [(int(a), int(n)) for a, n in zip(level_start, sizes)]
-    return runs, [int(x) for x in starts], spans
+    return runs, (rank.tolist(), within.tolist()), spans
 
 
 def _field(path: Path, archive, name: str, total: int, how) -> list:
@@ -199,7 +197,6 @@ def _field(path: Path, archive, name: str, total: int, how) -> list:
         f.read(header_size)
         for first, stop, at, rank in runs:
             raw = out[rank].view(np.uint8)
-            at -= spans[rank][0]
             _read_into(f, raw[at * step:(at + stop - first) * step])
         if f.read(1):           # the whole entry read, so that its CRC was checked
             raise AMRError(f"{path}: damaged mi_amr volume: entry '{key}' is longer than "
