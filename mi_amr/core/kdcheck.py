@@ -42,7 +42,9 @@ def _tiling(tree) -> int:
     code = tree.node_code
     inner = np.flatnonzero((code & 3) != LEAF)
     axis = code[inner] & 3
-    lo, hi = tree.lattice_node_lo, tree.lattice_node_hi
+    # float64: the leaves' volumes below are products that overflow integers
+    lo, hi = (np.asarray(a, dtype=np.float64)
+              for a in (tree.lattice_node_lo, tree.lattice_node_hi))
     plane = tree.lattice_node_split[inner]
     rows = np.arange(len(inner))
     for side in (0, 1):

@@ -58,10 +58,12 @@ class KDTree:
 
     ``leaf_cells`` bounds the leaf size in cells of the finest level present at the leaf.
     Positions given and returned are world space. The ``lattice_*`` arrays are the same boxes
-    on the build's exact lattice (float64 counts of finest-level cells from the volume's
+    on the build's exact lattice (whole numbers of finest-level cells from the volume's
     anchor): ``lattice_root`` (low and high corner), ``lattice_grid_lo/hi`` and
-    ``lattice_support_lo/hi`` and ``lattice_step`` (cell widths) per grid, ``(G, 3)``,
-    ``lattice_node_lo/hi/split`` per node and ``lattice_leaf_lo/hi`` per leaf; the device
+    ``lattice_support_lo/hi`` and ``lattice_step`` (cell widths) per grid, ``(G, 3)``
+    (float64), ``lattice_node_lo/hi/split`` per node and ``lattice_leaf_lo/hi`` per leaf
+    (int32 where they fit, else int64); the per-node and per-leaf integers are int32 where
+    they fit too (:func:`compact_ints`). The device
     kernels (:mod:`mi_amr.kernels.kdbuild`, :mod:`mi_amr.kernels.kdsteps`) read them.
     ``chunk`` ((node or leaf, grid) pairs, or boxes) and
     ``box_block`` (boxes) are the blocks the build and the queries work through at a time
@@ -262,15 +264,19 @@ class KDTree:
     def _store(self, out) -> None:
         """The emitted depths as the tree's arrays, in lattice coordinates (the world boxes
         and splits are computed from them when asked for: :attr:`node_lo` and the others)."""
-        self.node_code = np.concatenate(out["code"])
-        self.lattice_node_split = np.concatenate(out["split"], dtype=np.float64)
-        self.lattice_node_lo = np.concatenate(out["lo"], dtype=np.float64)
-        self.lattice_node_hi = np.concatenate(out["hi"], dtype=np.float64)
-        self.node_depth = np.concatenate(out["depth"])
+        # Node and leaf boxes are whole numbers of finest cells: kept in the build's integer
+        # type (int32 when they fit), half the memory of float64. A use that offsets them by a
+        # half cell converts them first (face_boxes, the start table).
+        ity = np.int32 if self.lattice_reach < INT32_LATTICE else np.int64
+        self.node_code = compact_ints(np.concatenate(out["code"]))
+        self.lattice_node_split = np.concatenate(out["split"], dtype=ity)
+        self.lattice_node_lo = np.concatenate(out["lo"], dtype=ity)
+        self.lattice_node_hi = np.concatenate(out["hi"], dtype=ity)
+        self.node_depth = compact_ints(np.concatenate(out["depth"]))
         self.depth = len(out["code"])
-        self.lattice_leaf_lo = np.concatenate(out["leaf_lo"], dtype=np.float64)
-        self.lattice_leaf_hi = np.concatenate(out["leaf_hi"], dtype=np.float64)
-        self.leaf_owner = np.concatenate(out["leaf_owner"])
+        self.lattice_leaf_lo = np.concatenate(out["leaf_lo"], dtype=ity)
+        self.lattice_leaf_hi = np.concatenate(out["leaf_hi"], dtype=ity)
+        self.leaf_owner = compact_ints(np.concatenate(out["leaf_owner"]))
 
     # World boxes and splits: computed from the lattice ones on each use, not stored (a copy
     # of each would hold a third of the tree's memory). Each is float64 in world units.
@@ -309,8 +315,8 @@ class KDTree:
 
     def _leaf_lists(self, pl, pg) -> dict:
         """What :meth:`_order_active` sets, by name: ``leaf_grids`` (int32, aligned),
-        ``leaf_nsupport``, ``leaf_nactive``, ``leaf_start``, ``leaf_levels`` (int64) and
-        ``leaf_min_h`` (float64, ``(L, 3)``), on the host."""
+        ``leaf_nsupport``, ``leaf_nactive``, ``leaf_start``, ``leaf_levels``
+        (:func:`compact_ints`) and ``leaf_min_h`` (float64, ``(L, 3)``), on the host."""
         L, P = self.num_leaves, len(pl)
         active = self._active(pl, pg)
         # Active first within each leaf, each part in grid order: a stable partition, each
@@ -340,8 +346,9 @@ class KDTree:
             for a in range(3):
                 min_h[has, a] = _reduce_runs(
                     np.minimum, np.ascontiguousarray(self.spacing[:, a]), ga, runs, self.chunk)
-        return {"leaf_grids": pg, "leaf_nsupport": nsupport, "leaf_nactive": nactive,
-                "leaf_start": start, "leaf_levels": levels, "leaf_min_h": min_h}
+        return {"leaf_grids": pg, "leaf_nsupport": compact_ints(nsupport),
+                "leaf_nactive": compact_ints(nactive), "leaf_start": compact_ints(start),
+                "leaf_levels": compact_ints(levels), "leaf_min_h": min_h}
 
     def _listed_by_descent(self):
         """Slow twin of the pairs :meth:`_build` returns: every leaf overlapping each grid's
@@ -460,7 +467,8 @@ class KDTree:
     def face_boxes(self, nodes):
         """Closed lattice boxes half a finest cell beyond each face of ``nodes`` (6 rows per
         node, face ``2 * axis + side``), and whether each lies outside the tree's box."""
-        node_lo, node_hi = self.lattice_node_lo[nodes], self.lattice_node_hi[nodes]
+        node_lo = self.lattice_node_lo[nodes].astype(np.float64)   # (half cells below)
+        node_hi = self.lattice_node_hi[nodes].astype(np.float64)
         lo = np.repeat(node_lo[:, None, :], 6, axis=1)
         hi = np.repeat(node_hi[:, None, :], 6, axis=1)
         outside = np.empty((len(nodes), 6), dtype=bool)
@@ -513,7 +521,8 @@ class KDTree:
     def _set_ropes(self, ropes) -> None:
         self.node_ropes = ropes
         is_leaf = (self.node_code & 3) == LEAF
-        self.leaf_node = np.empty(self.num_leaves, dtype=np.int64)
+        self.leaf_node = np.empty(self.num_leaves,
+                                  dtype=np.int32 if self.num_nodes < 2 ** 31 else np.int64)
         self.leaf_node[self.node_code[is_leaf] >> 2] = np.flatnonzero(is_leaf)
 
     def node_ranges(self, leaf_lo, leaf_hi):
@@ -777,6 +786,15 @@ def emit(out, depth, base, n_leaves, f_lo, f_hi, axis, plane, owner) -> int:
                        ("leaf_hi", f_hi[leaf_ids]), ("leaf_owner", owner[leaf_ids])):
         out[key].append(value)
     return n_leaves + len(leaf_ids)
+
+
+def compact_ints(a) -> np.ndarray:
+    """Integer array ``a`` as int32 where all its values fit (half the memory of int64: the
+    tree's per-node and per-leaf numbers), else as int64."""
+    a = np.asarray(a)
+    if a.size == 0 or (int(a.min()) >= -2 ** 31 and int(a.max()) < 2 ** 31):
+        return a.astype(np.int32, copy=False)
+    return a.astype(np.int64, copy=False)
 
 
 def run_starts(keys) -> np.ndarray:

@@ -163,7 +163,7 @@ def leaf_lists(m, tree, leaf, grid) -> dict:
                           at[0], active, mode=kdbuild.DIRECT)
         min_h.append(h)
     dr.eval(grids, counts, start, levels, min_h)
-    host = lambda a: a.numpy()[:L].astype(np.int64)        # noqa: E731
+    host = lambda a: kdtree.compact_ints(a.numpy()[:L])    # noqa: E731
     return {"leaf_grids": aligned_copy(grids.numpy(), np.int32),
             "leaf_nsupport": host(counts[0]), "leaf_nactive": host(counts[1]),
             "leaf_start": host(start), "leaf_levels": host(levels),

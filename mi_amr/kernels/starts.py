@@ -61,9 +61,9 @@ def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_
     nodes have :data:`FINAL` set."""
     if len(active_nodes) == 0:
         return np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64), np.zeros(1, np.uint32)
-    lo = tree.lattice_node_lo[active_nodes].min(axis=0)
-    hi = tree.lattice_node_hi[active_nodes].max(axis=0)
-    cell = (tree.lattice_node_hi[active_nodes] - tree.lattice_node_lo[active_nodes]).min(axis=0)
+    node_lo = tree.lattice_node_lo[active_nodes].astype(np.float64)   # (integers in the tree)
+    node_hi = tree.lattice_node_hi[active_nodes].astype(np.float64)
+    lo, hi, cell = node_lo.min(axis=0), node_hi.max(axis=0), (node_hi - node_lo).min(axis=0)
     origin = tree.lattice_root[0]
     while True:
         # The corner on the cells' lattice from the root's corner (node boxes are aligned so).
