@@ -506,6 +506,28 @@ def _coarse_ghosts(tables, level, c, p):
     lv, m = tables[level], tables[level].m
     k = dr.opaque(m.UInt32, dr.width(c))
     j = dr.arange(m.UInt32, 6 * dr.width(c))
+    on_face, index = _beyond_face(lv, (c, p, k), j)
+    _, found = lv.find(index, on_face)
+    asked = dr.compress(on_face & ~found)
+    slot = dr.zeros(m.UInt32, dr.width(j))
+    dr.scatter(slot, dr.arange(m.UInt32, dr.width(asked)), asked)
+    # The asked ghosts' cells worked out again for those lanes alone: gathering them from
+    # ``index`` would make Dr.Jit write ``index`` for all 6 k lanes, new memory (slow to
+    # touch) for values nearly all of which are never read.
+    index = _beyond_face(lv, (c, p, k), asked)[1]
+    centres = [lv.anchor[a] + (m.Float64(index[a]) + 0.5) * lv.spacing[a] for a in range(3)]
+    values = interpolate(tables, level - 1, centres) if dr.width(asked) else \
+        [dr.full(m.Float64, dr.nan, 2) for _ in range(3)]
+    dr.eval(slot, values)
+    return slot, values
+
+
+def _beyond_face(lv, cells, j):
+    """For lanes ``j`` (face ``j // k`` of cell ``j % k`` of ``cells``: ``(c, p, k)``, the
+    cells' flat positions, grids and number), whether the cell lies on that face of its grid
+    and the level index of the cell beyond it (three Int32 arrays)."""
+    m = lv.m
+    c, p, k = cells
     lane, face_id = j % k, j // k
     cells = _Cells(lv, dr.gather(m.UInt32, c, lane), dr.gather(m.UInt32, p, lane))
     axis, upper = face_id >> 1, (face_id & 1) == 1
@@ -517,13 +539,4 @@ def _coarse_ghosts(tables, level, c, p):
     step = dr.select(upper, m.Int32(1), m.Int32(-1))
     index = [cells.lo[a] + m.Int32(cells.local[a]) + dr.select(along[a], step, 0)
              for a in range(3)]
-    _, found = lv.find(index, on_face)
-    asked = dr.compress(on_face & ~found)
-    slot = dr.zeros(m.UInt32, dr.width(j))
-    dr.scatter(slot, dr.arange(m.UInt32, dr.width(asked)), asked)
-    centres = [lv.anchor[a] + (m.Float64(dr.gather(m.Int32, index[a], asked)) + 0.5) *
-               lv.spacing[a] for a in range(3)]
-    values = interpolate(tables, level - 1, centres) if dr.width(asked) else \
-        [dr.full(m.Float64, dr.nan, 2) for _ in range(3)]
-    dr.eval(slot, values)
-    return slot, values
+    return on_face, index
