@@ -233,7 +233,7 @@ def test10_leaf_lists_hold_the_supports_active_first(tree):
     levels = sum((1 << level) * active[:, vol.levels == level].any(axis=1)
                  for level in range(vol.num_levels))
     np.testing.assert_array_equal(tree.leaf_levels, levels)
-    min_h = np.where(active[:, :, None], vol.spacings()[None], np.inf).min(axis=1)
+    min_h = np.where(active, vol.spacings().min(axis=1)[None], np.inf).min(axis=1)
     np.testing.assert_array_equal(tree.leaf_min_h, min_h)
 
 

@@ -316,7 +316,8 @@ class KDTree:
     def _leaf_lists(self, pl, pg) -> dict:
         """What :meth:`_order_active` sets, by name: ``leaf_grids`` (int32, aligned),
         ``leaf_nsupport``, ``leaf_nactive``, ``leaf_start``, ``leaf_levels``
-        (:func:`compact_ints`) and ``leaf_min_h`` (float64, ``(L, 3)``), on the host."""
+        (:func:`compact_ints`) and ``leaf_min_h`` (float64, ``(L,)``: the narrowest cell side of
+        the leaf's active grids, world units; inf for none), on the host."""
         L, P = self.num_leaves, len(pl)
         active = self._active(pl, pg)
         # Active first within each leaf, each part in grid order: a stable partition, each
@@ -339,13 +340,12 @@ class KDTree:
         has = nactive > 0
         runs = (np.cumsum(nactive) - nactive)[has]
         levels = np.zeros(L, dtype=np.int64)
-        min_h = np.full((L, 3), np.inf)
+        min_h = np.full(L, np.inf)
         if len(runs):
             bits = np.left_shift(1, self.level.astype(np.int64))
             levels[has] = _reduce_runs(np.bitwise_or, bits, ga, runs, self.chunk)
-            for a in range(3):
-                min_h[has, a] = _reduce_runs(
-                    np.minimum, np.ascontiguousarray(self.spacing[:, a]), ga, runs, self.chunk)
+            min_h[has] = _reduce_runs(np.minimum, self.spacing.min(axis=1), ga, runs,
+                                      self.chunk)
         return {"leaf_grids": pg, "leaf_nsupport": compact_ints(nsupport),
                 "leaf_nactive": compact_ints(nactive), "leaf_start": compact_ints(start),
                 "leaf_levels": compact_ints(levels), "leaf_min_h": min_h}

@@ -121,7 +121,7 @@ class DeviceVolume:
         self.leaf_levels = u32(tree.leaf_levels)
         owner_level = np.where(tree.leaf_owner >= 0, volume.levels[np.maximum(tree.leaf_owner, 0)], 0)
         self.leaf_owner_levels = u32(np.where(tree.leaf_owner >= 0, 1 << owner_level, 0))
-        min_h = tree.leaf_min_h.min(axis=1)
+        min_h = tree.leaf_min_h
         self.leaf_min_h = f32(np.where(np.isfinite(min_h), min_h, self.min_h_host))
         # (grid numbers: int32 bits that are uint32's; the tree's own aligned array, mapped)
         self.leaf_grids = mapped_array(m.UInt32, tree.leaf_grids.view(np.uint32), np.uint32)

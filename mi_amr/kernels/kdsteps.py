@@ -154,20 +154,17 @@ def leaf_lists(m, tree, leaf, grid) -> dict:
     bits = device_table(m.UInt32, np.left_shift(1, tree.level.astype(np.int64)), np.uint32)
     dr.scatter_reduce(dr.ReduceOp.Or, levels, dr.gather(m.UInt32, bits, at[1], active), at[0],
                       active, mode=kdbuild.DIRECT)
-    min_h = []
-    for a in range(3):
-        h = dr.full(m.Float64, np.inf, max(L, 2))
-        dr.make_opaque(h)
-        spacing = device_table(m.Float64, tree.spacing[:, a], np.float64)
-        dr.scatter_reduce(dr.ReduceOp.Min, h, dr.gather(m.Float64, spacing, at[1], active),
-                          at[0], active, mode=kdbuild.DIRECT)
-        min_h.append(h)
+    min_h = dr.full(m.Float64, np.inf, max(L, 2))
+    dr.make_opaque(min_h)
+    spacing = device_table(m.Float64, tree.spacing.min(axis=1), np.float64)
+    dr.scatter_reduce(dr.ReduceOp.Min, min_h, dr.gather(m.Float64, spacing, at[1], active),
+                      at[0], active, mode=kdbuild.DIRECT)
     dr.eval(grids, counts, start, levels, min_h)
     host = lambda a: kdtree.compact_ints(a.numpy()[:L])    # noqa: E731
     return {"leaf_grids": aligned_copy(grids.numpy(), np.int32),
             "leaf_nsupport": host(counts[0]), "leaf_nactive": host(counts[1]),
             "leaf_start": host(start), "leaf_levels": host(levels),
-            "leaf_min_h": np.stack([h.numpy()[:L] for h in min_h], axis=1)}
+            "leaf_min_h": min_h.numpy()[:L]}
 
 
 class _ActiveFrame:
