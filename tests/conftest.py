@@ -51,6 +51,13 @@ def reference_grids(ratios=(2, 2), fn=None, names=("f",)):
     return out
 
 
+def stretched(grids, scale=(1.0, 0.5, 2.0)):
+    """``grids`` (mapping records) with every x, y, z length scaled by ``scale``: cells that
+    are not cubes, so a per-axis mix-up shows."""
+    return [dict(g, origin=tuple(np.multiply(g["origin"], scale)),
+                 spacing=tuple(np.multiply(g["spacing"], scale))) for g in grids]
+
+
 def random_grids(seed, *, num_levels=3, ratios=(2, 2), base=(8, 6, 6), tries=12, fn=None):
     """A random valid hierarchy: level 0 is ``base`` cells (size 1) cut into slabs along x;
     each finer level gets up to ``tries`` random boxes, each inside one grid of the level above

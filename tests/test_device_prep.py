@@ -171,16 +171,7 @@ def _grids(name):
     from mi_amr.synthetic import datasets
 
     return {"one grid": lambda: HIERARCHIES["ratio2"]()[:1],
-            "many grids": lambda: datasets.many_grids(10, 300),
-            "anisotropic": lambda: _stretched(HIERARCHIES["random0"]())}.get(
-                name, HIERARCHIES.get(name))()
-
-
-def _stretched(grids, scale=(1.0, 0.5, 2.0)):
-    """``grids`` (mapping records) with every x, y, z length scaled by ``scale``: cells that
-    are not cubes, so a per-axis mix-up shows."""
-    return [dict(g, origin=tuple(np.multiply(g["origin"], scale)),
-                 spacing=tuple(np.multiply(g["spacing"], scale))) for g in grids]
+            "many grids": lambda: datasets.many_grids(10, 300)}.get(name, HIERARCHIES.get(name))()
 
 
 def _same_tree(got, want):
@@ -188,7 +179,7 @@ def _same_tree(got, want):
         np.testing.assert_array_equal(getattr(got, key), getattr(want, key), err_msg=key)
 
 
-@pytest.mark.parametrize("name", sorted(HIERARCHIES) + ["one grid", "many grids", "anisotropic"])
+@pytest.mark.parametrize("name", sorted(HIERARCHIES) + ["one grid", "many grids"])
 def test08_a_tree_built_with_the_devices_steps_is_the_hosts(name):
     """The kernels' ropes (every face descended from the root) equal the host's top-down ones
     and their slow twin, and the kernel's active grids the host's, on every test hierarchy at

@@ -13,7 +13,7 @@ from mi_amr.core.kdtree import (CHUNK, _box_sum, leaf_count_tables,
                                 leaf_count_tables_reference, _window_min_max,
                                 _window_min_max_reference, finest_grid_bruteforce,
                                 support_grids_bruteforce)
-from conftest import random_grids, reference_grids
+from conftest import random_grids, reference_grids, stretched
 
 def random_field(seed):
     """Cell values: independent normal samples (so every cell's value is distinct)."""
@@ -28,6 +28,7 @@ HIERARCHIES = {
     "random0": lambda: random_grids(0, ratios=(2, 4), fn=random_field(4)),
     "random1": lambda: random_grids(1, ratios=(4, 2), fn=random_field(5)),
     "random2": lambda: random_grids(2, ratios=(2, 2), fn=random_field(6)),
+    "anisotropic": lambda: stretched(random_grids(0, ratios=(2, 4), fn=random_field(4))),
 }
 
 

@@ -17,7 +17,7 @@ from mi_amr import AMRVolume
 from mi_amr.kernels import reconstruct as rec
 from mi_amr.kernels.prepared import PreparedVolume
 from mi_amr.core.field64 import basis_point_reference, finest_point_reference
-from conftest import grid, random_grids, reference_grids
+from conftest import grid, random_grids, reference_grids, stretched
 
 M = dr.llvm.ad
 
@@ -37,6 +37,7 @@ HIERARCHIES = {
     "random0-2-4": lambda: random_grids(0, ratios=(2, 4), fn=random_values(4)),
     "random1-4-2": lambda: random_grids(1, ratios=(4, 2), fn=random_values(5)),
     "random2-2-2": lambda: random_grids(2, ratios=(2, 2), fn=random_values(6)),
+    "anisotropic-2-4": lambda: stretched(random_grids(0, ratios=(2, 4), fn=random_values(7))),
 }
 
 
