@@ -60,21 +60,25 @@ def color_of(shares, value):
     return out
 
 
-def linear_cube(n=32):
-    """``f = 2x`` on one grid of ``n^3`` cells over the unit cube."""
-    h = 1.0 / n
-    x = (np.arange(n) + 0.5) * h
-    f = np.broadcast_to(2.0 * x[:, None, None], (n, n, n)).copy()
+def linear_cube(n=32, stretched=False):
+    """``f = 2x`` on one grid over the unit cube: ``n^3`` cubic cells, or (``stretched``)
+    cells half as tall along y and twice as deep along z (``n x 2n x n/2`` of them)."""
+    counts = (n, 2 * n, n // 2) if stretched else (n, n, n)
+    h = tuple(1.0 / c for c in counts)
+    x = (np.arange(n) + 0.5) * h[0]
+    f = np.broadcast_to(2.0 * x[:, None, None], counts).copy()
     return AMRVolume.from_grids([{"level": 0, "origin": (0.0, 0.0, 0.0), "spacing": h,
                                   "fields": {"f": f}}])
 
 
-@pytest.fixture(scope="module", params=["finest", "basis"])
+@pytest.fixture(scope="module", params=["finest", "basis", "basis, stretched cells"])
 def setup(request):
-    vol = linear_cube()
+    vol = linear_cube(stretched="stretched" in request.param)
     dev = PreparedVolume(vol, "f", m=M).device
-    shapes = [band.OpacityBand(width=w, peak=p, dx0=float(dev.min_h.numpy()[0])) for _, w, p in BANDS]
-    cfg = MarchConfig(method="exact", basis=request.param == "basis",
+    # The cubes' cell width for every grid: the stretched cells see the same bands.
+    assert float(dev.min_h.numpy()[0]) == (1.0 / 64 if "stretched" in request.param else 1.0 / 32)
+    shapes = [band.OpacityBand(width=w, peak=p, dx0=1.0 / 32) for _, w, p in BANDS]
+    cfg = MarchConfig(method="exact", basis=request.param != "finest",
                       isovalues=opaque_floats(M, [c for c, _, _ in BANDS]),
                       step_scale=opaque_floats(M, [0.5]), num_iso=len(BANDS),
                       band=band.band_inputs(M, shapes), shading_extrema=False)
