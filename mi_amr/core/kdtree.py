@@ -755,8 +755,8 @@ class KDTree:
     def window_frame(self) -> dict:
         """What a pair's window (:meth:`_windows`) is computed from, as the device reads it:
         the leaves' boxes ``leaf_lo``/``leaf_hi`` and the grids' lower corners ``grid_lo`` and
-        cell widths ``step`` (lattice coordinates, float64, ``(L, 3)`` and ``(G, 3)``), and
-        the grids' ``shape``."""
+        cell widths ``step`` (lattice coordinates, ``(L, 3)`` integers and ``(G, 3)``
+        float64), and the grids' ``shape``."""
         return {"leaf_lo": self.lattice_leaf_lo, "leaf_hi": self.lattice_leaf_hi,
                 "grid_lo": self.lattice_grid_lo, "step": self.lattice_step, "shape": self.shape}
 

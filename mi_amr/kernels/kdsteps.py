@@ -134,7 +134,7 @@ def leaf_lists(m, tree, leaf, grid) -> dict:
     grid), on backend ``m``: the pairs' active grids decided as :func:`pair_active` does, each
     leaf's grids put active first (stable: each pair's place from prefix sums over the pairs
     and the leaves), and per leaf the counts, the bitmask of its active grids' levels (levels
-    below 32) and their least cell width per axis (atomic reductions)."""
+    below 32) and their narrowest cell side (atomic reductions)."""
     L, P = tree.num_leaves, len(leaf)
     at = (device_array(m.UInt32, leaf, np.uint32), device_array(m.UInt32, grid, np.uint32))
     active = _active(m, _ActiveFrame(m, tree), at)
