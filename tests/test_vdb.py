@@ -11,7 +11,6 @@ Voxel sizes 0.1, 0.05, 0.025 (not binary fractions) make values equal to float32
 
 import importlib.util
 import json
-import math
 import re
 import shutil
 import struct
@@ -116,6 +115,18 @@ SPECS = {
     "anisotropic": [grid_spec("float", "density", 0.1, (0, 0, 0), (4, 4, 4),
                               matrix=[[0.1, 0, 0, 0], [0, 0.2, 0, 0], [0, 0, 0.1, 0],
                                       [0, 0, 0, 1]])],
+    # Voxels 0.1 x 0.2 x 0.1 refined by 2 on every axis (voxel i covers [s i, s (i + 1)]).
+    "anisotropic_levels": [
+        grid_spec("float", "density", 0.1, (0, 0, 0), (4, 4, 4),
+                  matrix=[[0.1, 0, 0, 0], [0, 0.2, 0, 0], [0, 0, 0.1, 0], [0.05, 0.1, 0.05, 1]]),
+        grid_spec("float", "density", 0.05, (2, 2, 2), (4, 4, 4),
+                  matrix=[[0.05, 0, 0, 0], [0, 0.1, 0, 0], [0, 0, 0.05, 0],
+                          [0.025, 0.05, 0.025, 1]])],
+    # Refined by 2, 4 and 2 along x, y and z: no AMR level.
+    "anisotropic_ratio": [
+        grid_spec("float", "density", 0.1, (0, 0, 0), (4, 4, 4),
+                  matrix=[[0.1, 0, 0, 0], [0, 0.2, 0, 0], [0, 0, 0.1, 0], [0.05, 0.1, 0.05, 1]]),
+        grid_spec("float", "density", 0.05, (2, 2, 2), (4, 4, 4))],
     "misaligned": [grid_spec("float", "density", 0.1, (0, 0, 0), (4, 4, 4)),
                    grid_spec("float", "pressure", 0.1, (0, 0, 0), (4, 4, 3))],
     "name_clash": [grid_spec("vec3s", "v", 0.1, (0, 0, 0), (4, 4, 4)),
@@ -362,11 +373,29 @@ def test17_voxel_sizes_not_a_ratio_chain(written):
 
 @pytest.mark.parametrize("name, message", [
     ("rotated", r"grid 'density' .*AffineMap.*rotates"),
-    ("anisotropic", r"grid 'density' .*ScaleMap with scale \(0\.1, 0\.2, 0\.1\)"),
 ])
 def test18_unsupported_transforms(written, name, message):
     with pytest.raises(AMRError, match=f"{name}\\.vdb: {message}"):
         vdb.load(readable(written, name))
+
+
+def test18b_voxels_that_are_not_cubes(written):
+    """A voxel size per axis (a ScaleMap of 0.1, 0.2, 0.1) reads as cells of that size, one
+    level or two refined by 2 on every axis, with OpenVDB's values at the voxel centres; a
+    refinement that differs between the axes is refused, naming the sizes."""
+    for name, levels in (("anisotropic", 1), ("anisotropic_levels", 2)):
+        volume = vdb.load(readable(written, name))
+        assert volume.num_levels == levels
+        for g in volume.grids:
+            np.testing.assert_allclose(g.spacing, np.array([0.1, 0.2, 0.1]) / 2 ** g.level,
+                                       rtol=1e-12)
+            np.testing.assert_allclose(g.fields["density"], components(*world_centres(g))[0],
+                                       rtol=1e-6, atol=1e-6)
+    fine = volume.grids[1] if volume.grids[1].level == 1 else volume.grids[0]
+    np.testing.assert_allclose(fine.origin, (0.1, 0.2, 0.1), atol=1e-12)
+    with pytest.raises(AMRError, match=r"anisotropic_ratio\.vdb: voxel size 0\.05 .* is "
+                                       r"\(2, 4, 2\) times smaller .*same factor on every axis"):
+        vdb.load(readable(written, "anisotropic_ratio"))
 
 
 def test19_fields_of_one_patch_must_share_the_box(written):
@@ -462,9 +491,12 @@ def test27_transform_maps():
     m[3] = (1.0, 2.0, 3.0, 1.0)
     m[0, 1] = 1e-17  # rounding left by a rotation by 2 pi
     s, t = vdb._read_transform(cursor("AffineMap", m.ravel()))
-    assert s == 0.5 and t.tolist() == [1.0, 2.0, 3.0]
+    assert s.tolist() == [0.5] * 3 and t.tolist() == [1.0, 2.0, 3.0]
     s, t = vdb._read_transform(cursor("TranslationMap", [1.0, 2.0, 3.0]))
-    assert s == 1.0 and t.tolist() == [1.0, 2.0, 3.0]
+    assert s.tolist() == [1.0] * 3 and t.tolist() == [1.0, 2.0, 3.0]
+    s, t = vdb._read_transform(cursor("ScaleTranslateMap", [1.0, 2.0, 3.0, 0.1, 0.2, 0.1] +
+                                      [0.0] * 12))
+    assert s.tolist() == [0.1, 0.2, 0.1] and t.tolist() == [1.0, 2.0, 3.0]
     with pytest.raises(AMRError, match="NonlinearFrustumMap.*not supported"):
         vdb._read_transform(cursor("NonlinearFrustumMap", []))
-    assert math.isclose(vdb._read_transform(cursor("UniformScaleMap", [0.25] * 15))[0], 0.25)
+    assert vdb._read_transform(cursor("UniformScaleMap", [0.25] * 15))[0].tolist() == [0.25] * 3

@@ -35,12 +35,12 @@ later; all numbers little-endian, a *string* is a ``uint32`` length and that man
   when a half grid has nothing to store); tile, background and inactive values are always full
   precision.
 
-Placement: a grid's transform must be a uniform scale ``s`` plus a translation ``t`` (any of
-OpenVDB's scale/translate maps, or an affine map of that form). VDB index space is cell-centred:
-voxel ``(i, j, k)`` has its centre at world ``s * (i, j, k) + t`` and covers ``s`` around it,
-so a grid whose active voxels span index ``lo .. hi`` (inclusive) becomes an AMR grid with
-origin ``s * (lo - 0.5) + t``, spacing ``s`` and shape ``hi - lo + 1``; arrays are indexed
-``[i, j, k]`` = x, y, z.
+Placement: a grid's transform must be a scale ``s`` (one voxel size, or one per axis) plus a
+translation ``t`` (any of OpenVDB's scale/translate maps, or an affine map of that form). VDB
+index space is cell-centred: voxel ``(i, j, k)`` has its centre at world ``s * (i, j, k) + t``
+(per axis) and covers ``s`` around it, so a grid whose active voxels span index ``lo .. hi``
+(inclusive) becomes an AMR grid with origin ``s * (lo - 0.5) + t``, spacing ``s`` and shape
+``hi - lo + 1``; arrays are indexed ``[i, j, k]`` = x, y, z.
 
 Values: the AMR grid is the bounding box of the grid's *active* voxels (and active tiles). Each
 cell takes the value OpenVDB itself returns for that voxel (``getValue``, as ``copyToArray``
@@ -51,13 +51,14 @@ voxels are inactive), as long as its outermost voxels are not all equal to the b
 box would shrink; ``copyFromArray(..., tolerance=-1)`` keeps every voxel active).
 
 Patches and levels: the coarsest voxel size in the file is level 0; every finer voxel size must be
-2 or 4 times smaller than the next coarser one. Grids with the same name at several voxel sizes
-(or several grids of one name at one size) are the patches of one field; grids of different
-names at the same voxel size with identical boxes are the fields of one patch. A ``vec3s`` grid
+2 or 4 times smaller than the next coarser one, by the same factor on every axis. Grids with the
+same name at several voxel sizes (or several grids of one name at one size) are the patches of
+one field; grids of different names at the same voxel size with identical boxes are the fields
+of one patch. A ``vec3s`` grid
 ``v`` gives the fields ``v_x``, ``v_y``, ``v_z``; float grids keep their names.
 
 Refused with an :class:`~mi_amr.AMRError` naming the file and the grid: other grid types (read
-the supported ones with ``fields=[...]``), rotated, sheared, anisotropic or frustum transforms,
+the supported ones with ``fields=[...]``), rotated, sheared or frustum transforms,
 grids without active voxels, files older than format 222, and truncated or corrupt data. Blosc
 data (OpenVDB's default compression) needs the ``blosc`` package (``pip install blosc``).
 """
@@ -92,8 +93,9 @@ VECTOR_SUFFIXES = ("_x", "_y", "_z")
 # Map type -> number of float64 values in its serialisation (see the module docstring).
 MAP_SIZES = {"UniformScaleMap": 15, "ScaleMap": 15, "UniformScaleTranslateMap": 18,
              "ScaleTranslateMap": 18, "TranslationMap": 3, "AffineMap": 16}
-# Scales of one map that differ by less than this (relative) count as uniform: OpenVDB stores
-# scale and translation in doubles, so only a real anisotropy or rotation exceeds it.
+# Off-diagonal terms of an affine map below this (relative to its scale) count as none, and
+# voxel sizes of one map that differ by less count as one: OpenVDB stores the map in doubles,
+# so only a real rotation, shear or anisotropy exceeds it.
 SCALE_TOLERANCE = 1e-9
 # Voxel sizes within this (relative) of each other are one level.
 LEVEL_TOLERANCE = 1e-6
@@ -154,12 +156,12 @@ class VDBHeader:
 
 @dataclass(frozen=True)
 class VDBGrid:
-    """One decoded grid: its uniform voxel size and translation (world units), the inclusive
-    index box of its active voxels, and the dense values over that box, ``(nx, ny, nz, ncomp)``
-    float32 indexed ``[i, j, k]`` = x, y, z."""
+    """One decoded grid: its voxel size (per axis, ``(3,)``) and translation (world units), the
+    inclusive index box of its active voxels, and the dense values over that box,
+    ``(nx, ny, nz, ncomp)`` float32 indexed ``[i, j, k]`` = x, y, z."""
 
     descriptor: GridDescriptor
-    voxel_size: float
+    voxel_size: np.ndarray
     translation: np.ndarray
     index_lo: np.ndarray
     index_hi: np.ndarray
@@ -432,8 +434,8 @@ def _read_map(cur: _Cursor):
 
 
 def _read_transform(cur: _Cursor):
-    """The grid's transform as ``(voxel size, translation (3,))``, world units: world position
-    of the centre of voxel ``ijk`` is ``voxel size * ijk + translation``."""
+    """The grid's transform as ``(voxel size (3,), translation (3,))``, world units: world
+    position of the centre of voxel ``ijk`` is ``voxel size * ijk + translation`` (per axis)."""
     map_type, v = _read_map(cur)
     translation = np.zeros(3)
     if map_type in ("UniformScaleMap", "ScaleMap"):
@@ -449,14 +451,16 @@ def _read_transform(cur: _Cursor):
         if (np.any(np.abs(off) > SCALE_TOLERANCE * np.max(np.abs(scale)))
                 or np.any(m[:3, 3] != 0) or m[3, 3] != 1):
             raise cur.fail(f"AffineMap {m.tolist()} rotates, shears or projects; mi_amr needs "
-                           f"a uniform scale and a translation")
-    s = float(scale[0])
-    if not (np.all(np.isfinite(scale)) and np.all(np.isfinite(translation)) and s > 0
-            and np.all(np.abs(scale - s) <= SCALE_TOLERANCE * s)):
+                           f"a scale along the axes and a translation")
+    if not (np.all(np.isfinite(scale)) and np.all(np.isfinite(translation)) and
+            np.all(scale > 0)):
         raise cur.fail(f"{map_type} with scale {tuple(float(x) for x in scale)} and translation "
-                       f"{tuple(float(x) for x in translation)}: mi_amr needs one positive voxel "
-                       f"size on all axes")
-    return s, np.asarray(translation, dtype=np.float64)
+                       f"{tuple(float(x) for x in translation)}: mi_amr needs a positive voxel "
+                       f"size on every axis")
+    # One size on all axes, bit for bit, where the map says so up to its rounding.
+    if np.all(np.abs(scale - scale[0]) <= SCALE_TOLERANCE * scale[0]):
+        scale = np.full(3, scale[0])
+    return np.asarray(scale, dtype=np.float64), np.asarray(translation, dtype=np.float64)
 
 
 # ---------------------------------------------------------------------- the tree
@@ -776,21 +780,23 @@ def field_names_of(header: VDBHeader) -> list:
 
 def _levels(path: Path, grids: list) -> list:
     """Level of every grid from its voxel size: coarsest is 0, each finer size 2 or 4 times
-    smaller than the one before."""
+    smaller than the one before, by the same factor on every axis."""
     sizes = []  # distinct voxel sizes, coarsest first, each with the grids that have it
-    for g in sorted(grids, key=lambda g: -g.voxel_size):
-        if sizes and abs(sizes[-1][0] - g.voxel_size) <= LEVEL_TOLERANCE * g.voxel_size:
+    for g in sorted(grids, key=lambda g: -float(g.voxel_size.max())):
+        if sizes and np.all(np.abs(sizes[-1][0] - g.voxel_size) <=
+                            LEVEL_TOLERANCE * g.voxel_size):
             sizes[-1][1].append(g)
         else:
             sizes.append((g.voxel_size, [g]))
     for (coarse, cg), (fine, fg) in zip(sizes, sizes[1:]):
         ratio = coarse / fine
-        if not any(abs(ratio - r) <= LEVEL_TOLERANCE * r for r in (2, 4)):
-            raise AMRError(f"{path}: voxel size {fine:g} ({fg[0].descriptor.describe()}) is "
-                           f"{ratio:.6g} times smaller than the next coarser voxel size "
-                           f"{coarse:g} ({cg[0].descriptor.describe()}); each finer voxel size "
-                           f"must be 2 or 4 times smaller, so the voxel sizes "
-                           f"{[s for s, _ in sizes]} are not an AMR hierarchy")
+        if not any(np.all(np.abs(ratio - r) <= LEVEL_TOLERANCE * r) for r in (2, 4)):
+            raise AMRError(f"{path}: voxel size {_size_text(fine)} ({fg[0].descriptor.describe()})"
+                           f" is {_size_text(ratio, '.6g')} times smaller than the next coarser "
+                           f"voxel size {_size_text(coarse)} ({cg[0].descriptor.describe()}); each "
+                           f"finer voxel size must be 2 or 4 times smaller, by the same factor on "
+                           f"every axis, so the voxel sizes "
+                           f"{', '.join(_size_text(v) for v, _ in sizes)} are not an AMR hierarchy")
     level = {}
     for lev, (_, gs) in enumerate(sizes):
         for g in gs:
@@ -825,8 +831,8 @@ def _patches(path: Path, grids: list, levels: list) -> list:
                 other = p[5][0]
                 raise AMRError(f"{path}: {g.descriptor.describe()} (active box "
                                f"{_box_text(lo, hi)}) and {other.descriptor.describe()} (active "
-                               f"box {_box_text(p[2], p[3])}) have voxel size {s:g} and overlap "
-                               f"without having the same box; grids of one voxel size must either "
+                               f"box {_box_text(p[2], p[3])}) have voxel size {_size_text(s)} and "
+                               f"overlap without having the same box; grids of one voxel size must either "
                                f"be one patch (identical active bounding boxes) or not overlap. "
                                f"Voxels equal to the background are inactive after "
                                f"copyFromArray; write with tolerance=-1 to keep them")
@@ -837,11 +843,21 @@ def _patches(path: Path, grids: list, levels: list) -> list:
         missing = [n for n in names if n not in p[4]]
         if missing:
             members = ", ".join(g.descriptor.describe() for g in p[5])
-            raise AMRError(f"{path}: the patch {_box_text(p[2], p[3])} at voxel size {p[1]:g} "
+            raise AMRError(f"{path}: the patch {_box_text(p[2], p[3])} at voxel size "
+                           f"{_size_text(p[1])} "
                            f"({members}) has no grid for field(s) {missing}; every field needs "
                            f"a grid with the same active box on every patch")
-    return [{"level": p[0], "origin": tuple(float(x) for x in p[2]), "spacing": p[1],
+    return [{"level": p[0], "origin": tuple(float(x) for x in p[2]),
+             "spacing": tuple(float(x) for x in p[1]),
              "fields": {n: p[4][n] for n in names}} for p in patches]
+
+
+def _size_text(size, fmt: str = "g") -> str:
+    """A voxel size (or a ratio of them), ``(3,)``: one number where the axes agree, else
+    ``(x, y, z)``."""
+    if np.all(size == size[0]):
+        return f"{size[0]:{fmt}}"
+    return "(" + ", ".join(f"{x:{fmt}}" for x in size) + ")"
 
 
 def _box_text(lo, hi) -> str:
