@@ -154,6 +154,35 @@ def test20_freed_memory_is_kept_for_the_next_array():
     assert mapped >= 24 and kept < 24
 
 
+_ADVICE = """
+import numpy as np
+from mi_amr.core import memory
+
+memory.keep_freed_memory()
+print(int(np._core.multiarray._get_madvise_hugepage()))
+"""
+
+
+def test20b_a_load_turns_numpys_huge_page_advice_off():
+    """memory.keep_freed_memory() (every load calls it) stops NumPy advising huge pages for its
+    new arrays, whose first write can stall on memory compaction; MI_AMR_KEEP_MEMORY=0 leaves
+    NumPy's default (advice on)."""
+    import subprocess
+
+    np_core = getattr(np, "_core", None)
+    if np_core is None or not hasattr(np_core.multiarray, "_get_madvise_hugepage"):
+        pytest.skip("this NumPy has no huge-page switch")
+
+    def advice(**env):
+        env = {k: v for k, v in {**os.environ, **env}.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+        out = subprocess.run([sys.executable, "-c", _ADVICE], capture_output=True, text=True,
+                             check=True, env=env)
+        return int(out.stdout.split()[-1])
+
+    assert advice() == 0
+    assert advice(MI_AMR_KEEP_MEMORY="0") == 1
+
+
 _RELEASE = """
 import sys
 import numpy as np

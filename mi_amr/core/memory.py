@@ -1,4 +1,4 @@
-"""Asking the C allocator to keep freed memory for reuse during a load.
+"""Asking the allocators to touch fresh memory less during a load.
 
 A load makes and frees many arrays of a few to a few tens of megabytes (chunks of the
 derivation, a depth's pairs in the kd-tree, the leaf ranges' windows). glibc's malloc gives
@@ -9,8 +9,17 @@ up to :data:`TRIM_THRESHOLD` of freed heap is kept, so the next array reuses pag
 touched. The peak memory of a load is unchanged; the process may hold up to
 :data:`TRIM_THRESHOLD` more afterwards. A load of :data:`RELEASE_CELLS` cells or more hands the
 freed memory back (:func:`release_freed_memory`) before its brick pools, which cannot reuse it.
-``MI_AMR_KEEP_MEMORY=0`` leaves the allocator as it is. Elsewhere than glibc (macOS, musl)
-nothing changes.
+
+NumPy advises the kernel to back its large arrays with transparent huge pages. Where the kernel
+compacts memory to find a huge page when a page of such an array is first written (its
+``transparent_hugepage/defrag`` policy ``madvise``, the common default, or ``always``), a
+fragmented machine stalls on that write, far longer than the write takes, while a load
+writes most of its memory once and in order, where huge pages gain little (the frames that
+follow were measured the same either way). A load therefore turns the advice off
+(:func:`keep_freed_memory`), for the process, as it does the glibc settings.
+
+``MI_AMR_KEEP_MEMORY=0`` leaves the allocators as they are. Elsewhere than glibc (macOS, musl)
+the glibc settings do nothing.
 """
 
 from __future__ import annotations
@@ -29,14 +38,31 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3     # mallopt's parameter numbers 
 
 
 def keep_freed_memory() -> bool:
-    """Set the two thresholds (see the module docstring); True where they were set. Calling
-    it again sets the same values."""
+    """Set the two thresholds and turn NumPy's huge-page advice off (see the module
+    docstring); True where the thresholds were set. Calling it again sets the same values."""
+    if os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() != "0":
+        no_huge_page_advice()
     mallopt = _glibc("mallopt")
     if mallopt is None:
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and \
         bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+
+
+def no_huge_page_advice() -> bool:
+    """Stop NumPy advising transparent huge pages for the arrays it makes from now on (see the
+    module docstring); True where this NumPy has the switch (``NUMPY_MADVISE_HUGEPAGE`` is the
+    same switch, read when NumPy is imported)."""
+    import numpy as np
+
+    core = getattr(np, "_core", None)          # NumPy 2 (np.core warns there); 1.x below
+    switch = getattr(getattr(core if core is not None else np.core, "multiarray", None),
+                     "_set_madvise_hugepage", None)
+    if switch is None:
+        return False
+    switch(False)
+    return True
 
 
 def release_freed_memory() -> bool:
