@@ -52,17 +52,20 @@ def keep_freed_memory() -> bool:
 
 def no_huge_page_advice() -> bool:
     """Stop NumPy advising transparent huge pages for the arrays it makes from now on (see the
-    module docstring); True where this NumPy has the switch (``NUMPY_MADVISE_HUGEPAGE`` is the
-    same switch, read when NumPy is imported)."""
+    module docstring); True where this NumPy has the switch."""
+    return huge_page_advice(False) is not None
+
+
+def huge_page_advice(on: bool):
+    """Make NumPy advise transparent huge pages for its new arrays (``on``, its default) or
+    not; returns the setting before, or None where this NumPy has no such switch
+    (``NUMPY_MADVISE_HUGEPAGE`` is the same switch, read when NumPy is imported)."""
     import numpy as np
 
     core = getattr(np, "_core", None)          # NumPy 2 (np.core warns there); 1.x below
     switch = getattr(getattr(core if core is not None else np.core, "multiarray", None),
                      "_set_madvise_hugepage", None)
-    if switch is None:
-        return False
-    switch(False)
-    return True
+    return None if switch is None else bool(switch(bool(on)))
 
 
 def release_freed_memory() -> bool:

@@ -212,6 +212,7 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
         snapshot.SnapshotCache.from_env()
     snap_key = snapshot.entry_key(path, field, color_field, leaf_cells) \
         if cache.enabled else None
+    memory.keep_freed_memory()          # a snapshot's read back too
     t0 = time.perf_counter()
     snap = cache.load(snap_key) if snap_key else None
     if snap is not None:
