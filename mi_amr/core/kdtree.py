@@ -170,7 +170,7 @@ class KDTree:
         G = len(self.grid_lo)
         # Lattice coordinates are whole numbers: int32 (when they fit) halves the memory traffic
         # of the pair tests, which dominate the build.
-        ity = np.int32 if self.lattice_reach < INT32_LATTICE else np.int64
+        ity = self.lattice_int
         lattice = tuple(box.astype(ity) for box in (
             self.lattice_grid_lo, self.lattice_grid_hi,
             self.lattice_support_lo, self.lattice_support_hi))
@@ -267,7 +267,7 @@ class KDTree:
         # Node and leaf boxes are whole numbers of finest cells: kept in the build's integer
         # type (int32 when they fit), half the memory of float64. A use that offsets them by a
         # half cell converts them first (face_boxes, the start table).
-        ity = np.int32 if self.lattice_reach < INT32_LATTICE else np.int64
+        ity = self.lattice_int
         self.node_code = compact_ints(np.concatenate(out["code"]))
         self.lattice_node_split = np.concatenate(out["split"], dtype=ity)
         self.lattice_node_lo = np.concatenate(out["lo"], dtype=ity)
@@ -610,6 +610,11 @@ class KDTree:
     def lattice_reach(self) -> float:
         """The largest |lattice coordinate| of the tree (its root's corners bound every box)."""
         return float(np.abs(np.concatenate(self.lattice_root)).max())
+
+    @property
+    def lattice_int(self):
+        """The integer type of the tree's lattice boxes: int32 where they fit, else int64."""
+        return np.int32 if self.lattice_reach < INT32_LATTICE else np.int64
 
     @property
     def num_nodes(self) -> int:

@@ -40,20 +40,14 @@ _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3     # mallopt's parameter numbers 
 def keep_freed_memory() -> bool:
     """Set the two thresholds and turn NumPy's huge-page advice off (see the module
     docstring); True where the thresholds were set. Calling it again sets the same values."""
-    if os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() != "0":
-        no_huge_page_advice()
+    if not _left_alone():
+        huge_page_advice(False)
     mallopt = _glibc("mallopt")
     if mallopt is None:
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and \
         bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
-
-
-def no_huge_page_advice() -> bool:
-    """Stop NumPy advising transparent huge pages for the arrays it makes from now on (see the
-    module docstring); True where this NumPy has the switch."""
-    return huge_page_advice(False) is not None
 
 
 def huge_page_advice(on: bool):
@@ -84,10 +78,14 @@ def release_freed_memory() -> bool:
 def _glibc(name: str):
     """The process's C library function ``name``; None with ``MI_AMR_KEEP_MEMORY=0``, off
     Linux, or where the C library has no such function (not glibc)."""
-    if os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() == "0" or \
-            not sys.platform.startswith("linux"):
+    if _left_alone() or not sys.platform.startswith("linux"):
         return None
     try:
         return getattr(ctypes.CDLL(None), name)     # the process's own C library
     except (OSError, AttributeError):
         return None
+
+
+def _left_alone() -> bool:
+    """True where ``MI_AMR_KEEP_MEMORY=0`` asks to leave the allocators as they are."""
+    return os.environ.get("MI_AMR_KEEP_MEMORY", "1").strip() == "0"

@@ -212,7 +212,7 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
         snapshot.SnapshotCache.from_env()
     snap_key = snapshot.entry_key(path, field, color_field, leaf_cells) \
         if cache.enabled else None
-    memory.keep_freed_memory()          # a snapshot's read back too
+    memory.keep_freed_memory()          # for the read's buffers, or the snapshot's
     t0 = time.perf_counter()
     snap = cache.load(snap_key) if snap_key else None
     if snap is not None:
@@ -235,7 +235,6 @@ def _prepare_from_file(path, field, color_field, leaf_cells, m, report) -> Prepa
     from mi_amr.readers import available_fields, load
 
     say = report or (lambda text: None)
-    memory.keep_freed_memory()          # the read's buffers too
     names = fields_to_read(field, color_field, available_fields(path))
     t0 = time.perf_counter()
     volume = load(path, fields=names, level_buffers=set(names) - {field, color_field})

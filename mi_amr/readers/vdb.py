@@ -54,8 +54,8 @@ Patches and levels: the coarsest voxel size in the file is level 0; every finer 
 2 or 4 times smaller than the next coarser one, by the same factor on every axis. Grids with the
 same name at several voxel sizes (or several grids of one name at one size) are the patches of
 one field; grids of different names at the same voxel size with identical boxes are the fields
-of one patch. A ``vec3s`` grid
-``v`` gives the fields ``v_x``, ``v_y``, ``v_z``; float grids keep their names.
+of one patch. A ``vec3s`` grid ``v`` gives the fields ``v_x``, ``v_y``, ``v_z``; float grids
+keep their names.
 
 Refused with an :class:`~mi_amr.AMRError` naming the file and the grid: other grid types (read
 the supported ones with ``fields=[...]``), rotated, sheared or frustum transforms,
@@ -832,8 +832,9 @@ def _patches(path: Path, grids: list, levels: list) -> list:
                 raise AMRError(f"{path}: {g.descriptor.describe()} (active box "
                                f"{_box_text(lo, hi)}) and {other.descriptor.describe()} (active "
                                f"box {_box_text(p[2], p[3])}) have voxel size {_size_text(s)} and "
-                               f"overlap without having the same box; grids of one voxel size must either "
-                               f"be one patch (identical active bounding boxes) or not overlap. "
+                               f"overlap without having the same box; grids of one voxel size "
+                               f"must either be one patch (identical active bounding boxes) or "
+                               f"not overlap. "
                                f"Voxels equal to the background are inactive after "
                                f"copyFromArray; write with tolerance=-1 to keep them")
         else:
