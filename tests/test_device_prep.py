@@ -318,3 +318,45 @@ def test07_a_session_gives_back_what_it_prepared_until_cleared(tmp_path):
     assert prepare_file(path, "q_criterion", "speed", m=dr.llvm.ad) is not first
     session.clear()
     assert session.prepare(path, "q_criterion", "speed", m=dr.llvm.ad) is not first
+
+
+class _Prepared:
+    """What a stand-in ``prepare_file`` gives: something a weak reference can watch."""
+
+
+def test07b_a_session_full_forgets_its_oldest_before_it_prepares_another(tmp_path, monkeypatch):
+    """With :attr:`Preparations.SIZE` volumes kept, preparing another first forgets the
+    oldest, so that what it held is freed before the new load (which then reuses that memory
+    instead of touching new memory); :meth:`Preparations.retain` forgets those of the other
+    files, and a file forgotten is prepared again when asked for."""
+    import weakref
+
+    from mi_amr.kernels import prepared
+
+    made, alive_at_call = [], []
+
+    def stand_in(path, *args, **kwargs):
+        alive_at_call.append([ref() is not None for ref in made])
+        out = _Prepared()
+        made.append(weakref.ref(out))
+        return out
+
+    monkeypatch.setattr(prepared, "prepare_file", stand_in)
+    paths = []
+    for i in range(prepared.Preparations.SIZE + 2):
+        paths.append(tmp_path / f"step{i}.npz")
+        paths[-1].write_bytes(b"")
+    session = prepared.Preparations()
+    size = session.SIZE
+    for p in paths:
+        session.prepare(p, "q_criterion", m=dr.llvm.ad)
+    # While the volume after the first SIZE is prepared, the oldest is already gone.
+    assert alive_at_call[size] == [False] + [True] * (size - 1)
+    assert alive_at_call[size + 1] == [False, False] + [True] * (size - 1)
+    kept = session.prepare(paths[-1], "q_criterion", m=dr.llvm.ad)
+    assert len(made) == size + 2                       # the kept one is given again
+    session.retain([str(paths[-1])])
+    assert [ref() is not None for ref in made][:-1] == [False] * (size + 1)
+    assert session.prepare(paths[-1], "q_criterion", m=dr.llvm.ad) is kept
+    session.prepare(paths[-2], "q_criterion", m=dr.llvm.ad)
+    assert len(made) == size + 3                       # forgotten: prepared again

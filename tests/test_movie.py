@@ -564,6 +564,35 @@ def test18_the_next_time_step_is_prepared_while_a_frame_renders(series, tmp_path
         preps.report = old
 
 
+def test18b_a_time_series_keeps_only_the_step_shown_and_the_next(series, tmp_path):
+    """A frame renderer moving on through a time series lets go of the steps it has shown
+    (their memory is then reused by the next load): after three frames of three files, the
+    integrator keeps the last one only, and the first is read again when asked for."""
+    from mi_amr.workflows.movie.frames import FrameRenderer
+    from mi_amr.workflows.movie.spec import FrameSpec
+
+    files = [str(series / f"step{t}.npz") for t in range(3)]
+    r = FrameRenderer(series / "scene.xml", resolution=RES)
+    preps, opt = r.integ.preparations, r.integ.opt
+    heard, old = [], preps.report
+    preps.report = heard.append
+    try:
+        preps.clear()
+        for i, f in enumerate(files):
+            r.render_to(FrameSpec(index=i, file=f), tmp_path / f"{i}.png",
+                        next_file=files[i + 1] if i + 1 < len(files) else None)
+            r.prefetch.wait()
+        heard.clear()
+        assert preps.prepare(files[2], opt.field, opt.color_field, leaf_cells=opt.leaf_cells,
+                             m=r.integ.m) is r.integ.prep
+        assert heard == []
+        preps.prepare(files[0], opt.field, opt.color_field, leaf_cells=opt.leaf_cells,
+                      m=r.integ.m)
+        assert any("read step0.npz" in line for line in heard), heard
+    finally:
+        preps.report = old
+
+
 def test19_a_movie_whose_cluster_loses_every_worker_stops_with_one_error(series, tmp_path):
     """The movie's own LocalCluster of 2 workers; once a frame is written the cluster is
     scaled to no worker (as when every worker dies and none comes back). The movie stops with

@@ -153,7 +153,9 @@ def _velocity_names(available) -> list:
 class Preparations:
     """The volumes one session (an integrator class, a benchmark) prepared from files: the
     last :attr:`SIZE` kept by file (and its modification time), fields, leaf size and backend,
-    and given again. ``report``: a callable told each step of a preparation as it ends (one
+    and given again. A new preparation first forgets the oldest kept one when :attr:`SIZE`
+    are kept, so that the memory that one frees (where nothing else holds it) is reused by
+    the new load rather than new memory touched. ``report``: a callable told each step of a preparation as it ends (one
     line of text; the command line prints them, so a load of several seconds shows what it
     is doing), or None. ``cache``: the :class:`~mi_amr.kernels.snapshot.SnapshotCache` its
     preparations read and write, or None for the one ``$MI_AMR_CACHE`` describes at the time
@@ -169,6 +171,13 @@ class Preparations:
     def clear(self) -> None:
         """Forget every volume prepared so far (the next preparation reads its file)."""
         self._kept.clear()
+
+    def retain(self, paths) -> None:
+        """Forget every kept volume prepared from a file not among ``paths`` (a time series'
+        movie, which shows each file once: the steps it has shown are not shown again)."""
+        keep = {os.path.abspath(p) for p in paths}
+        for key in [k for k in self._kept if k[0] not in keep]:
+            del self._kept[key]
 
     def say(self, text: str) -> None:
         if self.report is not None:
@@ -186,11 +195,11 @@ class Preparations:
         if key in self._kept:
             self._kept.move_to_end(key)
             return self._kept[key]
+        while self._kept and len(self._kept) >= self.SIZE:
+            self._kept.popitem(last=False)
         prepared = prepare_file(path, field, color_field, leaf_cells=leaf_cells, m=m,
                                 by=self)
         self._kept[key] = prepared
-        while len(self._kept) > self.SIZE:
-            self._kept.popitem(last=False)
         return prepared
 
 

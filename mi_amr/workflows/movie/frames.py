@@ -64,6 +64,9 @@ class FrameRenderer:
             self.integ.load_volume(spec.file)       # its leaf ranges too (search_ready)
             timings = dict(self.integ.prep.timings, load=time.perf_counter() - t0)
             self.file = spec.file
+            # A movie moves on through its files: what the steps shown before hold is freed
+            # for the next step's load to reuse (a file shown again is loaded again).
+            self.integ.preparations.retain([spec.file])
         p = self.params
         set_camera(p, Camera.from_dict(spec.camera or self.camera))
         if spec.isovalue is not None:
