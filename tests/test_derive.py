@@ -430,3 +430,32 @@ def test05b_chunked_speed_rounds_as_the_whole_array_expression():
             _speed(v, got)
             np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2], out=want, casting="same_kind")
             np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("seed,dtype,holes", [(0, np.float64, False), (1, np.float32, True),
+                                              (5, np.float32, False)])
+def test05c_speed_range_without_the_field_is_the_derived_fields_range(seed, dtype, holes,
+                                                                       monkeypatch):
+    """:func:`speed_range` (a time series' colour range: the squared speed's extremes, no
+    field written) gives what ``derive(..., "speed").value_range`` gives, bit for bit: NaN
+    holes, an overflowing square (+inf: not finite) and a level in several chunks included;
+    (nan, nan) with no finite value; None for components of mixed dtypes."""
+    from mi_amr.core import derive as derive_mod
+
+    monkeypatch.setattr(derive_mod, "SPEED_CHUNK", 7)
+    vol = _velocity_hierarchy(seed, (2, 2), dtype, holes)
+    g = vol.grids[-1].fields
+    g["vz"].ravel()[3] = np.finfo(dtype).max             # its square overflows
+    vol = AMRVolume.from_grids(vol.grids, allow_nonfinite=holes)
+    want = mi_amr.derive(vol, "speed").value_range("speed")
+    got = derive_mod.speed_range(vol)
+    assert got == want and all(type(x) is float for x in got), (got, want)
+    for g in vol.grids:
+        for n in ("vx", "vy", "vz"):
+            g.fields[n][...] = np.nan
+    nothing = AMRVolume.from_grids(vol.grids, allow_nonfinite=True)
+    assert np.isnan(derive_mod.speed_range(nothing)).all()
+    assert np.isnan(mi_amr.derive(nothing, "speed").value_range("speed")).all()
+    mixed = _velocity_hierarchy(seed, (2, 2), dtype, holes)
+    mixed.grids[0].fields["vx"] = mixed.grids[0].fields["vx"].astype(np.float16)
+    assert derive_mod.speed_range(mixed) is None

@@ -593,6 +593,34 @@ def test18b_a_time_series_keeps_only_the_step_shown_and_the_next(series, tmp_pat
         preps.report = old
 
 
+def test18c_a_series_colour_range_of_a_derived_field_is_the_fields_range(tmp_path):
+    """``--color-range series`` over files holding a velocity: the speed's range taken
+    straight from the velocity (no field written) and the vorticity's (derived) are the
+    ranges of the fields the scene derives, over all the files."""
+    from mi_amr import AMRVolume
+    from mi_amr.core.derive import derive
+    from mi_amr.readers import load
+    from mi_amr.workflows.movie import series_color_range
+
+    files = []
+    for t in range(3):
+        vol = step_volume(t)
+        path = tmp_path / f"v{t}.npz"
+        AMRVolume.from_grids([{"level": g.level, "origin": g.origin, "spacing": g.spacing,
+                               "fields": {n: a.astype(np.float32) for n, a in (
+                                   ("vx", g.fields["f"]), ("vy", g.fields["g"]),
+                                   ("vz", g.fields["f"] * g.fields["g"] - t))}}
+                              for g in vol.grids]).save(path)
+        files.append(path)
+    for colour in ("speed", "vorticity_magnitude"):
+        scene = tmp_path / f"{colour}.xml"
+        scene.write_text(SCENE.replace('value="f"', 'value="q_criterion"')
+                         .replace('value="g"', f'value="{colour}"'))
+        ranges = [derive(load(f), colour).value_range(colour) for f in files]
+        want = (min(r[0] for r in ranges), max(r[1] for r in ranges))
+        assert series_color_range(files, scene) == want
+
+
 def test19_a_movie_whose_cluster_loses_every_worker_stops_with_one_error(series, tmp_path):
     """The movie's own LocalCluster of 2 workers; once a frame is written the cluster is
     scaled to no worker (as when every worker dies and none comes back). The movie stops with

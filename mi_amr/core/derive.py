@@ -125,6 +125,37 @@ def _speed(v, out) -> None:
         np.sqrt(total, out=out[part], casting="same_kind")
 
 
+def speed_range(volume, velocity=None) -> tuple | None:
+    """``(min, max)`` of the finite values of the speed :func:`derive` would give ``volume``
+    (world units per time unit, as the velocity), taken from the velocity level by level,
+    :data:`SPEED_CHUNK` values at a time, without writing the field: what
+    ``derive(volume, "speed").value_range("speed")`` gives, ``(nan, nan)`` where no value is
+    finite. None (use :func:`derive`) when the components differ in dtype from grid to grid or
+    from one another: the field's roundings then depend on the grid."""
+    comps = velocity_fields(volume, velocity)
+    dtypes = {volume.grids[0].fields[n].dtype for n in comps}
+    if len(dtypes) != 1 or any(g.fields[n].dtype not in dtypes
+                               for g in volume.grids for n in comps):
+        return None
+    lo, hi = np.inf, -np.inf
+    for level in range(volume.num_levels):
+        v = [levels.level_values(volume, level, n) for n in comps]
+        for a in range(0, len(v[0]), SPEED_CHUNK):
+            part = slice(a, a + SPEED_CHUNK)
+            # The squared speed as _speed sums it; its square root keeps the order of
+            # values, and is finite exactly where the square is (an overflow is not).
+            with np.errstate(over="ignore", invalid="ignore"):
+                total = np.square(v[0][part])
+                total += np.square(v[1][part])
+                total += np.square(v[2][part])
+            finite = total[np.isfinite(total)]
+            if finite.size:
+                lo, hi = min(lo, finite.min()), max(hi, finite.max())
+    if lo > hi:
+        return (np.nan, np.nan)
+    return tuple(float(np.sqrt(x)) for x in (lo, hi))
+
+
 def q_criterion(grad: np.ndarray) -> np.ndarray:
     """Q = (|Omega|^2 - |S|^2) / 2 from ``grad[i][j] = d v_i / d x_j`` (arrays ``(3, 3, ...)``)."""
     q = -0.5 * (grad[0, 0] ** 2 + grad[1, 1] ** 2 + grad[2, 2] ** 2)

@@ -31,24 +31,35 @@ def series_color_range(files, scene_path, defines=None) -> tuple:
     """One colour range for a whole time series: the smallest and largest value of the scene's
     colour field over every file (each file read once, that field only, or what it is derived
     from). A file that cannot be read is left out here; its frames fail, naming it."""
-    from mi_amr.core.derive import DERIVED_FIELDS, derive
-    from mi_amr.kernels.prepared import fields_to_read
-    from mi_amr.readers import available_fields, load
-
     field, color_field = _scene_fields(scene_path, defines)
     if color_field is None:
         return None
     lo, hi = float("inf"), float("-inf")
     for f in files:
         try:
-            vol = load(f, fields=fields_to_read(color_field, None, available_fields(f)))
+            a, b = _file_range(f, color_field)
         except AMRError:
             continue
-        if color_field not in vol.field_names and color_field in DERIVED_FIELDS:
-            vol = derive(vol, color_field)
-        a, b = vol.value_range(color_field)
         lo, hi = min(lo, a), max(hi, b)
     return (lo, hi) if lo < hi else None
+
+
+def _file_range(path, name) -> tuple:
+    """``(min, max)`` of the finite values of field ``name`` of data file ``path``, derived
+    from what it holds where it is not stored (the speed straight from the velocity, without
+    writing the field)."""
+    from mi_amr.core.derive import DERIVED_FIELDS, derive, speed_range
+    from mi_amr.kernels.prepared import fields_to_read
+    from mi_amr.readers import available_fields, load
+
+    names = fields_to_read(name, None, available_fields(path))
+    vol = load(path, fields=names, level_buffers=names)
+    if name not in vol.field_names and name in DERIVED_FIELDS:
+        got = speed_range(vol) if name == "speed" else None
+        if got is not None:
+            return got
+        vol = derive(vol, name)
+    return vol.value_range(name)
 
 
 def _scene_fields(scene_path, defines):
