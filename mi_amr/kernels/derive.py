@@ -376,23 +376,30 @@ def _fields(lv, cells, ghost_of, wanted):
 
 def _difference(lv, cells, line, below, above, faces):
     """d v / d x of component ``comp`` along ``axis`` (``line``: ``(axis, comp, f0)``, ``f0``
-    the cells' own values): central, one-sided on a face whose ghost is missing (the lower
-    face first, then the upper, as :func:`gradient._axis_difference`)."""
+    the cells' own values): central, one-sided on a face whose ghost is missing (the upper
+    face's where both are, as :func:`gradient._axis_difference`, which does the lower face
+    first, then the upper). One one-sided difference a lane, stepping in from its face: the
+    two faces' would each cost their gathers and divisions on every lane of the vector."""
     axis = line[0]
     d = (above - below) / (2.0 * cells.h[axis])
-    for sign, face, ghost, other in ((1, faces[0], below, above), (-1, faces[1], above, below)):
-        use = face & ~dr.isfinite(ghost)
-        d = dr.select(use, _one_sided(lv, cells, line, sign, other, use), d)
-    return d
+    use_lo = faces[0] & ~dr.isfinite(below)
+    use_hi = faces[1] & ~dr.isfinite(above)
+    use = use_lo | use_hi
+    one_sided = _one_sided(lv, cells, line, use_hi, dr.select(use_hi, below, above), use)
+    return dr.select(use, one_sided, d)
 
 
-def _one_sided(lv, cells, line, sign, other, use):
-    """:func:`gradient._one_sided` at the lanes ``use`` (``line``: as :func:`_difference`):
-    second order from 3 cells thick, first order at 2, at 1 the difference to the ``other``
-    ghost (0 where that is missing)."""
+def _one_sided(lv, cells, line, upper, other, use):
+    """:func:`gradient._one_sided` at the lanes ``use`` (``line``: as :func:`_difference`),
+    stepping in from the upper face where ``upper``, else from the lower: second order from
+    3 cells thick, first order at 2, at 1 the difference to the ``other`` ghost (0 where that
+    is missing). The sign is +-1, so its products are exact, as with the host's integer."""
+    m = lv.m
     axis, comp, f0 = line
     thick, s, h, c = cells.n[axis], cells.stride[axis], cells.h[axis], cells.c
-    one, two = (c + s, c + 2 * s) if sign > 0 else (c - s, c - 2 * s)
+    sign = dr.select(upper, m.Float64(-1.0), m.Float64(1.0))
+    one = dr.select(upper, c - s, c + s)
+    two = dr.select(upper, c - 2 * s, c + 2 * s)
     f1 = lv.own(dr.select(thick >= 2, one, c), comp, use)
     f2 = lv.own(dr.select(thick >= 3, two, c), comp, use)
     second = sign * (-3.0 * f0 + 4.0 * f1 - f2) / (2.0 * h)
