@@ -184,11 +184,14 @@ class _Level:
         self.table = device_table(m.Int32, t.table, np.int32)
         dims = t.hi - t.lo
         self.counts = np.prod(dims, axis=1)         # cells of each grid
-        h = volume.spacings()[t.grids]
-        self.lo = [device_table(m.Int32, t.lo[:, a], np.int32) for a in range(3)]
-        self.dims = [device_table(m.Int32, dims[:, a], np.int32) for a in range(3)]
-        self.h = [device_table(m.Float64, h[:, a], np.float64) for a in range(3)]
-        self.start = device_table(m.UInt32, t.offsets, np.uint32)
+        # Per grid one record of 8 int32 (lower corner, size, first value, 0) and one of 4
+        # float64 (cell size, 0): a kernel reads each with packet loads, not a gather a number.
+        rec = np.zeros((len(t.grids), 8), dtype=np.int32)
+        rec[:, :3], rec[:, 3:6], rec[:, 6] = t.lo, dims, t.offsets[:len(t.grids)]
+        self.records = device_table(m.Int32, rec, np.int32)
+        h = np.zeros((len(t.grids), 4))
+        h[:, :3] = volume.spacings()[t.grids]
+        self.h = device_table(m.Float64, h, np.float64)
         self.shift = dr.opaque(m.Int32, int(t.block).bit_length() - 1)
         self.origin = [dr.opaque(m.Int32, int(x)) for x in t.origin]
         self.blocks = [dr.opaque(m.Int32, int(x)) for x in t.dims]
@@ -208,16 +211,27 @@ class _Level:
         found = inside & (p >= 0)
         return m.UInt32(p), found
 
+    def grid(self, p, active=True):
+        """``(lo, n, start)`` of the grids at table positions ``p`` (UInt32): lower index
+        corner and size (three Int32 each) and first value in the level's (UInt32)."""
+        m = self.m
+        a = dr.gather(m.Array4i, self.records, 2 * p, active)
+        b = dr.gather(m.Array4i, self.records, 2 * p + 1, active)
+        return [a[0], a[1], a[2]], [a[3], b[0], b[1]], m.UInt32(b[2])
+
+    def cell_size(self, p):
+        """The cell sizes (three Float64, world units) of the grids at table positions ``p``."""
+        h = dr.gather(self.m.Array4f64, self.h, p)
+        return [h[0], h[1], h[2]]
+
     def cell_values(self, idx, active):
         """``(values, found)``: the three components (Float64, NaN where not found) at level
         cells ``idx`` -- :func:`levels.cell_values`."""
         m = self.m
         p, found = self.find(idx, active)
-        local = [m.UInt32(idx[a] - dr.gather(m.Int32, self.lo[a], p, found)) for a in range(3)]
-        n1 = m.UInt32(dr.gather(m.Int32, self.dims[1], p, found))
-        n2 = m.UInt32(dr.gather(m.Int32, self.dims[2], p, found))
-        at = dr.gather(m.UInt32, self.start, p, found) + (local[0] * n1 + local[1]) * n2 + \
-            local[2]
+        lo, n, start = self.grid(p, found)
+        local = [m.UInt32(idx[a] - lo[a]) for a in range(3)]
+        at = start + (local[0] * m.UInt32(n[1]) + local[1]) * m.UInt32(n[2]) + local[2]
         return [dr.select(found, m.Float64(dr.gather(type(v), v, at, found)), dr.nan)
                 for v in self.values], found
 
@@ -303,8 +317,9 @@ class _Cells:
     def __init__(self, lv, c, p, interior=False):
         m = self.m = lv.m
         self.c, self.p, self.interior = c, p, interior
-        self.n = [m.UInt32(dr.gather(m.Int32, lv.dims[a], p)) for a in range(3)]
-        off = c - dr.gather(m.UInt32, lv.start, p)
+        lo, n, start = lv.grid(p)
+        self.n = [m.UInt32(x) for x in n]
+        off = c - start
         plane = self.n[1] * self.n[2]
         # Divisors kept from 0: a vector's lanes past the array's end read 0 from their
         # (masked) gathers, and an integer division by 0 traps even there.
@@ -313,8 +328,8 @@ class _Cells:
         j = _quotient(m, rest, dr.maximum(self.n[2], 1))
         self.local = [i, j, rest - j * self.n[2]]
         self.stride = [plane, self.n[2], m.UInt32(1)]
-        self.h = [dr.gather(m.Float64, lv.h[a], p) for a in range(3)]
-        self.lo = [dr.gather(m.Int32, lv.lo[a], p) for a in range(3)]
+        self.h = lv.cell_size(p)
+        self.lo = lo
 
     def face(self, axis, side):
         """Cells on the grid's lower (side 0) or upper (side 1) face along ``axis`` (none, as a
