@@ -60,14 +60,19 @@ def fill_level(m, volume, level, bricks, sources, pools) -> None:
     n = BRICK_N ** 3
     slot = dr.arange(m.UInt32, len(used) * n)
     brick, s = slot // n, slot % n
-    block = np.stack(np.unravel_index(used, tuple(int(x) for x in dims)), axis=1) * BRICK + lo
-    corner = m.Array3i(*(dr.gather(m.Int32, _ints(m, block[:, a]), brick) for a in range(3)))
-    cell = corner + m.Array3i(m.Int32(s // (BRICK_N * BRICK_N)), m.Int32(s // BRICK_N % BRICK_N),
-                              m.Int32(s % BRICK_N))
+    # Per brick one record of 4 int32, read with one packet load: its first cell (level
+    # index) and its number in the pools.
+    rec = np.empty((len(used), 4), dtype=np.int32)
+    rec[:, :3] = np.stack(np.unravel_index(used, tuple(int(x) for x in dims)), axis=1) * \
+        BRICK + lo
+    rec[:, 3] = table[used].astype(np.int64) - base
+    first = dr.gather(m.Array4i, _ints(m, rec), brick)
+    cell = m.Array3i(first[0], first[1], first[2]) + m.Array3i(
+        m.Int32(s // (BRICK_N * BRICK_N)), m.Int32(s // BRICK_N % BRICK_N), m.Int32(s % BRICK_N))
     grid, found = _find(m, levels.level_index(volume, level), cell)
     at = _cell_index(m, volume, level, grid, cell, found)
     is_leaf = found & dr.gather(m.Bool, leaf, at, found)
-    dst = dr.gather(m.UInt32, _uints(m, table[used].astype(np.int64) - base), brick) * n + s
+    dst = dr.reinterpret_array(m.UInt32, first[3]) * n + s
     for pool, values in zip(pools, arrays):
         v = dr.gather(m.Float, values, at, is_leaf)
         dr.scatter(pool, dr.select(is_leaf, v, dr.nan), dst)
@@ -99,14 +104,18 @@ def _cell_index(m, volume, level, grid, cell, found):
     """Where each found cell (a level cell, in the level's grid ``grid``) lies among the cells
     of all grids (:meth:`AMRVolume.cell_offsets`)."""
     index = levels.level_index(volume, level)
-    cols = [_ints(m, index.lo[:, a]) for a in range(3)]
-    size = index.hi - index.lo
-    local = cell - m.Array3i(*(dr.gather(m.Int32, c, grid, found) for c in cols))
-    ny = dr.gather(m.Int32, _ints(m, size[:, 1]), grid, found)
-    nz = dr.gather(m.Int32, _ints(m, size[:, 2]), grid, found)
-    start = _uints(m, volume.cell_offsets()[index.grids])
-    return dr.gather(m.UInt32, start, grid, found) + m.UInt32((local.x * ny + local.y) * nz +
-                                                              local.z)
+    # Per grid one record of 8 int32, read with two packet loads: its lower corner (level
+    # index), its first cell among all grids' (uint32 bits), its size in y and z, 0, 0.
+    rec = np.zeros((len(index.grids), 8), dtype=np.int32)
+    rec[:, :3] = index.lo
+    rec[:, 3] = volume.cell_offsets()[index.grids].astype(np.uint32).view(np.int32)
+    rec[:, 4:6] = (index.hi - index.lo)[:, 1:]
+    rec = _ints(m, rec)
+    a = dr.gather(m.Array4i, rec, 2 * m.UInt32(grid), found)
+    ny, nz = dr.gather(m.Array4i, rec, 2 * m.UInt32(grid) + 1, found)[:2]
+    local = cell - m.Array3i(a[0], a[1], a[2])
+    return dr.reinterpret_array(m.UInt32, a[3]) + m.UInt32((local.x * ny + local.y) * nz +
+                                                          local.z)
 
 
 def _opaque(m, value):
