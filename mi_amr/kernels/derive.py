@@ -359,10 +359,12 @@ def _quotient(m, a, b):
     return m.UInt32(dr.floor(m.Float64(a) / m.Float64(b)))
 
 
-def _fields(lv, cells, ghost_of, wanted):
+def _fields(lv, cells, ghost_of, wanted, one_sided=True):
     """Fields ``wanted`` (Float64 arrays, by name) at ``cells`` from the velocity gradient;
     ``ghost_of(axis, side)`` gives the three components beyond each face (NaN where none;
-    None for ``interior`` cells, which have no face)."""
+    None for ``interior`` cells, which have no face). Without ``one_sided`` every difference
+    is central: right only where every ghost read is finite (the caller computes the others
+    again)."""
     grad = [[None] * 3 for _ in range(3)]
     own = [lv.own(cells.c, comp) for comp in range(3)]
     none = [lv.m.Float64(dr.nan)] * 3       # for cells on no face (ghost_of None)
@@ -376,7 +378,8 @@ def _fields(lv, cells, ghost_of, wanted):
             above = dr.select(faces[1], ghosts[1][comp],
                               lv.own(cells.c + s, comp, ~faces[1]))
             grad[comp][axis] = _difference(lv, cells, (axis, comp, own[comp]), below, above,
-                                           faces)
+                                           faces) if one_sided else \
+                (above - below) / (2.0 * cells.h[axis])
     out = {}
     if "q_criterion" in wanted:
         q = -0.5 * (grad[0][0] * grad[0][0] + grad[1][1] * grad[1][1] +
@@ -426,8 +429,10 @@ def _one_sided(lv, cells, line, upper, other, use):
 def _chunk_fields(tables, level, grids, wanted, out, base):
     """Fields ``wanted`` (by name: the dtype of each) of the cells of grids ``start:stop``
     (``grids``) of ``level``, in the order of :func:`levels.level_values`, scattered into
-    ``out[name]`` from position ``base`` on. The cells inside their grid (most of them) are computed by a kernel
-    without ghost lookups, those on a face by one with them; both are :func:`_fields`, the
+    ``out[name]`` from position ``base`` on. The cells inside their grid are computed by a
+    kernel without ghost lookups, those on a face by one with the ghosts their level holds
+    and central differences, and the face cells where a ghost read is missing or not finite
+    once more, with coarser ghosts and one-sided differences; all are :func:`_fields`, the
     same arithmetic."""
     lv, m = tables[level], tables[level].m
     start, stop = grids
@@ -449,11 +454,14 @@ def _chunk_fields(tables, level, grids, wanted, out, base):
         need = _face_cells(tables, level, (first, outer, dr.gather(m.UInt32, p, outer)),
                            wanted, out, at)
     dr.eval(out, need)
-    redo = dr.gather(m.UInt32, outer, dr.compress(need)) if level > 0 and dr.width(outer) \
-        else None
+    redo = dr.gather(m.UInt32, outer, dr.compress(need)) if dr.width(outer) else None
     if redo is not None and dr.width(redo):
-        again = _with_coarse_ghosts(tables, level, dr.opaque(m.UInt32, first) + redo,
-                                    dr.gather(m.UInt32, p, redo), wanted)
+        c, q = dr.opaque(m.UInt32, first) + redo, dr.gather(m.UInt32, p, redo)
+        if level > 0:
+            again = _with_coarse_ghosts(tables, level, c, q, wanted)
+        else:                            # (no coarser level: one-sided where none is held)
+            cells = _Cells(lv, c, q)
+            again = _fields(lv, cells, _same_level_ghosts(lv, cells), wanted)
         for k, v in again.items():
             dr.scatter(out[k], _as(m, v, wanted[k]), at + redo)
         dr.eval(out)
@@ -462,22 +470,31 @@ def _chunk_fields(tables, level, grids, wanted, out, base):
 def _face_cells(tables, level, chunk, wanted, out, base):
     """Write :func:`_fields` of the chunk's face cells (``chunk``: ``(first, at, p)``, their
     positions ``at`` from the chunk's ``first`` cell, their grids ``p``) into ``out`` (from
-    ``base`` on), with the ghosts their own level holds; the cells that lack one (on levels
-    above 0) are marked in what it returns."""
+    ``base`` on), with central differences and the ghosts their own level holds; the cells
+    where one of those is missing or not finite (most of them on a coarse-fine or the
+    domain's boundary, or beside missing data) are marked in what it returns, to be
+    computed again with coarser ghosts and one-sided differences."""
     lv, m = tables[level], tables[level].m
     first, at, p = chunk
     cells = _Cells(lv, dr.opaque(m.UInt32, first) + at, p)
     lack = [m.Bool(False)]
+    ghosts = _same_level_ghosts(lv, cells)
 
-    def same_level(axis, side):
-        face = cells.face(axis, side)
-        values, found = lv.cell_values(cells.ghost(axis, side), face)
-        lack[0] |= face & ~found
+    def checked(axis, side):
+        values = ghosts(axis, side)
+        lack[0] |= cells.face(axis, side) & ~(dr.isfinite(values[0]) & dr.isfinite(values[1]) &
+                                              dr.isfinite(values[2]))
         return values
 
-    for k, v in _fields(lv, cells, same_level, wanted).items():
+    for k, v in _fields(lv, cells, checked, wanted, one_sided=False).items():
         dr.scatter(out[k], _as(m, v, wanted[k]), base + at)
-    return lack[0] if level > 0 else m.Bool(False)
+    return lack[0]
+
+
+def _same_level_ghosts(lv, cells):
+    """``ghost_of(axis, side)`` for :func:`_fields`: the three components of the cells beyond
+    each face of ``cells`` that the level itself holds (NaN where it holds none)."""
+    return lambda axis, side: lv.cell_values(cells.ghost(axis, side), cells.face(axis, side))[0]
 
 
 def _grid_of_cells(m, offsets, start):
