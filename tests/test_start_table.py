@@ -67,6 +67,40 @@ def test01_each_cell_starts_where_a_plain_descent_stops(opaque, iso, max_cells):
         assert final.mean() > 0.9
 
 
+@pytest.mark.parametrize("iso, max_cells", [((0.05,), starts.MAX_START_CELLS),
+                                            (ISOVALUES, starts.MAX_START_CELLS),
+                                            ((0.05,), 5000), ((0.2,), 64)])
+def test01b_the_devices_table_is_the_hosts(opaque, iso, max_cells):
+    """The table the device builds (a lane a cell, each descending from the root) holds the
+    host's entries, node and final mark, cell for cell; so does the one the integrator
+    uses for its isovalues (:meth:`DeviceVolume.start_table`)."""
+    from mi_amr.kernels.device import active_leaves
+
+    integ = opaque.integrator()
+    tree, empty, (lo, cell, dims, entries) = host_table(integ, iso, max_cells=max_cells)
+    active = np.flatnonzero(~empty & ((tree.node_code & 3) == 3))
+    frame = starts.table_frame(tree, active, max_cells)
+    for a, b in zip(frame, (lo, cell, dims)):
+        np.testing.assert_array_equal(a, b)
+    got = starts.start_table_device(integ.m, integ.dev._descent(empty), frame)
+    np.testing.assert_array_equal(got.numpy()[:len(entries)], entries)
+    if max_cells == 64:         # coarse cells: descents that stop above the leaves too
+        assert (entries >= starts.FINAL).any() and (entries < starts.FINAL).any()
+    # Descents that stop at inner nodes too: a tenth of all nodes marked to skip.
+    stop = empty | (np.random.default_rng(5).random(tree.num_nodes) < 0.1)
+    want = starts.start_table_host(tree, active, stop, max_cells=max_cells)[3]
+    inner = (tree.node_code[want & (starts.FINAL - 1)] & 3) != 3
+    assert (inner & (want >= starts.FINAL)).any()
+    got = starts.start_table_device(integ.m, integ.dev._descent(stop), frame)
+    np.testing.assert_array_equal(got.numpy()[:len(want)], want)
+    ranges = integ.dev.node_ranges(True)
+    iso = np.asarray(iso, dtype=np.float32)
+    want = starts.start_table_host(tree, active_leaves(tree, ranges, iso),
+                                   ~node_holds(ranges, iso, widen=0.0))[3]
+    table = integ.dev.start_table(iso)
+    np.testing.assert_array_equal(table.nodes.numpy()[:len(want)], want)
+
+
 def test02_no_active_leaf_gives_an_empty_table(opaque):
     tree, _, (lo, cell, dims, entries) = host_table(opaque.integrator(), (1e9,))
     assert np.prod(dims) == 0 and len(entries) == 1

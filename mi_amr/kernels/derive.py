@@ -28,6 +28,7 @@ from mi_amr.core import derive as host_derive
 from mi_amr.core import levels
 from mi_amr.core.buffers import ALIGN, joined
 from mi_amr.kernels.arrays import device_table
+from mi_amr.kernels.intmath import quotient
 
 # Cells a chunk of grids holds at least (the last of a level may hold fewer): bounds the
 # kernels' outputs and temporaries (~30 bytes a cell), which the next chunk reuses. Smaller
@@ -323,9 +324,9 @@ class _Cells:
         plane = self.n[1] * self.n[2]
         # Divisors kept from 0: a vector's lanes past the array's end read 0 from their
         # (masked) gathers, and an integer division by 0 traps even there.
-        i = _quotient(m, off, dr.maximum(plane, 1))
+        i = quotient(m, off, dr.maximum(plane, 1))
         rest = off - i * plane
-        j = _quotient(m, rest, dr.maximum(self.n[2], 1))
+        j = quotient(m, rest, dr.maximum(self.n[2], 1))
         self.local = [i, j, rest - j * self.n[2]]
         self.stride = [plane, self.n[2], m.UInt32(1)]
         self.h = lv.cell_size(p)
@@ -350,13 +351,6 @@ class _Cells:
         step = -1 if side == 0 else 1
         return [self.lo[a] + self.m.Int32(self.local[a]) + (step if a == axis else 0)
                 for a in range(3)]
-
-
-def _quotient(m, a, b):
-    """``a // b`` of UInt32 arrays (``b >= 1``) through a float64 division, which vectorises
-    where an integer one does not: for integers below 2^53 the rounded quotient never reaches
-    the next whole number, so its floor is exact."""
-    return m.UInt32(dr.floor(m.Float64(a) / m.Float64(b)))
 
 
 def _fields(lv, cells, ghost_of, wanted, one_sided=True):

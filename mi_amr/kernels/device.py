@@ -128,7 +128,7 @@ class DeviceVolume:
         # The tree's own ropes, mapped (they are uint32 and aligned for this).
         self.node_ropes = mapped_array(m.UInt32, tree.node_ropes, np.uint32)
         self.host_ranges, self.on_new_ranges, self._search, self._boxes = {}, None, {}, {}
-        self._tables = {}
+        self._tables, self._lattice_split = {}, None
 
         # grids
         glo, _ = volume.grid_boxes()
@@ -314,20 +314,42 @@ class DeviceVolume:
 
         return _kept(self._boxes, isovalues, make)
 
-    def start_table(self, isovalues):
+    def start_table(self, isovalues, on_device: bool = True):
         """The :class:`~mi_amr.kernels.starts.StartTable` of the leaves :meth:`active_box`
-        holds for ``isovalues`` (the last :data:`ACTIVE_BOXES` are kept)."""
+        holds for ``isovalues`` (the last :data:`ACTIVE_BOXES` are kept): its cells' descents
+        on the device (:func:`~mi_amr.kernels.starts.start_table_device`), on the host where
+        the tree's lattice numbers exceed int32, no leaf is active or a symbolic loop is being
+        traced, or not ``on_device`` (a scalar variant's render, which no kernel launched
+        from its ``sample`` may interrupt). A kernel that launched it while a frame is traced
+        would change the frame's kernel: the integrator asks before the trace (``render``)."""
         def make(iso):
             ranges = self.node_ranges(True)
             active = active_leaves(self.tree, ranges, iso)
             searched = node_holds(ranges, iso, widen=0.0)
-            lo, cell, dims, nodes = starts.start_table_host(self.tree, active, ~searched)
+            # (Where a symbolic loop is traced no kernel may run: the host's twin then.)
+            if len(active) and on_device and self.tree.lattice_int is np.int32 and \
+                    not dr.flag(dr.JitFlag.SymbolicScope):
+                lo, cell, dims = starts.table_frame(self.tree, active)
+                nodes = starts.start_table_device(self.m, self._descent(~searched),
+                                                  (lo, cell, dims))
+            else:
+                lo, cell, dims, host = starts.start_table_host(self.tree, active, ~searched)
+                nodes = self._uints(host)
             h = self.tree.h_fine
             return starts.StartTable(
-                nodes=self._uints(nodes), lo=self._point(self.volume.anchor + lo * h),
+                nodes=nodes, lo=self._point(self.volume.anchor + lo * h),
                 inv_cell=self._point(1.0 / (cell * h)), dims=self._point(dims))
 
         return _kept(self._tables, isovalues, make)
+
+    def _descent(self, stop) -> "starts.Descent":
+        """The tree as a start table's descents read it, stopping where ``stop`` (a bool per
+        node); its split planes in lattice units are put on the device at the first call."""
+        if self._lattice_split is None:
+            self._lattice_split = device_array(self.m.Int32, self.tree.lattice_node_split,
+                                               np.int32)
+        return starts.Descent(self.node_code_split, self._lattice_split,
+                              device_array(self.m.Bool, stop, np.bool_))
 
 
 def _kept(cache: dict, isovalues, make):

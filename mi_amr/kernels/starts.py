@@ -34,6 +34,8 @@ import numpy as np
 # (Dr.Jit reads a dataclass's annotations but converts nothing by them).
 from drjit.llvm.ad import Array3f, UInt32
 
+from mi_amr.kernels.intmath import quotient
+
 # Cells of a start table at most (4 bytes each): a coarser cell (twice the size, a shallower
 # start node) where the smallest active leaves would need more.
 MAX_START_CELLS = 1 << 21
@@ -52,15 +54,11 @@ class StartTable:
     dims: Array3f
 
 
-def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_CELLS):
-    """``(lo, cell, dims, nodes)`` of the start table over the leaves ``active_nodes`` (kd node
-    indices) of ``tree``: lower corner and cell size in lattice units (finest cells from the
-    volume's anchor, float64 3-vectors), cells per axis and the node of each cell (x fastest);
-    an empty table (no cells) where there are no active nodes. Descents stop at the nodes
-    where ``empty`` (a bool per node: ranges the search skips); entries of leaves and of such
-    nodes have :data:`FINAL` set."""
-    if len(active_nodes) == 0:
-        return np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64), np.zeros(1, np.uint32)
+def table_frame(tree, active_nodes, max_cells: int = MAX_START_CELLS):
+    """``(lo, cell, dims)`` of the start table over the leaves ``active_nodes`` (kd node
+    indices, at least one) of ``tree``: lower corner and cell size in lattice units (finest
+    cells from the volume's anchor, whole numbers as float64 3-vectors) and cells per axis,
+    at most ``max_cells`` in all (the cells twice as large where they would be more)."""
     node_lo = tree.lattice_node_lo[active_nodes].astype(np.float64)   # (integers in the tree)
     node_hi = tree.lattice_node_hi[active_nodes].astype(np.float64)
     lo, hi, cell = node_lo.min(axis=0), node_hi.max(axis=0), (node_hi - node_lo).min(axis=0)
@@ -70,8 +68,19 @@ def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_
         start = origin + np.floor((lo - origin) / cell) * cell
         dims = np.ceil((hi - start) / cell).astype(np.int64)
         if np.prod(dims) <= max_cells:
-            break
+            return start, cell, dims
         cell = cell * 2
+
+
+def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_CELLS):
+    """``(lo, cell, dims, nodes)`` of the start table over the leaves ``active_nodes`` (kd node
+    indices) of ``tree``: :func:`table_frame`, and the node of each cell (x fastest); an empty
+    table (no cells) where there are no active nodes. Descents stop at the nodes where
+    ``empty`` (a bool per node: ranges the search skips); entries of leaves and of such nodes
+    have :data:`FINAL` set. The slow twin of :func:`start_table_device`."""
+    if len(active_nodes) == 0:
+        return np.zeros(3), np.ones(3), np.zeros(3, dtype=np.int64), np.zeros(1, np.uint32)
+    start, cell, dims = table_frame(tree, active_nodes, max_cells)
     idx = np.indices(dims[::-1]).reshape(3, -1)[::-1].T       # x fastest
     c_lo = start + idx * cell
     # Cells are half open on a lattice of whole numbers: [lo, lo + cell) holds what the
@@ -81,6 +90,62 @@ def start_table_host(tree, active_nodes, empty=None, max_cells: int = MAX_START_
     if empty is not None:
         final |= empty[nodes]
     return start, cell, dims, (nodes | np.where(final, FINAL, 0)).astype(np.uint32)
+
+
+@dataclass
+class Descent:
+    """The kd-tree as a table's descents read it on the device: ``code_split`` (per node its
+    code and a second uint32, side by side: :attr:`DeviceVolume.node_code_split
+    <mi_amr.kernels.device.DeviceVolume.node_code_split>`), ``split`` (its split plane in
+    lattice units, Int32) and ``stop`` (Bool: the nodes the search skips)."""
+
+    code_split: UInt32
+    split: object
+    stop: object
+
+
+def start_table_device(m, descent: Descent, frame):
+    """The entries of :func:`start_table_host` for the table ``frame`` (``(lo, cell, dims)``
+    of :func:`table_frame`, lattice whole numbers that int32 holds), computed on backend ``m``:
+    a lane a cell, each descending from the root (a ``UInt32`` array, x fastest). In whole
+    numbers the half-open cell ``[lo, lo + cell)`` goes below a split plane ``s`` where
+    ``lo + cell - 1 < s``, as the host's ``lo + cell - 1/2`` does."""
+    start, cell, dims = frame
+    n = int(np.prod(dims))
+    i = dr.arange(m.UInt32, max(n, 2))
+    nx, nxy = (dr.opaque(m.UInt32, int(x)) for x in (dims[0], dims[0] * dims[1]))
+    iz = quotient(m, i, nxy)
+    rest = i - iz * nxy
+    iy = quotient(m, rest, nx)
+    idx = m.Array3i(m.Int32(rest - iy * nx), m.Int32(iy), m.Int32(iz))
+    size = m.Array3i(*(dr.opaque(m.Int32, int(c)) for c in cell))
+    lo = m.Array3i(*(dr.opaque(m.Int32, int(c)) for c in start)) + idx * size
+    node, code = _descend(m, descent, lo, lo + size - 1)
+    final = ((code & 3) == 3) | dr.gather(m.Bool, descent.stop, node)
+    out = node | dr.select(final, m.UInt32(FINAL), 0)
+    dr.eval(out)
+    return out
+
+
+@dr.syntax
+def _descend(m, descent: Descent, lo, hi):
+    """``(node, code)``: for each closed lattice box ``[lo, hi]`` (``m.Array3i``) the deepest
+    node holding it all, descending from the root, or the first node met that ``stop``
+    marks; and that node's code (:meth:`~mi_amr.core.kdtree.KDTree.descend_boxes`)."""
+    node = m.UInt32(0)
+    code = dr.gather(m.UInt32, descent.code_split, m.UInt32(0))
+    going = m.Bool(True)
+    while dr.hint(going, label="start_table"):
+        axis = code & 3
+        inner = (axis != 3) & ~dr.gather(m.Bool, descent.stop, node, going)
+        split = dr.gather(m.Int32, descent.split, node, going)
+        a_lo = dr.select(axis == 0, lo.x, dr.select(axis == 1, lo.y, lo.z))
+        a_hi = dr.select(axis == 0, hi.x, dr.select(axis == 1, hi.y, hi.z))
+        above = inner & (a_lo >= split)
+        going &= above | (inner & (a_hi < split))
+        node = dr.select(going, (code >> 2) + dr.select(above, m.UInt32(1), 0), node)
+        code = dr.select(going, dr.gather(m.UInt32, descent.code_split, 2 * node, going), code)
+    return node, code
 
 
 def descend_box_reference(tree, lo, hi, stop=None) -> int:

@@ -136,7 +136,8 @@ class _AMRIso:
         if self.opt.mode == "surface" and self.twins.clip_to_active and clips(cfg):
             cfg.active_box = self.dev.active_box(self.inputs.host["isovalue"])
             if self.twins.start_tables:
-                cfg.start_table = self.dev.start_table(self.inputs.host["isovalue"])
+                cfg.start_table = self.dev.start_table(self.inputs.host["isovalue"],
+                                                       on_device=bridge.vectorised())
         return cfg
 
     def phong(self) -> shading.Phong:
@@ -156,7 +157,11 @@ class _AMRIso:
         (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply (or
         the twins say so)."""
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-        self.shadow_caches.grids(self, scene)   # (before the frame's trace: see the module)
+        # (Start table and shadow caches before the trace: a kernel they launched inside it
+        # would take some of the frame's work, and the next frame would compile another.)
+        if bridge.vectorised():
+            self.config()
+        self.shadow_caches.grids(self, scene)
         args = (self, scene, sensor, seed, spp, develop, evaluate)
         image = wavefront.render(*args, tiled=self.twins.tile_order,
                                  by_sample=self.picks_by_packet()) \
