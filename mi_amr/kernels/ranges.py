@@ -45,7 +45,7 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
     frame = _Frame.of(m, tree) if len(pl) else None
     leaf = mapped_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
         if reconstruction == "basis" and len(pl) else None
-    order = _by_window_size(m, frame, pl, pg) if len(pl) else pl
+    order = _by_window_size(m, frame, pl, pg, pairs) if len(pl) else pl
     for a in range(0, len(pl), pairs):
         # A launch of one pair is given it twice: Dr.Jit compiles a one-lane input into a
         # broadcast, which would be another kernel.
@@ -67,19 +67,24 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
     return out_lo, out_hi
 
 
-def _by_window_size(m, frame: "_Frame", pl, pg) -> np.ndarray:
+def _by_window_size(m, frame: "_Frame", pl, pg, pairs: int = CHUNK_PAIRS) -> np.ndarray:
     """The pairs ``(pl, pg)`` in order of the number of cells of their widened windows (up
     to :data:`SIZE_KEY_MAX`; a stable order, so equal sizes keep theirs): the walk's lanes
     run in vectors that go on until their longest window is done, so lanes of like windows
-    together waste few steps (in leaf order about half the steps walked nothing)."""
-    at = (device_array(m.UInt32, np.repeat(pl, 2) if len(pl) == 1 else pl, np.uint32),
-          device_array(m.UInt32, np.repeat(pg, 2) if len(pg) == 1 else pg, np.uint32))
-    b_lo, b_hi, n, _ = frame.windows(m, *at)
-    full = dr.all(b_lo <= b_hi)
-    top = device_tops(m, b_lo, dr.select(full, b_hi, b_lo), n)
-    side = m.Array3f(dr.maximum(top - b_lo, 0))
-    cells = m.UInt32(dr.minimum(side.x * side.y * side.z, SIZE_KEY_MAX))   # (no overflow)
-    key = dr.select(full, cells, 0).numpy()[:len(pl)].astype(np.uint16)
+    together waste few steps (in leaf order about half the steps walked nothing). The sizes
+    are taken ``pairs`` pairs a launch, as the walk takes them."""
+    key = np.empty(len(pl), dtype=np.uint16)
+    for a in range(0, len(pl), pairs):
+        part = np.arange(a, min(a + pairs, len(pl)))
+        lanes = np.repeat(part, 2) if len(part) == 1 else part
+        at = (device_array(m.UInt32, pl[lanes], np.uint32),
+              device_array(m.UInt32, pg[lanes], np.uint32))
+        b_lo, b_hi, n, _ = frame.windows(m, *at)
+        full = dr.all(b_lo <= b_hi)
+        side = m.Array3f(dr.maximum(device_tops(m, b_lo, dr.select(full, b_hi, b_lo), n) -
+                                    b_lo, 0))
+        cells = m.UInt32(dr.minimum(side.x * side.y * side.z, SIZE_KEY_MAX))  # (no overflow)
+        key[part] = dr.select(full, cells, 0).numpy()[:len(part)]
     return np.argsort(key, kind="stable")
 
 
