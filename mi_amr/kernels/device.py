@@ -319,9 +319,10 @@ class DeviceVolume:
         holds for ``isovalues`` (the last :data:`ACTIVE_BOXES` are kept): its cells' descents
         on the device (:func:`~mi_amr.kernels.starts.start_table_device`), on the host where
         the tree's lattice numbers exceed int32, no leaf is active or a symbolic loop is being
-        traced, or not ``on_device`` (a scalar variant's render, which no kernel launched
-        from its ``sample`` may interrupt). A kernel that launched it while a frame is traced
-        would change the frame's kernel: the integrator asks before the trace (``render``)."""
+        traced, or not ``on_device`` (a scalar variant: once a kernel has run inside its
+        render loop, Mitsuba no longer finds the Python integrator's ``sample``). A kernel
+        launched while a frame is traced would change the frame's kernel: the integrator asks
+        before the trace (``render``)."""
         def make(iso):
             ranges = self.node_ranges(True)
             active = active_leaves(self.tree, ranges, iso)

@@ -155,11 +155,11 @@ class Preparations:
     last :attr:`SIZE` kept by file (and its modification time), fields, leaf size and backend,
     and given again. A new preparation first forgets the oldest kept one when :attr:`SIZE`
     are kept, so that the memory that one frees (where nothing else holds it) is reused by
-    the new load rather than new memory touched. ``report``: a callable told each step of a preparation as it ends (one
-    line of text; the command line prints them, so a load of several seconds shows what it
-    is doing), or None. ``cache``: the :class:`~mi_amr.kernels.snapshot.SnapshotCache` its
-    preparations read and write, or None for the one ``$MI_AMR_CACHE`` describes at the time
-    of each preparation."""
+    the new load rather than new memory touched. ``report``: a callable told each step of a
+    preparation as it ends (one line of text; the command line prints them, so a load of
+    several seconds shows what it is doing), or None. ``cache``: the
+    :class:`~mi_amr.kernels.snapshot.SnapshotCache` its preparations read and write, or None
+    for the one ``$MI_AMR_CACHE`` describes at the time of each preparation."""
 
     SIZE = 3
 
