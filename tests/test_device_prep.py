@@ -360,3 +360,18 @@ def test07b_a_session_full_forgets_its_oldest_before_it_prepares_another(tmp_pat
     assert session.prepare(paths[-1], "q_criterion", m=dr.llvm.ad) is kept
     session.prepare(paths[-2], "q_criterion", m=dr.llvm.ad)
     assert len(made) == size + 3                       # forgotten: prepared again
+
+
+def test01d_pairs_are_put_in_order_of_window_size_within_runs():
+    """The walk's order: within each run of ``block`` pairs their keys ascend, equal keys in
+    their first order (stable), and no pair leaves its run."""
+    from mi_amr.kernels.ranges import _blockwise_order
+
+    key = np.random.default_rng(3).integers(0, 40, 1000).astype(np.uint16)
+    order = _blockwise_order(key, 64)
+    assert sorted(order) == list(range(1000))
+    for a in range(0, 1000, 64):
+        run = order[a:a + 64]
+        assert np.all((run >= a) & (run < a + 64))
+        pairs = list(zip(key[run], run))
+        assert pairs == sorted(pairs)

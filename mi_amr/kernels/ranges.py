@@ -5,7 +5,7 @@
 finite values of the grid's cells in the pair's window widened to power-of-two blocks, then per
 leaf the extremes over its pairs. Here one kernel takes each pair's window (from the leaf's and
 the grid's lattice boxes, :meth:`~mi_amr.core.kdtree.KDTree.window_frame`), widens it and walks
-it cell by cell (a lane a pair, the pairs ordered by their windows' sizes so that a
+it cell by cell (a lane a pair, nearby pairs ordered by their windows' sizes so that a
 vector's lanes finish together); the host hands over only the pairs
 (:meth:`~mi_amr.core.kdtree.KDTree.leaf_pairs`), and takes the per-leaf extremes over them
 (listed leaf after leaf). The values are the field as the kernels read it (float32; rounding
@@ -29,6 +29,10 @@ from mi_amr.kernels.arrays import device_array, device_table, mapped_array
 # launches reuse their memory (2^19 was faster than 2^21 on 27M cells).
 CHUNK_PAIRS = 1 << 19
 SIZE_KEY_MAX = (1 << 16) - 1     # window cells beyond which pairs are not told apart in order
+# Pairs ordered by window size among runs of this many (leaf after leaf) only: a pair's cells
+# lie near its neighbours' in memory, and a global order loses that (slower on 27M cells than no
+# order at all; 1024 was faster than 256 and 4096 there).
+SORT_BLOCK = 1 << 10
 
 
 def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
@@ -69,10 +73,11 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
 
 def _by_window_size(m, frame: "_Frame", pl, pg, pairs: int = CHUNK_PAIRS) -> np.ndarray:
     """The pairs ``(pl, pg)`` in order of the number of cells of their widened windows (up
-    to :data:`SIZE_KEY_MAX`; a stable order, so equal sizes keep theirs): the walk's lanes
-    run in vectors that go on until their longest window is done, so lanes of like windows
-    together waste few steps (in leaf order about half the steps walked nothing). The sizes
-    are taken ``pairs`` pairs a launch, as the walk takes them."""
+    to :data:`SIZE_KEY_MAX`) within each run of :data:`SORT_BLOCK` pairs (a stable order,
+    so equal sizes keep theirs): the walk's lanes run in vectors that go on until their
+    longest window is done, so lanes of like windows together waste few steps (in leaf order
+    about half the steps walked nothing). The sizes are taken ``pairs`` pairs a launch, as
+    the walk takes them."""
     key = np.empty(len(pl), dtype=np.uint16)
     for a in range(0, len(pl), pairs):
         part = np.arange(a, min(a + pairs, len(pl)))
@@ -85,7 +90,18 @@ def _by_window_size(m, frame: "_Frame", pl, pg, pairs: int = CHUNK_PAIRS) -> np.
                                     b_lo, 0))
         cells = m.UInt32(dr.minimum(side.x * side.y * side.z, SIZE_KEY_MAX))  # (no overflow)
         key[part] = dr.select(full, cells, 0).numpy()[:len(part)]
-    return np.argsort(key, kind="stable")
+    return _blockwise_order(key, SORT_BLOCK)
+
+
+def _blockwise_order(key, block: int) -> np.ndarray:
+    """The stable order of ``key`` (uint16) within each run of ``block`` consecutive entries,
+    the runs kept in place."""
+    n = len(key)
+    pad = np.full(-(-n // block) * block, np.iinfo(np.uint16).max, dtype=np.uint16)
+    pad[:n] = key
+    rows = np.argsort(pad.reshape(-1, block), axis=1, kind="stable")
+    order = (rows + np.arange(0, len(pad), block)[:, None]).ravel()
+    return order[order < n]
 
 
 def block_tops(lo, hi, shape):
