@@ -49,15 +49,10 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
     frame = _Frame.of(m, tree) if len(pl) else None
     leaf = mapped_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
         if reconstruction == "basis" and len(pl) else None
-    order = _by_window_size(m, frame, pl, pg, pairs) if len(pl) else pl
     for a in range(0, len(pl), pairs):
-        # A launch of one pair is given it twice: Dr.Jit compiles a one-lane input into a
-        # broadcast, which would be another kernel.
-        part = order[a:a + pairs]
-        lanes = np.repeat(part, 2) if len(part) == 1 else part
-        at = (device_array(m.UInt32, pl[lanes], np.uint32),
-              device_array(m.UInt32, pg[lanes], np.uint32))
-        lo_part, hi_part = _window_extremes(m, values, leaf, frame, at)
+        part = np.arange(a, min(a + pairs, len(pl)))
+        part = part[_by_window_size(m, frame, _lanes(m, pl, pg, part), len(part))]
+        lo_part, hi_part = _window_extremes(m, values, leaf, frame, _lanes(m, pl, pg, part))
         dr.eval(lo_part, hi_part)
         vmin[part], vmax[part] = lo_part.numpy()[:len(part)], hi_part.numpy()[:len(part)]
     # Per leaf, the extremes over its pairs (listed leaf after leaf), on the host: a scatter
@@ -71,25 +66,25 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
     return out_lo, out_hi
 
 
-def _by_window_size(m, frame: "_Frame", pl, pg, pairs: int = CHUNK_PAIRS) -> np.ndarray:
-    """The pairs ``(pl, pg)`` in order of the number of cells of their widened windows (up
-    to :data:`SIZE_KEY_MAX`) within each run of :data:`SORT_BLOCK` pairs (a stable order,
-    so equal sizes keep theirs): the walk's lanes run in vectors that go on until their
-    longest window is done, so lanes of like windows together waste few steps (in leaf order
-    about half the steps walked nothing). The sizes are taken ``pairs`` pairs a launch, as
-    the walk takes them."""
-    key = np.empty(len(pl), dtype=np.uint16)
-    for a in range(0, len(pl), pairs):
-        part = np.arange(a, min(a + pairs, len(pl)))
-        lanes = np.repeat(part, 2) if len(part) == 1 else part
-        at = (device_array(m.UInt32, pl[lanes], np.uint32),
-              device_array(m.UInt32, pg[lanes], np.uint32))
-        b_lo, b_hi, n, _ = frame.windows(m, *at)
-        full = dr.all(b_lo <= b_hi)
-        side = m.Array3f(dr.maximum(device_tops(m, b_lo, dr.select(full, b_hi, b_lo), n) -
-                                    b_lo, 0))
-        cells = m.UInt32(dr.minimum(side.x * side.y * side.z, SIZE_KEY_MAX))  # (no overflow)
-        key[part] = dr.select(full, cells, 0).numpy()[:len(part)]
+def _lanes(m, pl, pg, part):
+    """The pairs ``part`` of ``(pl, pg)`` as two device ``m.UInt32`` (a launch of one pair is
+    given it twice: Dr.Jit compiles a one-lane input into a broadcast, another kernel)."""
+    lanes = np.repeat(part, 2) if len(part) == 1 else part
+    return (device_array(m.UInt32, pl[lanes], np.uint32),
+            device_array(m.UInt32, pg[lanes], np.uint32))
+
+
+def _by_window_size(m, frame: "_Frame", at, count: int) -> np.ndarray:
+    """The order of the ``count`` pairs ``at`` (device, as :func:`_lanes` gives them) by the
+    number of cells of their widened windows (up to :data:`SIZE_KEY_MAX`) within each run of
+    :data:`SORT_BLOCK` of them (a stable order, so equal sizes keep theirs): the walk's lanes
+    run in vectors that go on until their longest window is done, so lanes of like windows
+    together waste few steps (in leaf order about half the steps walked nothing)."""
+    b_lo, b_hi, n, _ = frame.windows(m, *at)
+    full = dr.all(b_lo <= b_hi)
+    side = m.Array3f(dr.maximum(device_tops(m, b_lo, dr.select(full, b_hi, b_lo), n) - b_lo, 0))
+    cells = m.UInt32(dr.minimum(side.x * side.y * side.z, SIZE_KEY_MAX))   # (no overflow)
+    key = dr.select(full, cells, 0).numpy()[:count].astype(np.uint16)
     return _blockwise_order(key, SORT_BLOCK)
 
 
