@@ -114,15 +114,19 @@ def _speed(v, out) -> None:
     ``out``'s dtype, :data:`SPEED_CHUNK` values at a time (the same numbers as the whole-array
     expression, without its temporaries of the level's size: on a large level those are
     fresh memory, the slow part)."""
-    work = np.result_type(*v)
     for a in range(0, len(out), SPEED_CHUNK):
         part = slice(a, a + SPEED_CHUNK)
-        # Each square in its component's own dtype, the sums in the widest, as NumPy's
-        # ``vx * vx + vy * vy + vz * vz`` rounds them.
-        total = np.square(v[0][part]).astype(work, copy=False)
-        total += np.square(v[1][part])
-        total += np.square(v[2][part])
-        np.sqrt(total, out=out[part], casting="same_kind")
+        np.sqrt(_squared_speed(v, part), out=out[part], casting="same_kind")
+
+
+def _squared_speed(v, part):
+    """``vx^2 + vy^2 + vz^2`` of the flat components ``v`` at ``part``: each square in its
+    component's own dtype, the sums in the widest, as NumPy's ``vx * vx + vy * vy + vz * vz``
+    rounds them."""
+    total = np.square(v[0][part]).astype(np.result_type(*v), copy=False)
+    total += np.square(v[1][part])
+    total += np.square(v[2][part])
+    return total
 
 
 def speed_range(volume, velocity=None) -> tuple | None:
@@ -141,13 +145,10 @@ def speed_range(volume, velocity=None) -> tuple | None:
     for level in range(volume.num_levels):
         v = [levels.level_values(volume, level, n) for n in comps]
         for a in range(0, len(v[0]), SPEED_CHUNK):
-            part = slice(a, a + SPEED_CHUNK)
             # The squared speed as _speed sums it; its square root keeps the order of
             # values, and is finite exactly where the square is (an overflow is not).
             with np.errstate(over="ignore", invalid="ignore"):
-                total = np.square(v[0][part])
-                total += np.square(v[1][part])
-                total += np.square(v[2][part])
+                total = _squared_speed(v, slice(a, a + SPEED_CHUNK))
             finite = total[np.isfinite(total)]
             if finite.size:
                 lo, hi = min(lo, finite.min()), max(hi, finite.max())
