@@ -1,9 +1,11 @@
 """Host arrays handed to the kernels: copied into aligned memory first (see
 :func:`host_aligned`), so that the code Dr.Jit compiles for them does not depend on where NumPy
-put them, or mapped as they are where they already lie aligned (:func:`mapped_array`)."""
+put them, or mapped as they are where they already lie aligned (:func:`mapped_array`); and a
+level's per-grid records, which kernels read with packet loads (:func:`grid_records`)."""
 
 from __future__ import annotations
 
+import drjit as dr
 import numpy as np
 
 from mi_amr.core.buffers import ALIGN, aligned_copy
@@ -42,3 +44,22 @@ def device_table(T, values, dtype):
     if a.size < 2:
         a = np.concatenate([a, np.zeros(2 - a.size, dtype=dtype)])
     return device_array(T, a, dtype)
+
+
+def grid_records(m, index, first):
+    """Per grid of one level (``index``: its :class:`~mi_amr.core.levels.LevelIndex`) a
+    record of 8 int32 on backend ``m``: its lower corner (level index), its size, ``first``
+    (its first value in the array the kernel reads; uint32 bits) and 0, read by
+    :func:`grid_record` with two packet loads instead of a gather a number."""
+    rec = np.zeros((len(index.grids), 8), dtype=np.int32)
+    rec[:, :3], rec[:, 3:6] = index.lo, index.hi - index.lo
+    rec[:, 6] = np.asarray(first, dtype=np.int64).astype(np.uint32).view(np.int32)
+    return device_table(m.Int32, rec, np.int32)
+
+
+def grid_record(m, records, p, active=True):
+    """``(lo, n, first)`` of the grids at positions ``p`` (UInt32) of :func:`grid_records`:
+    lower corner and size (three Int32 each) and first value (UInt32)."""
+    a = dr.gather(m.Array4i, records, 2 * p, active)
+    b = dr.gather(m.Array4i, records, 2 * p + 1, active)
+    return [a[0], a[1], a[2]], [a[3], b[0], b[1]], dr.reinterpret_array(m.UInt32, b[2])

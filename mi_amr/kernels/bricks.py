@@ -19,7 +19,8 @@ import drjit as dr
 import numpy as np
 
 from mi_amr.core import levels
-from mi_amr.kernels.arrays import device_array, device_table, mapped_array
+from mi_amr.kernels.arrays import (device_array, device_table, grid_record, grid_records,
+                                   mapped_array)
 
 NO_BRICK = 0xFFFFFFFF
 BRICK = 8                 # cells per brick side; a brick stores BRICK + 1 (one cell of apron)
@@ -104,18 +105,10 @@ def _cell_index(m, volume, level, grid, cell, found):
     """Where each found cell (a level cell, in the level's grid ``grid``) lies among the cells
     of all grids (:meth:`AMRVolume.cell_offsets`)."""
     index = levels.level_index(volume, level)
-    # Per grid one record of 8 int32, read with two packet loads: its lower corner (level
-    # index), its first cell among all grids' (uint32 bits), its size in y and z, 0, 0.
-    rec = np.zeros((len(index.grids), 8), dtype=np.int32)
-    rec[:, :3] = index.lo
-    rec[:, 3] = volume.cell_offsets()[index.grids].astype(np.uint32).view(np.int32)
-    rec[:, 4:6] = (index.hi - index.lo)[:, 1:]
-    rec = _ints(m, rec)
-    a = dr.gather(m.Array4i, rec, 2 * m.UInt32(grid), found)
-    ny, nz = dr.gather(m.Array4i, rec, 2 * m.UInt32(grid) + 1, found)[:2]
-    local = cell - m.Array3i(a[0], a[1], a[2])
-    return dr.reinterpret_array(m.UInt32, a[3]) + m.UInt32((local.x * ny + local.y) * nz +
-                                                          local.z)
+    records = grid_records(m, index, volume.cell_offsets()[index.grids])
+    lo, n, start = grid_record(m, records, m.UInt32(grid), found)
+    local = cell - m.Array3i(*lo)
+    return start + m.UInt32((local.x * n[1] + local.y) * n[2] + local.z)
 
 
 def _opaque(m, value):

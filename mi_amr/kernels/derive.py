@@ -27,7 +27,7 @@ import numpy as np
 from mi_amr.core import derive as host_derive
 from mi_amr.core import levels
 from mi_amr.core.buffers import ALIGN, joined
-from mi_amr.kernels.arrays import device_table
+from mi_amr.kernels.arrays import device_table, grid_record, grid_records
 from mi_amr.kernels.intmath import quotient
 
 # Cells a chunk of grids holds at least (the last of a level may hold fewer): bounds the
@@ -185,11 +185,9 @@ class _Level:
         self.table = device_table(m.Int32, t.table, np.int32)
         dims = t.hi - t.lo
         self.counts = np.prod(dims, axis=1)         # cells of each grid
-        # Per grid one record of 8 int32 (lower corner, size, first value, 0) and one of 4
-        # float64 (cell size, 0): a kernel reads each with packet loads, not a gather a number.
-        rec = np.zeros((len(t.grids), 8), dtype=np.int32)
-        rec[:, :3], rec[:, 3:6], rec[:, 6] = t.lo, dims, t.offsets[:len(t.grids)]
-        self.records = device_table(m.Int32, rec, np.int32)
+        # Per grid a record of its box and first value, and one of 4 float64 (cell size, 0):
+        # a kernel reads each with packet loads, not a gather a number.
+        self.records = grid_records(m, t, t.offsets)
         h = np.zeros((len(t.grids), 4))
         h[:, :3] = volume.spacings()[t.grids]
         self.h = device_table(m.Float64, h, np.float64)
@@ -215,10 +213,7 @@ class _Level:
     def grid(self, p, active=True):
         """``(lo, n, start)`` of the grids at table positions ``p`` (UInt32): lower index
         corner and size (three Int32 each) and first value in the level's (UInt32)."""
-        m = self.m
-        a = dr.gather(m.Array4i, self.records, 2 * p, active)
-        b = dr.gather(m.Array4i, self.records, 2 * p + 1, active)
-        return [a[0], a[1], a[2]], [a[3], b[0], b[1]], m.UInt32(b[2])
+        return grid_record(self.m, self.records, p, active)
 
     def cell_size(self, p):
         """The cell sizes (three Float64, world units) of the grids at table positions ``p``."""
