@@ -621,6 +621,59 @@ def test18c_a_series_colour_range_of_a_derived_field_is_the_fields_range(tmp_pat
         assert series_color_range(files, scene) == want
 
 
+def test18d_a_series_colour_range_reads_mi_amr_files_as_a_stream(tmp_path, monkeypatch):
+    """The range of a stored field and of the speed comes from mi_amr files read a stretch
+    at a time, no volume loaded: the same numbers as the loaded fields' ranges, over files
+    with and without NaN cells; a file with NaN cells that it does not allow is left out, as
+    one that cannot be loaded; velocity components of different dtypes take the derivation
+    (their speed rounds per grid)."""
+    from mi_amr import AMRVolume
+    from mi_amr.core.derive import derive
+    from mi_amr.readers import load
+    from mi_amr.workflows import movie
+
+    def save(t, allow, dtypes=(np.float32, np.float32, np.float32)):
+        vol = step_volume(t)
+        grids = []
+        for i, g in enumerate(vol.grids):
+            f, h = g.fields["f"], g.fields["g"]
+            comps = [(f - 0.5) * 1e-3, h, f * h - t]
+            if allow and i == 1:
+                comps[0] = comps[0].copy()
+                comps[0].flat[3] = np.nan
+            grids.append({"level": g.level, "origin": g.origin, "spacing": g.spacing,
+                          "fields": {n: c.astype(d) for n, c, d in
+                                     zip(("vx", "vy", "vz"), comps, dtypes)}})
+        path = tmp_path / f"v{t}{'n' if allow else ''}{len(set(dtypes))}.npz"
+        AMRVolume.from_grids(grids, allow_nonfinite=allow).save(path)
+        return path
+
+    files = [save(0, False), save(1, True), save(2, False)]
+    mixed = save(3, False, (np.float32, np.float64, np.float32))
+    refused = tmp_path / "refused.npz"      # files[1]'s NaN cell, its flag says there is none
+    with np.load(files[1]) as archive:
+        np.savez(refused, **{**{k: archive[k] for k in archive.files},
+                             "allow_nonfinite": np.array(False)})
+    want = {f: {"vx": load(f).value_range("vx"),
+                "speed": derive(load(f), "speed").value_range("speed")}
+            for f in files + [mixed]}
+    import mi_amr.readers as readers
+    monkeypatch.setattr(readers, "load", lambda *a, **k: pytest.fail("loaded a volume"))
+    for name in ("vx", "speed"):
+        for f in files:
+            assert movie._file_range(f, name) == want[f][name], (f, name)
+        with pytest.raises(AMRError, match=f"{refused}: grid 1: field 'vx' has non-finite"):
+            movie._file_range(refused, name)
+    scene = tmp_path / "speed.xml"
+    scene.write_text(SCENE.replace('value="f"', 'value="q_criterion"')
+                     .replace('value="g"', 'value="speed"'))
+    ranges = [want[f]["speed"] for f in (files[0], files[2])]
+    assert movie.series_color_range([files[0], refused, files[2]], scene) == \
+        (min(r[0] for r in ranges), max(r[1] for r in ranges))
+    monkeypatch.setattr(readers, "load", load)
+    assert movie._file_range(mixed, "speed") == want[mixed]["speed"]
+
+
 def test19_a_movie_whose_cluster_loses_every_worker_stops_with_one_error(series, tmp_path):
     """The movie's own LocalCluster of 2 workers; once a frame is written the cluster is
     scaled to no worker (as when every worker dies and none comes back). The movie stops with

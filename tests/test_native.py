@@ -474,3 +474,69 @@ def test26_a_fifo_is_refused_without_blocking(tmp_path):
                                            f"and plotfile folders"]
     with pytest.raises(AMRError, match=at(Path("/dev/null")) + "not a regular file"):
         mi_amr.load("/dev/null")
+
+
+# ---------------------------------------------------------------------- streamed fields
+
+def streamed(path, names, chunk_values=5):
+    """Every chunk of ``names`` from a FieldStream of ``path``, joined per name."""
+    from mi_amr.readers import stream_fields
+
+    with stream_fields(path, names) as s:
+        s.chunk_values = chunk_values
+        parts = [[a.copy() for a in values] for values in s.chunks()]
+    return [np.concatenate([p[i] for p in parts]) for i in range(len(names))], s
+
+
+def test27_a_field_stream_gives_each_fields_row_in_file_order(tmp_path):
+    """Chunks of 5 values (cutting grids anywhere) joined are each field's row of every
+    grid's values, in the file's grid order, in its dtype; only the named fields are read."""
+    vol = mixed_volume(allow_nonfinite=True)
+    path = tmp_path / "v.npz"
+    vol.save(path)
+    (b, a), s = streamed(path, ["b", "a"])
+    assert (s.names, s.dtypes, s.allow_nonfinite) == (["b", "a"], [np.float64, np.float32], True)
+    for got, name in ((a, "a"), (b, "b")):
+        want = np.concatenate([g.fields[name].ravel() for g in vol.grids])
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
+
+
+def test28_a_field_stream_refuses_what_load_refuses(tmp_path):
+    """Damage found while streaming (a flipped byte: the CRC; an entry longer than its header
+    says; a short field) and non-finite values in a file that does not allow them end as one
+    AMRError naming the file; a folder is not streamed (None); an unknown name is refused
+    when the stream opens."""
+    from mi_amr.readers import stream_fields
+
+    path = tmp_path / "v.npz"
+    mixed_volume().save(path)
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo("field:b.npy")
+    data = bytearray(path.read_bytes())
+    data[info.header_offset + 30 + len(info.filename) + info.file_size // 2] ^= 0xFF
+    flipped = tmp_path / "flipped.npz"
+    flipped.write_bytes(bytes(data))
+    with pytest.raises(AMRError, match=at(flipped) + "damaged mi_amr volume.*CRC"):
+        streamed(flipped, ["b"])
+    assert streamed(flipped, ["a"])[0][0].size        # the intact field still streams
+    longer = rezip(path, tmp_path / "longer.npz",
+                   lambda name, d: d + b"\0" * 8 if name == "field:a.npy" else d)
+    with pytest.raises(AMRError, match=at(longer) + "damaged mi_amr volume"):
+        streamed(longer, ["a"])
+    arrays = saved_arrays(tmp_path)
+    short = tmp_path / "short.npz"
+    np.savez(short, **{**arrays, "field:a": arrays["field:a"][:-1]})
+    with pytest.raises(AMRError, match=at(short) + r"field 'a' holds \d+ values"):
+        streamed(short, ["a"])
+    with pytest.raises(AMRError, match=at(path) + ".*'nope'"):
+        streamed(path, ["nope"])
+    nan = tmp_path / "nan.npz"
+    values = arrays["field:b"].copy()
+    values[-3] = np.nan
+    np.savez(nan, **{**arrays, "field:b": values})
+    last = len(arrays["level"]) - 1
+    for chunk in (5, 10 ** 6):      # (a chunk cut in the bad grid, one chunk of all grids)
+        with pytest.raises(AMRError, match=at(nan) + f"grid {last}: field 'b' has non-finite"):
+            streamed(nan, ["a", "b"], chunk)
+    assert stream_fields(tmp_path, ["a"]) is None

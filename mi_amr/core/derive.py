@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mi_amr.core import gradient, levels
+from mi_amr.core import extremes, gradient, levels
 from mi_amr.core.buffers import aligned_parts
 from mi_amr.errors import AMRError
 
@@ -141,17 +141,29 @@ def speed_range(volume, velocity=None) -> tuple | None:
     if len(dtypes) != 1 or any(g.fields[n].dtype not in dtypes
                                for g in volume.grids for n in comps):
         return None
-    lo, hi = np.inf, -np.inf
-    for level in range(volume.num_levels):
-        v = [levels.level_values(volume, level, n) for n in comps]
-        for a in range(0, len(v[0]), SPEED_CHUNK):
+
+    def chunks():
+        for level in range(volume.num_levels):
+            v = [levels.level_values(volume, level, n) for n in comps]
+            for a in range(0, len(v[0]), SPEED_CHUNK):
+                yield [x[a:a + SPEED_CHUNK] for x in v]
+
+    return speed_range_of_chunks(chunks())
+
+
+def speed_range_of_chunks(chunks) -> tuple:
+    """:func:`speed_range` of a velocity that comes a chunk at a time: ``chunks`` yields lists
+    of the three components' values (1-D arrays of one dtype, the same cells each), in any
+    order and cut anywhere (a file read a stretch at a time)."""
+    def squares():
+        for v in chunks:
             # The squared speed as _speed sums it; its square root keeps the order of
             # values, and is finite exactly where the square is (an overflow is not).
             with np.errstate(over="ignore", invalid="ignore"):
-                total = _squared_speed(v, slice(a, a + SPEED_CHUNK))
-            finite = total[np.isfinite(total)]
-            if finite.size:
-                lo, hi = min(lo, finite.min()), max(hi, finite.max())
+                total = _squared_speed(v, slice(None))
+            yield total
+
+    lo, hi = extremes.finite_extremes(squares())
     if lo > hi:
         return (np.nan, np.nan)
     return tuple(float(np.sqrt(x)) for x in (lo, hi))

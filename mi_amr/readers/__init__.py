@@ -63,6 +63,14 @@ def available_fields(path) -> list:
     return list(load(path).field_names)
 
 
+def stream_fields(path, names):
+    """Fields ``names`` of ``path`` to read a stretch at a time
+    (:class:`native.FieldStream`: no field-sized buffer, no grid built), or None where the
+    format cannot be read so (use :func:`load`)."""
+    path = _existing(path)
+    return native.FieldStream(path, names) if native.is_native(path) else None
+
+
 def _existing(path) -> Path:
     """``path`` as a Path, when it is a regular file or a folder; the format probes below open
     files, and opening a FIFO or a device blocks or reads forever."""

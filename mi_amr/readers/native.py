@@ -39,6 +39,7 @@ _DAMAGE = (OSError, EOFError, ValueError, KeyError, OverflowError,
 # The largest grid extent per axis (as in AMReX, whose indices are 32-bit).
 _MAX_CELLS_PER_AXIS = 2 ** 31 - 1
 _READ_CHUNK = 1 << 18     # bytes of a field entry read at a time (as np.load reads)
+_STREAM_VALUES = 1 << 16  # values of each field a FieldStream chunk holds
 
 
 def is_native(path) -> bool:
@@ -179,14 +180,7 @@ def _field(path: Path, archive, name: str, total: int, how) -> list:
     are aligned slices of one new aligned buffer)."""
     (runs, _, spans), split = how
     key = f"field:{name}"
-    info, shape, dtype, header_size = _entry_header(path, archive, key)
-    if len(shape) != 1:
-        raise AMRError(f"{path}: field '{name}' has shape {shape}; the file stores each field "
-                       f"as one row of every grid's values")
-    if shape[0] != total:
-        raise AMRError(f"{path}: field '{name}' holds {shape[0]} values, the grids need {total}")
-    if dtype.hasobject or dtype.itemsize == 0:
-        raise AMRError(f"{path}: field '{name}' has dtype {dtype}, expected real numbers")
+    info, dtype, header_size = _field_entry(path, archive, name, total)
     if split:
         out = [aligned_empty(size, dtype) for _, size in spans]
     else:
@@ -202,6 +196,97 @@ def _field(path: Path, archive, name: str, total: int, how) -> list:
             raise AMRError(f"{path}: damaged mi_amr volume: entry '{key}' is longer than "
                            f"its header says")
     return out
+
+
+def _field_entry(path: Path, archive, name: str, total: int):
+    """``(info, dtype, header_size)`` of field ``name``'s entry, checked to be one row of
+    ``total`` real numbers (every grid's values)."""
+    info, shape, dtype, header_size = _entry_header(path, archive, f"field:{name}")
+    if len(shape) != 1:
+        raise AMRError(f"{path}: field '{name}' has shape {shape}; the file stores each field "
+                       f"as one row of every grid's values")
+    if shape[0] != total:
+        raise AMRError(f"{path}: field '{name}' holds {shape[0]} values, the grids need {total}")
+    if dtype.hasobject or dtype.itemsize == 0:
+        raise AMRError(f"{path}: field '{name}' has dtype {dtype}, expected real numbers")
+    return info, dtype, header_size
+
+
+class FieldStream:
+    """Fields of an mi_amr file read a stretch at a time, for a pass over their values that
+    needs no grid (a colour range): no buffer of a field's size is made, and the grids'
+    boxes are not checked (:func:`load` checks them). ``with FieldStream(path, names) as s:``
+    opens the archive and checks the index and the fields' entries; ``s.allow_nonfinite`` is
+    the file's flag, ``s.dtypes`` the fields' dtypes, and ``s.chunks()`` yields lists of 1-D
+    arrays, one per name, each the same stretch of at most ``chunk_values`` values of that
+    field's row of every grid's values (file order). The arrays are read-only and valid until
+    the next chunk. Damage found while reading ends as an AMRError naming the file."""
+
+    def __init__(self, path, names, chunk_values: int = _STREAM_VALUES):
+        self.path, self.names, self.chunk_values = Path(path), list(names), int(chunk_values)
+
+    def __enter__(self) -> "FieldStream":
+        self._archive = _archive(self.path)
+        archive = self._archive.__enter__()
+        try:
+            with _damage(self.path):
+                index = _read_index(self.path, archive)
+                self.names = _wanted(self.path, self.names, index["names"])
+                self._offsets = index["offsets"]
+                self.total = self._offsets[-1]
+                self._entries = [_field_entry(self.path, archive, n, self.total)
+                                 for n in self.names]
+        except BaseException:
+            self._archive.__exit__(None, None, None)
+            raise
+        self.allow_nonfinite = index["allow_nonfinite"]
+        self.dtypes = [dtype for _, dtype, _ in self._entries]
+        return self
+
+    def __exit__(self, *exc):
+        self._archive.__exit__(*exc)
+
+    def chunks(self):
+        zip_file = self._archive.archive.zip
+        with _damage(self.path):
+            opened = [zip_file.open(info) for info, _, _ in self._entries]
+            try:
+                for f, (_, _, header_size) in zip(opened, self._entries):
+                    f.read(header_size)
+                for at in range(0, self.total, self.chunk_values):
+                    n = min(self.chunk_values, self.total - at)
+                    values = [_read_values(f, dtype, n)
+                              for f, (_, dtype, _) in zip(opened, self._entries)]
+                    if not self.allow_nonfinite:
+                        self._check_finite(at, values)
+                    yield values
+                for f, name in zip(opened, self.names):
+                    if f.read(1):       # the whole entry read, so that its CRC was checked
+                        raise AMRError(f"{self.path}: damaged mi_amr volume: entry "
+                                       f"'field:{name}' is longer than its header says")
+            finally:
+                for f in opened:
+                    f.close()
+
+    def _check_finite(self, at: int, values) -> None:
+        """As :func:`load` does for a file that does not allow them: no NaN or infinity in
+        the chunk beginning at value ``at`` of the row."""
+        for name, a in zip(self.names, values):
+            finite = np.isfinite(a)
+            if not finite.all():
+                bad = np.flatnonzero(~finite)
+                grid = int(np.searchsorted(self._offsets, at + bad[0], side="right")) - 1
+                raise AMRError(f"{self.path}: grid {grid}: field '{name}' has non-finite "
+                               f"value(s) (NaN/Inf); clean the data or save it with "
+                               f"allow_nonfinite=True to treat them as missing")
+
+
+def _read_values(f, dtype, n: int) -> np.ndarray:
+    """The next ``n`` values of dtype ``dtype`` from the open zip entry ``f``."""
+    raw = f.read(n * dtype.itemsize)
+    if len(raw) != n * dtype.itemsize:
+        raise EOFError("entry cut off")
+    return np.frombuffer(raw, dtype=dtype)
 
 
 def _read_into(f, dst: np.ndarray) -> None:

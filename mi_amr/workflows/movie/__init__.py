@@ -53,6 +53,9 @@ def _file_range(path, name) -> tuple:
     from mi_amr.readers import available_fields, load
 
     names = fields_to_read(name, None, available_fields(path))
+    got = _streamed_range(path, name, names)
+    if got is not None:
+        return got
     vol = load(path, fields=names, level_buffers=names)
     if name not in vol.field_names and name in DERIVED_FIELDS:
         got = speed_range(vol) if name == "speed" else None
@@ -60,6 +63,27 @@ def _file_range(path, name) -> tuple:
             return got
         vol = derive(vol, name)
     return vol.value_range(name)
+
+
+def _streamed_range(path, name, names):
+    """:func:`_file_range` from the file read a stretch at a time where its format allows
+    (no field-sized buffer, no grids built: the frame that loads the file checks them), for
+    a stored field and the speed; None otherwise."""
+    from mi_amr.core.derive import speed_range_of_chunks
+    from mi_amr.core.extremes import finite_range
+    from mi_amr.readers import stream_fields
+
+    if names != [name] and name != "speed":
+        return None
+    stream = stream_fields(path, names)
+    if stream is None:
+        return None
+    with stream:
+        if names == [name]:
+            return finite_range(values[0] for values in stream.chunks())
+        if len(set(stream.dtypes)) == 1:    # (else each grid's roundings: derive's path)
+            return speed_range_of_chunks(stream.chunks())
+    return None
 
 
 def _scene_fields(scene_path, defines):
