@@ -623,15 +623,17 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading], start: Optiona
     arrays = ray.dev.arrays(cfg.basis, color=True)
     bands = Bands.of(ray, shading)
     corrects = shading is not None and shading.lighting.corrects
-    C = m.Array3f(0.0)
+    # (No light, no pick, where nothing is shaded or corrected: a loop variable that never
+    # changes makes Dr.Jit trace the loop again without it.)
+    C = m.Array3f(0.0) if shading is not None else None
     T = m.Float(1.0)
-    pick = Pick.start(m, shading.lighting.pick_u if corrects else 0.0)
+    pick = Pick.start(m, shading.lighting.pick_u) if corrects else None
     # Each leaf search whole: this march's pieces cost far more than search steps.
     march = March.start(ray, whole=True,
                         walk=None if start is None else Walk.within(ray, start))
     samples = m.UInt32(0)
     active = m.Bool(ray.active)
-    while dr.hint(active, label="composite"):
+    while dr.hint(active, label="composite", exclude=[arrays, bands, cfg, m, ray]):
         # --- The next leaf with opacity.
         march, leg = march.next(ray, m.Float(dr.nan), active)
         active &= leg.onward
@@ -651,17 +653,18 @@ def _composite_exact(ray: RayContext, shading: Optional[Shading], start: Optiona
         near &= holds(ray.dev, cfg, *_value_range(values))
         C_p, T_p = m.Array3f(0.0), m.Float(1.0)
         offer = PieceLight.none(m)
-        if near:
+        if dr.hint(near, label="piece", exclude=[T, bands, cp, march, ray, turns]):
             C_p, T_p, offer = _piece_colour(ray, cp, Along(march.walk, T), turns, near, bands)
         if dr.hint(corrects, mode="scalar"):
             pick = pick.offer(T, offer)
-        C += T * C_p
+        if dr.hint(shading is not None, mode="scalar"):
+            C += T * C_p
         T *= T_p
 
         march.walk.t = dr.select(work, cp.end, march.walk.t)
         active &= (march.walk.t < ray.t1) & (T > tol.T_MIN)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
-    return Composite(C=C, T=T, samples=samples, pick=pick if corrects else None)
+    return Composite(C=m.Array3f(0.0) if C is None else C, T=T, samples=samples, pick=pick)
 
 
 @dataclass
@@ -791,12 +794,13 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
     march = March.start(ray)
     dt = m.Float(cfg.step_scale * ray.dev.min_h / ray.dnorm)
     prev = Previous(t=m.Float(ray.t0), v=m.Float(dr.nan))
-    C = m.Array3f(0.0)
+    C = m.Array3f(0.0) if shade else None      # (no loop variable that never changes)
     T = m.Float(1.0)
-    pick = Pick.start(m, shading.lighting.pick_u if corrects else 0.0)
+    pick = Pick.start(m, shading.lighting.pick_u) if corrects else None
     samples = m.UInt32(0)
     active = m.Bool(ray.active)
-    while dr.hint(active, label="composite_sampled"):
+    while dr.hint(active, label="composite_sampled",
+                  exclude=[arrays, bands, centres, cfg, m, ray, rho, shading, t_anchor, uniform]):
         # Skipped nodes have no opacity; the sample before them no longer borders the next one:
         # the next step's stretch starts where the leaf does.
         t_before = march.walk.t
@@ -818,7 +822,8 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
             lit = smp.take & (a > tol.ALPHA_LIT)
             # (a symbolic branch: a packet whose samples are all too faint to shade skips
             # the light samples and the shading)
-            if dr.hint(lit, label="shade_sample"):
+            if dr.hint(lit, label="shade_sample",
+                       exclude=[T, a, march, ray, shading, shares, smp, t_light]):
                 lighting = shading.lighting
                 p_lit = ray.at(t_light)
                 ctx = lighting.sample(p_lit, lit, True, NearStretch.of(march.walk, lit, T, a))
@@ -836,7 +841,7 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
         march.walk.t = dr.select(work, smp.b, march.walk.t)
         active &= (march.walk.t < ray.t1) & (T > tol.T_MIN)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
-    return Composite(C=C, T=T, samples=samples, pick=pick if corrects else None)
+    return Composite(C=m.Array3f(0.0) if C is None else C, T=T, samples=samples, pick=pick)
 
 
 @dr.syntax
@@ -852,7 +857,8 @@ def _bisect_band(ray: RayContext, prev: Previous, t_b, band, active):
     i = m.Float(0.0)
     found = m.Bool(False)
     t_found = m.Float(0.0)
-    while dr.hint(active & lnot(found) & (i < depth), label="bisect_band"):
+    while dr.hint(active & lnot(found) & (i < depth), label="bisect_band",
+                  exclude=[active, band_hi, band_lo, below, cfg, depth, m, ray, values]):
         mid = 0.5 * (t_a + t_b)
         vals, _ = rec.reconstruct(ray.dev, cfg.basis, ray.at(mid), values, active & lnot(found))
         v = vals[0]

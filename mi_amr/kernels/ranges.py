@@ -162,7 +162,7 @@ def _window_extremes(m, values, leaf, frame: _Frame, pairs):
     vmin = dr.full(m.Float, dr.inf, dr.width(base))
     vmax = dr.full(m.Float, -dr.inf, dr.width(base))
     active = full & dr.all(b_lo < b_top)
-    while dr.hint(active, label="window"):
+    while dr.hint(active, label="window", exclude=[b_lo, b_top, base, leaf, m, ny, nz, values]):
         at = base + m.UInt32((x * ny + y) * nz + z)
         v = dr.gather(m.Float, values, at, active)
         take = active & dr.isfinite(v)

@@ -46,7 +46,7 @@ def locate(dev, p, active, start=None):
     m = dev.m
     node = m.UInt32(0) if start is None else m.UInt32(start)
     cs = dr.gather(m.Array2u, dev.node_code_split, node, active)
-    while dr.hint(active & ((cs.x & 3) != 3), label="locate"):
+    while dr.hint(active & ((cs.x & 3) != 3), label="locate", exclude=[active, dev, m, p]):
         axis = cs.x & 3
         split = dr.reinterpret_array(m.Float, cs.y)
         coord = dr.select(axis == 0, p.x, dr.select(axis == 1, p.y, p.z))
@@ -161,9 +161,13 @@ def basis_point(dev, leaf, p, arrays, active):
     m = dev.m
     levels = dr.gather(m.UInt32, dev.leaf_levels, leaf, active)
     second = arrays[1] if len(arrays) > 1 else arrays[0]
-    num0, num1, den = m.Float(0.0), m.Float(0.0), m.Float(0.0)
+    # (num1 None with one array: a loop variable that never changes makes Dr.Jit trace the
+    # loop again without it.)
+    num0, den = m.Float(0.0), m.Float(0.0)
+    num1 = m.Float(0.0) if len(arrays) > 1 else None
     dnum, dden = m.Array3f(0.0), m.Array3f(0.0)
-    while dr.hint(active & (levels != 0), label="levels"):
+    while dr.hint(active & (levels != 0), label="levels",
+                  exclude=[active, arrays, dev, m, p, second]):
         level = dr.tzcnt(levels)
         levels &= levels - 1
         u, ih = _level_frame(dev, level, p, active)
@@ -403,7 +407,8 @@ def _basis_segment_gradient(dev, seg: Segment, arrays, active) -> GradientPiece:
     m = dev.m
     levels = dr.gather(m.UInt32, dev.leaf_levels, seg.leaf, active)
     sums = [m.Float(0.0) for _ in range(18)]       # gn, then gd: 3 axes x 3 coefficients
-    while dr.hint(active & (levels != 0), label="level_gradients"):
+    while dr.hint(active & (levels != 0), label="level_gradients",
+                  exclude=[active, arrays, dev, m, seg]):
         level = dr.tzcnt(levels)
         levels &= levels - 1
         sums = _added(sums, _gradient_quadratics(m, *_level_factors(dev, level, seg, arrays,
@@ -417,10 +422,13 @@ def _basis_segment_cubic(dev, seg: Segment, arrays, active):
     m = dev.m
     levels = dr.gather(m.UInt32, dev.leaf_levels, seg.leaf, active)
     n0, n1, n2, n3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
-    c0, c1, c2, c3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
-    d0, d1, d2, d3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
     two = len(arrays) > 1
-    while dr.hint(active & (levels != 0), label="level_cubics"):
+    # (None without a second array: a loop variable that never changes makes Dr.Jit trace
+    # the loop again without it.)
+    c0, c1, c2, c3 = (m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)) if two else \
+        (None, None, None, None)
+    d0, d1, d2, d3 = m.Float(0.0), m.Float(0.0), m.Float(0.0), m.Float(0.0)
+    while dr.hint(active & (levels != 0), label="level_cubics", exclude=[active, arrays, dev, seg]):
         level = dr.tzcnt(levels)
         levels &= levels - 1
         num, den = level_cubic(dev, level, seg, arrays, active)

@@ -135,7 +135,7 @@ def _descend(m, descent: Descent, lo, hi):
     node = m.UInt32(0)
     code = dr.gather(m.UInt32, descent.code_split, m.UInt32(0))
     going = m.Bool(True)
-    while dr.hint(going, label="start_table"):
+    while dr.hint(going, label="start_table", exclude=[descent, hi, lo, m]):
         axis = code & 3
         inner = (axis != 3) & ~dr.gather(m.Bool, descent.stop, node, going)
         split = dr.gather(m.Int32, descent.split, node, going)

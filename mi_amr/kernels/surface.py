@@ -197,7 +197,7 @@ def _march_exact(ray: RayContext, walk: Walk, v_before, active):
     hit = m.Bool(False)
     k_jump = m.UInt32(0)              # the isovalue a jump crossed
     piece = PieceHit.empty(m)         # the piece holding the crossing
-    while dr.hint(active, label="first_crossing"):
+    while dr.hint(active, label="first_crossing", exclude=[cfg, dev, m, ray, values]):
         # --- The next leaf that may hold a crossing (skipping all that cannot), a few steps
         # of the search per piece, so that the lanes with a leaf wait less.
         march, leg = march.next(ray, v_prev, active)
@@ -273,13 +273,14 @@ class Bracket:
 class Trail:
     """What a sampled march remembers of the ray behind it: the previous sample ``(t_prev,
     v_prev)`` (``known``: a sample, not a skipped node's representative value), whether the
-    next sample is ``forced`` (a skipped node's first, across an isovalue), the step ``dt``,
-    and the :class:`Bracket` of the crossing found."""
+    next sample is ``forced`` (a skipped node's first, across an isovalue: known within a
+    step only, None between steps, so that it is no loop state), the step ``dt``, and the
+    :class:`Bracket` of the crossing found."""
 
     t_prev: Float
     v_prev: Float
     known: Bool
-    forced: Bool
+    forced: Optional[Bool]
     dt: Float
     bracket: Bracket
 
@@ -295,7 +296,7 @@ class Trail:
         zero = m.Float(0.0)
         bracket = Bracket(hit=m.Bool(False), k_hit=m.UInt32(0), t_a=zero, t_b=m.Float(0.0),
                           v_a=m.Float(0.0), v_b=m.Float(0.0))
-        return Trail(t_prev=t_prev, v_prev=v_prev, known=m.Bool(True), forced=m.Bool(False),
+        return Trail(t_prev=t_prev, v_prev=v_prev, known=m.Bool(True), forced=None,
                      dt=m.Float(dt), bracket=bracket)
 
 
@@ -334,7 +335,7 @@ def _next_leaf_sampled(ray: RayContext, march: March, tr: Trail, lattice: Lattic
     w = march.walk
     march.walk = dr.select(turned, Walk(node=w.node, leaf=at, face=m.UInt32(6),
                                         t_exit=at_exit, t=w.t), w)
-    tr.forced = dr.select(leg.new, turned, tr.forced)
+    tr.forced = leg.new & turned
     active &= leg.onward | turned
     if not uniform:
         leaf_h = dr.gather(m.Float, dev.leaf_min_h, march.walk.leaf, active & leg.new)
@@ -405,7 +406,8 @@ def _march_sampled(ray: RayContext, jitter, v_before=None):
     tr = Trail.start(m, cfg.step_scale * ray.dev.min_h / ray.dnorm, ray.t0, v_before)
     samples = m.UInt32(0)
     active = m.Bool(ray.active)
-    while dr.hint(active, label="first_crossing_sampled"):
+    while dr.hint(active, label="first_crossing_sampled",
+                  exclude=[m, cfg, ray, rho, t_anchor, values]):
         march, tr, active, work = _next_leaf_sampled(ray, march, tr,
                                                      Lattice(t_anchor, rho, tr.dt), active)
         smp = _sample(ray, march.walk, tr, Lattice(t_anchor, rho, tr.dt), values, work)
@@ -417,7 +419,7 @@ def _march_sampled(ray: RayContext, jitter, v_before=None):
         w.t = dr.select(work, dr.select(forced & (smp.t_s > smp.b), smp.t_s, smp.b), w.t)
         w.t_exit = dr.select(work & forced, -dr.inf, w.t_exit)
         march.walk = w
-        tr.forced = m.Bool(False)
+        tr.forced = None
         active &= lnot(got) & (w.t < ray.t1)
     return _sampled_crossing(ray, tr.bracket, samples)
 
@@ -451,7 +453,8 @@ def _bisect(ray: RayContext, br: Bracket):
     fa = br.v_a - iso
     depth = bisect_depth(cfg)
     i = m.Float(0.0)
-    while dr.hint(active & (i < depth), label="bisect"):
+    while dr.hint(active & (i < depth), label="bisect",
+                  exclude=[active, cfg, depth, iso, m, ray, values]):
         mid = 0.5 * (t_a + t_b)
         vals, _ = rec.reconstruct(ray.dev, cfg.basis, ray.at(mid), values, active)
         f = vals[0] - iso

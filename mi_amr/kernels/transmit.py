@@ -118,7 +118,8 @@ def transmittance_exact(ray: RayContext, opacity, max_layers: int, u=None):
     shadow = Shadow(T=m.Float(1.0), layers=m.UInt32(0))
     T_end = m.Float(tol.T_MIN if u is None else dr.maximum(tol.ROULETTE_T * u, tol.T_MIN))
     active = m.Bool(ray.active)
-    while dr.hint(active, label="transmit"):
+    while dr.hint(active, label="transmit",
+                  exclude=[T_end, cfg, max_layers, opacity, ray, values]):
         # --- The next leaf that may hold a crossing (a few search steps at a time). Skipped
         # nodes tell their side; one across isovalues from the value before ends the search
         # (then it is skipped next).

@@ -257,7 +257,7 @@ def seek_steps(ray: RayContext, sk: Seeking, max_steps):
     steps = m.UInt32(0)
     limit = m.UInt32(0xFFFFFFFF if max_steps is None else max_steps)
     going = sk.searching & (steps < limit)
-    while dr.hint(going, label="seek"):
+    while dr.hint(going, label="seek", exclude=[limit, m, ray, records]):
         cs = dr.gather(m.Array4u, records, NODE_RECORDS * sk.stretch.walk.node, going)
         # A camera ray's search is mostly descents through non-empty inner nodes: two levels
         # a turn (:class:`~mi_amr.kernels.config.SearchPlan`).
@@ -365,7 +365,7 @@ def next_dual_plane(ray: RayContext, levels_mask, t_probe):
     up = d > 0.0
     best = m.Float(dr.inf)
     mask = m.UInt32(levels_mask)
-    while dr.hint(mask != 0, label="dual_planes"):
+    while dr.hint(mask != 0, label="dual_planes", exclude=[d, dev, o, p, ray, up]):
         level = dr.tzcnt(mask)
         mask &= mask - 1
         h = dev.level_h(level)

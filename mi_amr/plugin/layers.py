@@ -39,7 +39,9 @@ def front_to_back(state, crossing, opacity, shade, max_layers: int, active):
     ``state``: where to look for the one after it); ``opacity(k)``: its opacity;
     ``shade(hit, where, k)``: its radiance, or ``shade=None`` for the transmittance alone
     (shadow rays). Values are Mitsuba types; ``state`` is whatever ``crossing`` keeps."""
-    L = mi.Spectrum(0.0)
+    # (No radiance in the loop without shading: a loop variable that never changes makes
+    # Dr.Jit trace the loop again without it.)
+    L = mi.Spectrum(0.0) if shade is not None else None
     T = mi.Float(1.0)
     layer = mi.UInt32(0)
     alive = mi.Bool(active)
@@ -56,7 +58,7 @@ def front_to_back(state, crossing, opacity, shade, max_layers: int, active):
         layer += 1
         alive = hit & (T > tol.T_MIN) & (layer < max_layers)
     T = dr.select(T <= tol.T_MIN, 0.0, T)
-    return L, T
+    return (mi.Spectrum(0.0) if L is None else L), T
 
 
 @dr.syntax
