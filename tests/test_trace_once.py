@@ -6,8 +6,7 @@ none), so those must not be loop state: each loop names what it only reads
 twice costs its trace time twice (and the loops inside it four times), on every frame.
 
 Counted by wrapping ``drjit.while_loop``, which the code that ``@dr.syntax`` writes looks up
-when it runs. The ``uniform`` sampling method keeps its step in the loop state though it
-never changes it, and is not checked here.
+when it runs.
 """
 
 import textwrap
@@ -72,6 +71,12 @@ SCENES = {
     "surface, translucent layers": '<string name="isovalue" value="0.25, 0.35"/>'
                                    '<string name="iso_opacity" value="0.5, 0.6"/>'
                                    '<string name="layers" value="composite"/>',
+    "surface, one shadow ray a sample": '<string name="isovalue" value="0.25, 0.35"/>'
+                                        '<string name="iso_opacity" value="0.5, 0.6"/>'
+                                        '<string name="layers" value="one_shadow"/>',
+    "surface, one layer a sample": '<string name="isovalue" value="0.25, 0.35"/>'
+                                   '<string name="iso_opacity" value="0.5, 0.6"/>'
+                                   '<string name="layers" value="stochastic"/>',
     "surface, adaptive": '<string name="isovalue" value="0.3"/>'
                          '<string name="method" value="adaptive"/>' + COLOUR,
     "surface, bisect": '<string name="isovalue" value="0.3"/>'
@@ -84,6 +89,11 @@ SCENES = {
     "volume, adaptive": '<string name="isovalue" value="0.3"/>'
                         '<string name="mode" value="volume"/>'
                         '<string name="method" value="adaptive"/>',
+    "surface, uniform": '<string name="isovalue" value="0.3"/>'
+                        '<string name="method" value="uniform"/>' + COLOUR,
+    "volume, uniform": '<string name="isovalue" value="0.3"/>'
+                       '<string name="mode" value="volume"/>'
+                       '<string name="method" value="uniform"/>',
     "volume, bisect": '<string name="isovalue" value="0.3"/>'
                       '<string name="mode" value="volume"/>'
                       '<string name="method" value="bisect"/>' + COLOUR,
@@ -140,5 +150,5 @@ def test02_the_loops_checked_are_those_of_the_frames(variant, data, tmp_path):
         seen |= {label for label, _ in traced_loops(variant, scene_file(folder, data, extra))}
     want = {"seek", "dual_planes", "level_cubics", "first_crossing", "transmit", "composite",
             "level_gradients", "first_crossing_sampled", "bisect", "composite_sampled",
-            "bisect_band", "front_to_back", "levels", "locate"}
+            "bisect_band", "front_to_back", "pick_one", "one_shadow_ray", "levels", "locate"}
     assert want <= seen, f"not run: {sorted(want - seen)}"

@@ -792,7 +792,9 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
     rho = m.Float(-0.5 if not shade else 0.0) if uniform else jitter
     t_anchor = m.Float(ray.t0)
     march = March.start(ray)
-    dt = m.Float(cfg.step_scale * ray.dev.min_h / ray.dnorm)
+    dt_fixed = m.Float(cfg.step_scale * ray.dev.min_h / ray.dnorm)
+    # (The uniform step never changes: None, no loop state, which Dr.Jit would trace again.)
+    dt = None if uniform else dt_fixed
     prev = Previous(t=m.Float(ray.t0), v=m.Float(dr.nan))
     C = m.Array3f(0.0) if shade else None      # (no loop variable that never changes)
     T = m.Float(1.0)
@@ -800,7 +802,8 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
     samples = m.UInt32(0)
     active = m.Bool(ray.active)
     while dr.hint(active, label="composite_sampled",
-                  exclude=[arrays, bands, centres, cfg, m, ray, rho, shading, t_anchor, uniform]):
+                  exclude=[arrays, bands, centres, cfg, dt_fixed, m, ray, rho, shading,
+                           t_anchor, uniform]):
         # Skipped nodes have no opacity; the sample before them no longer borders the next one:
         # the next step's stretch starts where the leaf does.
         t_before = march.walk.t
@@ -813,11 +816,12 @@ def _composite_sampled(ray: RayContext, jitter, shading: Optional[Shading]):
             leaf_h = dr.gather(m.Float, ray.dev.leaf_min_h, march.walk.leaf, active & leg.new)
             dt = dr.select(leg.new, cfg.step_scale * leaf_h / ray.dnorm, dt)
 
-        smp = _volume_sample(ray, march.walk, Lattice(t_anchor, rho, dt), arrays, work)
+        step = dt_fixed if uniform else dt
+        smp = _volume_sample(ray, march.walk, Lattice(t_anchor, rho, step), arrays, work)
         samples += dr.select(smp.take, 1, 0)
         if dr.hint(cfg.method == "bisect", mode="scalar"):
             smp = _into_band(ray, smp, prev, bands, arrays)
-        a, shares, t_light = _sample_alpha(ray, smp, march.walk.t, prev, dt, centres)
+        a, shares, t_light = _sample_alpha(ray, smp, march.walk.t, prev, step, centres)
         if dr.hint(shade, mode="scalar"):
             lit = smp.take & (a > tol.ALPHA_LIT)
             # (a symbolic branch: a packet whose samples are all too faint to shade skips

@@ -274,14 +274,14 @@ class Trail:
     """What a sampled march remembers of the ray behind it: the previous sample ``(t_prev,
     v_prev)`` (``known``: a sample, not a skipped node's representative value), whether the
     next sample is ``forced`` (a skipped node's first, across an isovalue: known within a
-    step only, None between steps, so that it is no loop state), the step ``dt``, and the
-    :class:`Bracket` of the crossing found."""
+    step only, None between steps, so that it is no loop state), the step ``dt`` (None for
+    ``uniform``, whose step never changes), and the :class:`Bracket` of the crossing found."""
 
     t_prev: Float
     v_prev: Float
     known: Bool
     forced: Optional[Bool]
-    dt: Float
+    dt: Optional[Float]
     bracket: Bracket
 
     @staticmethod
@@ -297,7 +297,7 @@ class Trail:
         bracket = Bracket(hit=m.Bool(False), k_hit=m.UInt32(0), t_a=zero, t_b=m.Float(0.0),
                           v_a=m.Float(0.0), v_b=m.Float(0.0))
         return Trail(t_prev=t_prev, v_prev=v_prev, known=m.Bool(True), forced=None,
-                     dt=m.Float(dt), bracket=bracket)
+                     dt=None if dt is None else m.Float(dt), bracket=bracket)
 
 
 @dataclass
@@ -400,17 +400,20 @@ def _march_sampled(ray: RayContext, jitter, v_before=None):
     value of a previous sample at ``t0`` (NaN or None: none)."""
     m, cfg = ray.m, ray.cfg
     values = ray.dev.arrays(cfg.basis)
-    rho = m.Float(0.0) if cfg.method == "uniform" else jitter
+    uniform = cfg.method == "uniform"
+    rho = m.Float(0.0) if uniform else jitter
     t_anchor = m.Float(ray.t0)
     march = March.start(ray)
-    tr = Trail.start(m, cfg.step_scale * ray.dev.min_h / ray.dnorm, ray.t0, v_before)
+    dt_fixed = m.Float(cfg.step_scale * ray.dev.min_h / ray.dnorm)
+    tr = Trail.start(m, None if uniform else dt_fixed, ray.t0, v_before)
     samples = m.UInt32(0)
     active = m.Bool(ray.active)
     while dr.hint(active, label="first_crossing_sampled",
-                  exclude=[m, cfg, ray, rho, t_anchor, values]):
-        march, tr, active, work = _next_leaf_sampled(ray, march, tr,
-                                                     Lattice(t_anchor, rho, tr.dt), active)
-        smp = _sample(ray, march.walk, tr, Lattice(t_anchor, rho, tr.dt), values, work)
+                  exclude=[m, cfg, dt_fixed, ray, rho, t_anchor, uniform, values]):
+        march, tr, active, work = _next_leaf_sampled(
+            ray, march, tr, Lattice(t_anchor, rho, dt_fixed if uniform else tr.dt), active)
+        smp = _sample(ray, march.walk, tr, Lattice(t_anchor, rho, dt_fixed if uniform else tr.dt),
+                      values, work)
         forced = tr.forced
         tr, got, extra = _straddle(ray, tr, smp, values)
         samples += dr.select(smp.take, 1, 0) + extra

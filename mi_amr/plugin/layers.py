@@ -78,7 +78,7 @@ def pick_one(state, crossing, opacity, shade, max_layers: int, u, nowhere, activ
     picked = mi.Bool(False)
     where, k = nowhere, mi.UInt32(0)
     alive = mi.Bool(active)
-    while dr.hint(alive, label="pick_one"):
+    while dr.hint(alive, label="pick_one", exclude=[u]):
         hit, at, state, k_at = crossing(state, alive)
         T_next = dr.select(hit, T * (1.0 - opacity(k_at)), T)
         take = hit & (u >= T_next)
