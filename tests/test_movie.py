@@ -674,6 +674,21 @@ def test18d_a_series_colour_range_reads_mi_amr_files_as_a_stream(tmp_path, monke
     assert movie._file_range(mixed, "speed") == want[mixed]["speed"]
 
 
+def test18e_a_series_colour_range_shows_its_progress(series, capsys):
+    """Taking a time series' colour range reads every file before the first frame: with
+    ``progress`` a bar on stderr counts the files (a long series would otherwise sit silent
+    for minutes); without it, nothing is printed. The range is the same either way."""
+    from mi_amr.workflows.movie import series_color_range
+
+    files = [series / f"step{t}.npz" for t in range(3)]
+    quiet = series_color_range(files, series / "scene.xml")
+    assert capsys.readouterr().err == ""
+    shown = series_color_range(files, series / "scene.xml", progress=True)
+    err = capsys.readouterr().err
+    assert "colour range" in err and "/3 " in err, err
+    assert shown == quiet and quiet is not None
+
+
 def test19_a_movie_whose_cluster_loses_every_worker_stops_with_one_error(series, tmp_path):
     """The movie's own LocalCluster of 2 workers; once a frame is written the cluster is
     scaled to no worker (as when every worker dies and none comes back). The movie stops with

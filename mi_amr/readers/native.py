@@ -39,7 +39,7 @@ _DAMAGE = (OSError, EOFError, ValueError, KeyError, OverflowError,
 # The largest grid extent per axis (as in AMReX, whose indices are 32-bit).
 _MAX_CELLS_PER_AXIS = 2 ** 31 - 1
 _READ_CHUNK = 1 << 18     # bytes of a field entry read at a time (as np.load reads)
-_STREAM_VALUES = 1 << 16  # values of each field a FieldStream chunk holds
+_STREAM_VALUES = 1 << 18  # values of each field a FieldStream chunk holds
 
 
 def is_native(path) -> bool:

@@ -27,35 +27,74 @@ __all__ = ["render_movie", "plan", "FrameSpec", "append_keyframe", "read_keyfram
            "expand_files", "series_color_range", "Summary", "Plan", "check_values"]
 
 
-def series_color_range(files, scene_path, defines=None) -> tuple:
+def series_color_range(files, scene_path, defines=None, progress: bool = False) -> tuple:
     """One colour range for a whole time series: the smallest and largest value of the scene's
     colour field over every file (each file read once, that field only, or what it is derived
-    from). A file that cannot be read is left out here; its frames fail, naming it."""
+    from). A file that cannot be read is left out here; its frames fail, naming it. Files read
+    a stretch at a time (:func:`_streamed_range`) are read side by side on the CPUs, the others
+    loaded one at a time (each holds a volume); ``progress``: a bar on stderr, a step a file."""
+    from tqdm import tqdm
+
+    from mi_amr.core import parallel
+
     field, color_field = _scene_fields(scene_path, defines)
     if color_field is None:
         return None
     lo, hi = float("inf"), float("-inf")
-    for f in files:
-        try:
-            a, b = _file_range(f, color_field)
-        except AMRError:
-            continue
-        lo, hi = min(lo, a), max(hi, b)
+    streamed = parallel.map_ordered(lambda f: _quick_range(f, color_field), files)
+    with tqdm(total=len(files), desc="colour range", unit="file", disable=not progress,
+              leave=False) as bar:
+        for f, got in zip(files, streamed):
+            if got is _LOAD:
+                got = _guarded(_loaded_range, f, color_field)
+            bar.update()
+            if got is not None:
+                lo, hi = min(lo, got[0]), max(hi, got[1])
     return (lo, hi) if lo < hi else None
+
+
+_LOAD = object()    # what _quick_range gives for a file whose range needs it loaded
+
+
+def _guarded(fn, *args):
+    """``fn(*args)``, None where it raises an AMRError (a file that cannot be read)."""
+    try:
+        return fn(*args)
+    except AMRError:
+        return None
+
+
+def _quick_range(path, name):
+    """:func:`_file_range` where the file can be read a stretch at a time, :data:`_LOAD`
+    where it must be loaded, None where it cannot be read."""
+    try:
+        got = _streamed_range(path, name, _names_to_read(path, name))
+    except AMRError:
+        return None
+    return _LOAD if got is None else got
+
+
+def _names_to_read(path, name) -> list:
+    from mi_amr.kernels.prepared import fields_to_read
+    from mi_amr.readers import available_fields
+
+    return fields_to_read(name, None, available_fields(path))
 
 
 def _file_range(path, name) -> tuple:
     """``(min, max)`` of the finite values of field ``name`` of data file ``path``, derived
     from what it holds where it is not stored (the speed straight from the velocity, without
     writing the field)."""
-    from mi_amr.core.derive import DERIVED_FIELDS, derive, speed_range
-    from mi_amr.kernels.prepared import fields_to_read
-    from mi_amr.readers import available_fields, load
+    got = _streamed_range(path, name, _names_to_read(path, name))
+    return _loaded_range(path, name) if got is None else got
 
-    names = fields_to_read(name, None, available_fields(path))
-    got = _streamed_range(path, name, names)
-    if got is not None:
-        return got
+
+def _loaded_range(path, name) -> tuple:
+    """:func:`_file_range` from the file loaded (the field derived where it is not stored)."""
+    from mi_amr.core.derive import DERIVED_FIELDS, derive, speed_range
+    from mi_amr.readers import load
+
+    names = _names_to_read(path, name)
     vol = load(path, fields=names, level_buffers=names)
     if name not in vol.field_names and name in DERIVED_FIELDS:
         got = speed_range(vol) if name == "speed" else None
@@ -163,7 +202,7 @@ def render_movie(scene, out, *, frames=None, files=None, orbit=None, isovalues=N
     defines = dict(defines or {})
     if specs is None:
         specs = _plan(scene, frames, files, orbit, isovalues, keyframes, color_range, defines,
-                      resolution, spp, variant)
+                      resolution, spp, variant, progress=progress)
     first_file = _first_file(specs)
     if first_file and _has_filename_default(scene):
         defines.setdefault("filename", str(Path(first_file).resolve()))
@@ -270,16 +309,17 @@ def _frame_size(scene_path, defines, resolution):
 
 
 def _plan(scene, frames, files, orbit, isovalues, keyframes, color_range, defines, resolution,
-          spp, variant):
-    """The frame specs of the options (reading the camera from the scene file)."""
+          spp, variant, progress=False):
+    """The frame specs of the options (reading the camera from the scene file); ``progress``:
+    a bar while a time series' colour range is taken."""
     files = expand_files(files) if files else []
     if files:
         _check_fields(files, scene, defines)
     keys = read_keyframes(keyframes) if keyframes else None
     if color_range == "series":
-        color_range = series_color_range(files, scene, defines) if files else None
+        color_range = series_color_range(files, scene, defines, progress) if files else None
     elif color_range is None and files:
-        color_range = series_color_range(files, scene, defines)
+        color_range = series_color_range(files, scene, defines, progress)
     camera = _scene_camera(scene, defines)
     return plan(frames, camera=camera, files=files, orbit_degrees=orbit, isovalues=isovalues,
                 keyframes=keys, color_range=color_range)
