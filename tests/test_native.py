@@ -540,3 +540,72 @@ def test28_a_field_stream_refuses_what_load_refuses(tmp_path):
         with pytest.raises(AMRError, match=at(nan) + f"grid {last}: field 'b' has non-finite"):
             streamed(nan, ["a", "b"], chunk)
     assert stream_fields(tmp_path, ["a"]) is None
+
+
+# ---------------------------------------------------------------------- columns
+
+def same_structure(got, want):
+    """Two volumes alike in every grid, lattice number and kept column."""
+    assert_same_volume(got, want)
+    for g, w in zip(got.grids, want.grids):
+        assert (type(g.origin), type(g.spacing), type(g.shape)) == (tuple, tuple, tuple)
+        assert all(type(x) is float for x in g.origin + g.spacing)
+        assert all(type(x) is int for x in g.shape) and type(g.level) is int
+    assert got.anchor.tolist() == want.anchor.tolist()
+    np.testing.assert_array_equal(got._index_lo, want._index_lo)
+    assert got._columns.keys() == want._columns.keys()
+    for key in want._columns:
+        assert got._columns[key].dtype == want._columns[key].dtype, key
+        np.testing.assert_array_equal(got._columns[key], want._columns[key])
+
+
+@pytest.mark.parametrize("allow", [False, True])
+def test29_a_volume_from_columns_is_the_volume_from_grids(tmp_path, allow):
+    """``AMRVolume.from_columns`` (what the reader builds a file's volume with) gives what
+    ``from_grids`` gives for the same records: grids, lattice, the columns kept; with NaN
+    cells where the file allows them, and with integer origins."""
+    vol = mixed_volume(allow_nonfinite=allow)
+    path = tmp_path / "v.npz"
+    vol.save(path)
+    got = mi_amr.load(path)
+    want = AMRVolume.from_grids([g.as_dict() for g in got.grids], allow_nonfinite=allow,
+                                source=str(path))
+    same_structure(got, want)
+    # Integer origins (a reader may hold them so): the same floats as from_grids makes.
+    rng = np.random.default_rng(3)
+    f0, f1 = rng.normal(size=(8, 8, 8)), rng.normal(size=(4, 4, 4))
+    columns = {"level": np.array([0, 1]), "origin": np.array([[0, 0, 0], [2, 2, 2]]),
+               "spacing": np.array([[1.0] * 3, [0.5] * 3]),
+               "shape": np.array([[8, 8, 8], [4, 4, 4]])}
+    records = [{"level": 0, "origin": (0, 0, 0), "spacing": 1.0, "fields": {"f": f0}},
+               {"level": 1, "origin": (2, 2, 2), "spacing": 0.5, "fields": {"f": f1}}]
+    same_structure(AMRVolume.from_columns(columns, {"f": [f0, f1]}, {"f": [f0, f1]}),
+                   AMRVolume.from_grids(records))
+
+
+def test30_columns_that_are_not_plain_get_from_grids_messages(tmp_path):
+    """A NaN where the file allows none, a spacing <= 0 or a negative level: the volume from
+    columns raises what ``from_grids`` raises for the same records, naming the grid."""
+    vol = mixed_volume()
+    base = {"level": np.array([g.level for g in vol.grids]),
+            "origin": np.array([g.origin for g in vol.grids]),
+            "spacing": np.array([g.spacing for g in vol.grids]),
+            "shape": np.array([g.shape for g in vol.grids])}
+    nan = {n: [g.fields[n].copy() for g in vol.grids] for n in vol.field_names}
+    nan["b"][5][1, 1, 1] = np.nan
+    plain = {n: [g.fields[n] for g in vol.grids] for n in vol.field_names}
+    spacing = base["spacing"].copy()
+    spacing[2] = -spacing[2]
+    level = base["level"].copy()
+    level[3] = -1
+    cases = [(base, nan), ({**base, "spacing": spacing}, plain), ({**base, "level": level}, plain)]
+    for columns, fields in cases:
+        records = [{"level": int(columns["level"][i]), "origin": tuple(columns["origin"][i]),
+                    "spacing": tuple(columns["spacing"][i]),
+                    "fields": {n: fields[n][i] for n in fields}} for i in range(len(vol.grids))]
+        with pytest.raises(AMRError) as want:
+            AMRVolume.from_grids(records, source="f.npz")
+        with pytest.raises(AMRError) as got:
+            AMRVolume.from_columns(columns, fields, fields, source="f.npz")
+        assert str(got.value) == str(want.value)
+        assert re.search(r"grid \d", str(got.value)), str(got.value)

@@ -156,7 +156,46 @@ class AMRVolume:
         if not records:
             raise AMRError(f"{prefix}empty hierarchy: at least one level-0 grid is needed")
         _check_fields(records, prefix, allow_nonfinite)
-        columns = _record_columns(records)
+        return cls._checked(records, _record_columns(records), allow_nonfinite, source)
+
+    @classmethod
+    def from_columns(cls, columns: Mapping, fields: Mapping, flat: Mapping, *,
+                     allow_nonfinite: bool = False, source: str | None = None) -> "AMRVolume":
+        """:meth:`from_grids` for a hierarchy a reader holds as columns: ``columns`` has
+        ``level`` ``(G,)`` integers, ``origin`` and ``spacing`` ``(G, 3)`` numbers (world) and
+        ``shape`` ``(G, 3)`` integers >= 1; ``fields`` maps a name to its ``G`` arrays (one
+        per grid, of its shape); ``flat`` maps a name to arrays that together hold every value
+        of the field (a reader's level buffers), where its values are checked for NaN/Inf at
+        once. The same volume as ``from_grids`` of the same records, with the same checks of
+        the hierarchy; without the per-grid parsing of records of any type. Where a column is
+        not plain (a negative level, a non-finite origin or spacing, a spacing <= 0, a field
+        that is not of floats) or a value is not finite where that is not allowed, it is
+        :meth:`from_grids` that runs, so that its messages name the grid."""
+        level = np.asarray(columns["level"])
+        origin = np.asarray(columns["origin"], dtype=np.float64)
+        spacing = np.asarray(columns["spacing"], dtype=np.float64)
+        shape = np.asarray(columns["shape"], dtype=np.int64)
+        names = list(fields)
+        records = None
+        if (len(level) > 0 and level.dtype.kind in "iu" and names and level.min() >= 0 and
+                np.isfinite(origin).all() and np.isfinite(spacing).all() and
+                (spacing > 0).all()):
+            records = _column_records(level, (origin, spacing, shape), fields)
+        if records is None or not (allow_nonfinite or _all_finite_flat(_flat_parts(flat))):
+            return cls.from_grids(
+                [{"level": int(level[i]), "origin": tuple(origin[i].tolist()),
+                  "spacing": tuple(spacing[i].tolist()),
+                  "fields": {n: fields[n][i] for n in names}} for i in range(len(level))],
+                allow_nonfinite=allow_nonfinite, source=source)
+        return cls._checked(records, {"level": level.astype(np.int64), "origin": origin,
+                                      "spacing": spacing, "shape": shape},
+                            allow_nonfinite, source)
+
+    @classmethod
+    def _checked(cls, records, columns, allow_nonfinite: bool, source) -> "AMRVolume":
+        """The volume of parsed ``records`` (and their ``columns``) once the hierarchy's
+        checks pass: levels, lattice, overlap and nesting."""
+        prefix = f"{source}: " if source else ""
         ratios = _check_levels(records, columns, prefix)
         anchor, index_lo = _check_lattice(records, columns, ratios, prefix)
         _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix)
@@ -379,6 +418,41 @@ class AMRVolume:
     def source_prefix(self) -> str:
         """``"<source>: "`` to begin a message about this volume (empty without a source)."""
         return f"{self.source}: " if self.source else ""
+
+
+def _flat_parts(flat: Mapping):
+    """Every array of the mapping ``flat`` (name -> list of arrays)."""
+    for arrays in flat.values():
+        yield from arrays
+
+
+def _column_records(level, boxes, fields) -> list | None:
+    """The :class:`Grid` records of :meth:`AMRVolume.from_columns`, or None where a field's
+    array is not what :func:`_parse_plain` takes (C-contiguous 3-D floats of its grid's
+    shape)."""
+    origin, spacing, shape = boxes
+    names = list(fields)
+    shapes = [tuple(row) for row in shape.tolist()]
+    for n in names:
+        if any(a.dtype.kind != "f" or not a.flags.c_contiguous or a.shape != sh
+               for a, sh in zip(fields[n], shapes)) or len(fields[n]) != len(shapes):
+            return None
+    with _collector_paused():
+        return [Grid(lv, o, h, sh, dict(zip(names, arrays)))
+                for lv, o, h, sh, arrays in zip(level.tolist(), map(tuple, origin.tolist()),
+                                                map(tuple, spacing.tolist()), shapes,
+                                                zip(*(fields[n] for n in names)))]
+
+
+def _all_finite_flat(arrays, block: int = FINITE_CHECK_CELLS) -> bool:
+    """Whether every value of ``arrays`` is finite, each tested :data:`FINITE_CHECK_CELLS`
+    values at a time (small temporaries that stay in cache, not one of a level's size)."""
+    for a in arrays:
+        flat = a.reshape(-1)
+        for at in range(0, flat.size, block):
+            if not np.isfinite(flat[at:at + block]).all():
+                return False
+    return True
 
 
 def _cell_offsets(shape) -> np.ndarray:

@@ -88,14 +88,12 @@ def load(path, fields=None, *, level_buffers=()) -> AMRVolume:
                 for n in wanted}
     offsets, shape = index["offsets"], index["shape"]
     _, (rank, within), _ = layout
-    # Plain Python numbers (lists, ints), the form AMRVolume.from_grids checks fastest.
-    level, origin, spacing = (index[k].tolist() for k in ("level", "origin", "spacing"))
-    grids = [{"level": level[i], "origin": origin[i], "spacing": spacing[i],
-              "fields": {n: data[n][rank[i]][within[i]:within[i] + offsets[i + 1] - offsets[i]]
-                         .reshape(shape[i]) for n in wanted}}
-             for i in range(len(shape))]
-    return AMRVolume.from_grids(grids, allow_nonfinite=index["allow_nonfinite"],
-                                source=str(path))
+    shapes = [tuple(row) for row in shape.tolist()]
+    fields = {n: [data[n][r][a:a + b - c].reshape(sh) for r, a, b, c, sh in
+                  zip(rank, within, offsets[1:], offsets, shapes)] for n in wanted}
+    return AMRVolume.from_columns({k: index[k] for k in ("level", "origin", "spacing", "shape")},
+                                  fields, data, allow_nonfinite=index["allow_nonfinite"],
+                                  source=str(path))
 
 
 # ---------------------------------------------------------------------- reading the archive
