@@ -64,11 +64,16 @@ def available_fields(path) -> list:
 
 
 def stream_fields(path, names):
-    """Fields ``names`` of ``path`` to read a stretch at a time
-    (:class:`native.FieldStream`: no field-sized buffer, no grid built), or None where the
-    format cannot be read so (use :func:`load`)."""
+    """Fields ``names`` of ``path`` to read a stretch at a time (no field-sized buffer, no
+    grid built): :class:`native.FieldStream` for mi_amr's ``.npz`` files,
+    :class:`amrex.FabStream` (a box at a time) for AMReX plotfiles; None for the other formats
+    (use :func:`load`)."""
     path = _existing(path)
-    return native.FieldStream(path, names) if native.is_native(path) else None
+    if native.is_native(path):
+        return native.FieldStream(path, names)
+    if amrex.is_plotfile(path):
+        return amrex.FabStream(path, names)
+    return None
 
 
 def _existing(path) -> Path:

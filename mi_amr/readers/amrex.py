@@ -172,6 +172,48 @@ def load(path, fields=None) -> AMRVolume:
     return AMRVolume.from_grids(grids, source=str(root))
 
 
+class FabStream:
+    """Fields of an AMReX plotfile read a FAB at a time, for a pass over their values that
+    needs no grid (a colour range): the interface of
+    :class:`~mi_amr.readers.native.FieldStream`. ``with FabStream(path, names) as s:`` reads
+    the Header and each level's box list (and checks them against each other); ``chunks()``
+    yields, per box, the named fields' values (1-D arrays in native byte order, one per name,
+    each box's own real type, so ``same_dtype``: a chunk's arrays share one dtype). A value
+    that is not finite ends as an AMRError naming the FAB, as :func:`load` refuses it."""
+
+    allow_nonfinite = False
+    same_dtype = True
+
+    def __init__(self, path, names):
+        self.root, self.names = Path(path), list(names)
+
+    def __enter__(self) -> "FabStream":
+        header = read_header(self.root)
+        self.names = _wanted_fields(self.root, header.field_names, self.names)
+        self._comps = [header.field_names.index(n) for n in self.names]
+        self._nfields = len(header.field_names)
+        self._levels = []
+        for entry in header.levels:
+            cell_h = self.root / (entry.data_path + "_H")
+            cell = read_cell_header(cell_h, self._nfields)
+            _check_boxes(self.root / "Header", cell_h, header, entry, cell)
+            self._levels.append((cell_h, cell))
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def chunks(self):
+        for cell_h, cell in self._levels:
+            for i, arrays in _fabs(cell_h, cell, self._nfields, self._comps):
+                values = [arrays[c].reshape(-1) for c in self._comps]
+                for name, a in zip(self.names, values):
+                    if not np.isfinite(a).all():
+                        raise AMRError(f"{cell_h.parent / cell.fabs[i][0]}: FAB {i}: field "
+                                       f"'{name}' has non-finite value(s) (NaN/Inf)")
+                yield values
+
+
 def read_header(root) -> PlotfileHeader:
     """Parse ``root/Header`` (see the module docstring for its layout)."""
     path = Path(root) / "Header"
@@ -410,10 +452,15 @@ def _check_boxes(header_path: Path, cell_h: Path, header: PlotfileHeader, entry:
 
 def _read_level(cell_h: Path, cell: CellHeader, nfields: int, comps: list) -> list:
     """Per box, ``{component: array (nx, ny, nz)}`` for the components ``comps`` only."""
+    return [arrays for _, arrays in _fabs(cell_h, cell, nfields, comps)]
+
+
+def _fabs(cell_h: Path, cell: CellHeader, nfields: int, comps: list):
+    """Per box of the level, in order, ``(index, {component: array (nx, ny, nz)})`` for the
+    components ``comps`` only, read one FAB at a time."""
     folder = cell_h.parent
     limits = _fab_limits(folder, cell_h, cell.fabs)
     files = {}
-    out = []
     try:
         for i, ((name, offset), box) in enumerate(zip(cell.fabs, cell.boxes)):
             d_path = folder / name
@@ -421,12 +468,12 @@ def _read_level(cell_h: Path, cell: CellHeader, nfields: int, comps: list) -> li
                 with _reading(d_path, "FAB data"):
                     files[name] = open(d_path, "rb")
             with _reading(d_path, f"FAB {i}"):
-                out.append(_read_fab(files[name], d_path, cell_h, i, offset, limits[i], box,
-                                     cell.ngrow, nfields, comps))
+                arrays = _read_fab(files[name], d_path, cell_h, i, offset, limits[i], box,
+                                   cell.ngrow, nfields, comps)
+            yield i, arrays
     finally:
         for f in files.values():
             f.close()
-    return out
 
 
 def _fab_limits(folder: Path, cell_h: Path, fabs: tuple) -> list:

@@ -215,7 +215,8 @@ class FieldStream:
     needs no grid (a colour range): no buffer of a field's size is made, and the grids'
     boxes are not checked (:func:`load` checks them). ``with FieldStream(path, names) as s:``
     opens the archive and checks the index and the fields' entries; ``s.allow_nonfinite`` is
-    the file's flag, ``s.dtypes`` the fields' dtypes, and ``s.chunks()`` yields lists of 1-D
+    the file's flag, ``s.dtypes`` the fields' dtypes (``s.same_dtype``: all one), and
+    ``s.chunks()`` yields lists of 1-D
     arrays, one per name, each the same stretch of at most ``chunk_values`` values of that
     field's row of every grid's values (file order). The arrays are read-only and valid until
     the next chunk. Damage found while reading ends as an AMRError naming the file."""
@@ -239,6 +240,7 @@ class FieldStream:
             raise
         self.allow_nonfinite = index["allow_nonfinite"]
         self.dtypes = [dtype for _, dtype, _ in self._entries]
+        self.same_dtype = len(set(self.dtypes)) == 1
         return self
 
     def __exit__(self, *exc):

@@ -120,7 +120,7 @@ def _streamed_range(path, name, names):
     with stream:
         if names == [name]:
             return finite_range(values[0] for values in stream.chunks())
-        if len(set(stream.dtypes)) == 1:    # (else each grid's roundings: derive's path)
+        if stream.same_dtype:       # (else each grid's roundings: derive's path)
             return speed_range_of_chunks(stream.chunks())
     return None
 
