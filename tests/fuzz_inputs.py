@@ -59,15 +59,28 @@ from amrex_writer import write_plotfile  # noqa: E402
 
 TIMEOUT = 20.0                  # seconds a case may take
 MEMORY_LIMIT = 4 << 30          # bytes of address space for a case's process
-# What a case's process runs: read the input as `info` does, and say how it ended.
+# What a case's process runs: read the input as `info` does, then stream every field as a
+# time series' colour range does, and say how it ended (amrerror: either refused it).
 CHILD = r"""
 import sys
 from mi_amr import AMRError, load
+from mi_amr.readers import available_fields, stream_fields
+
+def streamed(path):
+    stream = stream_fields(path, available_fields(path))
+    if stream is not None:
+        with stream:
+            for _ in stream.chunks():
+                pass
+
 try:
-    load(sys.argv[1]).summary()
-    print("RESULT ok")
-except AMRError:
-    print("RESULT amrerror")
+    status = "ok"
+    for step in (lambda: load(sys.argv[1]).summary(), lambda: streamed(sys.argv[1])):
+        try:
+            step()
+        except AMRError:
+            status = "amrerror"
+    print(f"RESULT {status}")
 except BaseException as e:
     text = str(e).splitlines()[0][:300] if str(e).strip() else ""
     print(f"RESULT exception {type(e).__name__}: {text}")
