@@ -255,15 +255,21 @@ def test12_truncated_file_is_refused(tmp_path, keep):
         mi_amr.load(cut)
 
 
+def flipped_copy(path, target, entry="field:b.npy"):
+    """``path`` written to ``target`` with a byte in the middle of ``entry``'s values flipped:
+    the zip's CRC check catches it when the entry is read."""
+    with zipfile.ZipFile(path) as z:
+        info = z.getinfo(entry)
+    data = bytearray(Path(path).read_bytes())
+    data[info.header_offset + 30 + len(info.filename) + info.file_size // 2] ^= 0xFF
+    Path(target).write_bytes(bytes(data))
+    return target
+
+
 def test13_damaged_member_is_refused(tmp_path):
     path = tmp_path / "v.npz"
     mixed_volume().save(path)
-    with zipfile.ZipFile(path) as z:
-        info = z.getinfo("field:b.npy")
-    data = bytearray(path.read_bytes())
-    # Flip a byte in the middle of the field's values: the zip's CRC check catches it on read.
-    data[info.header_offset + 30 + len(info.filename) + info.file_size // 2] ^= 0xFF
-    path.write_bytes(bytes(data))
+    flipped_copy(path, path)
     with pytest.raises(AMRError, match=at(path) + "damaged mi_amr volume.*CRC"):
         mi_amr.load(path)
     # Reading only the intact field still works.
@@ -511,12 +517,7 @@ def test28_a_field_stream_refuses_what_load_refuses(tmp_path):
 
     path = tmp_path / "v.npz"
     mixed_volume().save(path)
-    with zipfile.ZipFile(path) as z:
-        info = z.getinfo("field:b.npy")
-    data = bytearray(path.read_bytes())
-    data[info.header_offset + 30 + len(info.filename) + info.file_size // 2] ^= 0xFF
-    flipped = tmp_path / "flipped.npz"
-    flipped.write_bytes(bytes(data))
+    flipped = flipped_copy(path, tmp_path / "flipped.npz")
     with pytest.raises(AMRError, match=at(flipped) + "damaged mi_amr volume.*CRC"):
         streamed(flipped, ["b"])
     assert streamed(flipped, ["a"])[0][0].size        # the intact field still streams
