@@ -6,6 +6,7 @@ Small data, 32 x 32 frames."""
 import json
 import math
 import os
+import re
 import signal
 import textwrap
 import threading
@@ -687,6 +688,44 @@ def test18e_a_series_colour_range_shows_its_progress(series, capsys):
     err = capsys.readouterr().err
     assert "colour range" in err and "/3 " in err, err
     assert shown == quiet and quiet is not None
+
+
+@pytest.mark.parametrize("dtype", ["<f8", "<f4"])
+def test18f_a_plotfile_streams_its_fields_a_box_at_a_time(tmp_path, dtype, monkeypatch):
+    """A time series' colour range of a plotfile is read a box at a time
+    (``amrex.FabStream``), no volume loaded: a stored field's range and the speed's are those
+    of the loaded (and derived) fields, in doubles and singles; a NaN in a FAB (which
+    :func:`load` refuses) ends the stream with an AMRError naming the FAB."""
+    from amrex_writer import write_plotfile
+
+    import mi_amr.readers as readers
+    from mi_amr.core.derive import derive
+    from mi_amr.readers import load
+    from mi_amr.workflows import movie
+
+    root = write_plotfile(tmp_path / f"plt{dtype[-1]}", names=("vx", "vy", "vz", "density"),
+                          dtype=dtype)
+    want = {"density": load(root).value_range("density"),
+            "speed": derive(load(root, fields=["vx", "vy", "vz"]), "speed").value_range("speed")}
+    with readers.stream_fields(root, ["vy", "density"]) as s:
+        chunks = list(s.chunks())
+    assert s.names == ["vy", "density"] and len(chunks) == 3      # one per box
+    vol = load(root, fields=["vy", "density"])
+    for i, name in enumerate(s.names):
+        got = np.concatenate([c[i] for c in chunks])
+        np.testing.assert_array_equal(np.sort(got), np.sort(np.concatenate(
+            [g.fields[name].ravel() for g in vol.grids])))
+        assert got.dtype == np.dtype(dtype).newbyteorder("=")
+    monkeypatch.setattr(readers, "load", lambda *a, **k: pytest.fail("loaded a volume"))
+    for name, value in want.items():
+        assert movie._file_range(root, name) == value, name
+    fab = root / "Level_1" / "Cell_D_00000"
+    data = bytearray(fab.read_bytes())
+    at = data.index(b"\n") + 1            # the first value of box 0 of level 1
+    data[at:at + np.dtype(dtype).itemsize] = np.array([np.nan], dtype=dtype).tobytes()
+    fab.write_bytes(bytes(data))
+    with pytest.raises(AMRError, match=re.escape(str(fab)) + ": FAB 0: field 'vx' has non-fin"):
+        movie._file_range(root, "speed")
 
 
 def test19_a_movie_whose_cluster_loses_every_worker_stops_with_one_error(series, tmp_path):
