@@ -192,3 +192,39 @@ def kernels_compiled(fn):
         dr.set_flag(dr.JitFlag.KernelHistory, False)
     jit = [k for k in history if k["type"] == dr.KernelType.JIT]
     return out, sum(1 for k in jit if not k.get("cache_hit", False) or k.get("cache_disk", False))
+
+
+def small_scene(folder, integrator: str, res: int, defaults: str = ""):
+    """Write ``folder/scene.xml``: an ``amr_iso`` integrator whose parameters are the XML
+    ``integrator``, a ``res`` x ``res`` perspective view of the unit cube (1 spp, RGB), a
+    directional light and a sphere below the volume; ``defaults``: ``<default>`` lines."""
+    import textwrap
+
+    text = f"""
+    <scene version="3.0.0">
+        {defaults}
+        <integrator type="amr_iso" id="integrator">
+            {integrator}
+        </integrator>
+        <sensor type="perspective" id="sensor">
+            <float name="fov" value="30"/>
+            <transform name="to_world">
+                <lookat origin="1.6, -0.9, 1.4" target="0.5, 0.5, 0.5" up="0, 0, 1"/>
+            </transform>
+            <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
+            <film type="hdrfilm">
+                <integer name="width" value="{res}"/><integer name="height" value="{res}"/>
+                <string name="pixel_format" value="rgb"/>
+            </film>
+        </sensor>
+        <emitter type="directional" id="light">
+            <vector name="direction" value="-0.4, 0.5, -1.0"/>
+            <rgb name="irradiance" value="2.5"/>
+        </emitter>
+        <shape type="sphere" id="ball">
+            <point name="center" value="0.5, 0.5, -0.6"/><float name="radius" value="0.3"/>
+        </shape>
+    </scene>"""
+    path = folder / "scene.xml"
+    path.write_text(textwrap.dedent(text))
+    return path

@@ -6,12 +6,11 @@ a kernel not found in memory counts, also one loaded from Dr.Jit's disk cache).
 """
 
 import gc
-import textwrap
 
 import numpy as np
 import pytest
 
-from conftest import kernels_compiled, random_grids
+from conftest import kernels_compiled, random_grids, small_scene
 from mi_amr import AMRVolume, params
 from mi_amr.synthetic import datasets
 
@@ -28,39 +27,13 @@ def scene_xml(folder, colormap=True, mode="surface", method="exact", iso="0.3"):
     colour = ('<string name="color_field" value="f"/>'
               '<string name="colormap" value="0.1: 0 0 1, 0.3: 0 1 0, 0.5: 1 0 0"/>'
               if colormap else "")
-    text = f"""
-    <scene version="3.0.0">
-        <default name="filename" value="a.npz"/>
-        <integrator type="amr_iso" id="integrator">
+    return small_scene(folder, f"""
             <string name="filename" value="$filename"/>
             <string name="field" value="f"/>
             <string name="isovalue" value="{iso}"/>
             <string name="mode" value="{mode}"/>
             <string name="method" value="{method}"/>
-            {colour}
-        </integrator>
-        <sensor type="perspective" id="sensor">
-            <float name="fov" value="30"/>
-            <transform name="to_world">
-                <lookat origin="1.6, -0.9, 1.4" target="0.5, 0.5, 0.5" up="0, 0, 1"/>
-            </transform>
-            <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
-            <film type="hdrfilm">
-                <integer name="width" value="{RES}"/><integer name="height" value="{RES}"/>
-                <string name="pixel_format" value="rgb"/>
-            </film>
-        </sensor>
-        <emitter type="directional" id="light">
-            <vector name="direction" value="-0.4, 0.5, -1.0"/>
-            <rgb name="irradiance" value="2.5"/>
-        </emitter>
-        <shape type="sphere" id="ball">
-            <point name="center" value="0.5, 0.5, -0.6"/><float name="radius" value="0.3"/>
-        </shape>
-    </scene>"""
-    path = folder / "scene.xml"
-    path.write_text(textwrap.dedent(text))
-    return path
+            {colour}""", RES, '<default name="filename" value="a.npz"/>')
 
 
 def distance_field(centre=(0.5, 0.5, 0.5)):

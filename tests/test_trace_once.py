@@ -9,11 +9,11 @@ Counted by wrapping ``drjit.while_loop``, which the code that ``@dr.syntax`` wri
 when it runs.
 """
 
-import textwrap
 from collections import Counter
 
 import pytest
 
+from conftest import small_scene
 from mi_amr.synthetic import datasets
 
 RES = 12
@@ -33,34 +33,8 @@ def data(tmp_path_factory):
 
 
 def scene_file(folder, data, extra):
-    text = f"""
-    <scene version="3.0.0">
-        <integrator type="amr_iso" id="integrator">
-            <string name="filename" value="{data}"/>
-            <string name="field" value="f"/>
-            {extra}
-        </integrator>
-        <sensor type="perspective" id="sensor">
-            <float name="fov" value="30"/>
-            <transform name="to_world">
-                <lookat origin="1.6, -0.9, 1.4" target="0.5, 0.5, 0.5" up="0, 0, 1"/>
-            </transform>
-            <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
-            <film type="hdrfilm">
-                <integer name="width" value="{RES}"/><integer name="height" value="{RES}"/>
-            </film>
-        </sensor>
-        <emitter type="directional">
-            <vector name="direction" value="-0.4, 0.5, -1.0"/>
-            <rgb name="irradiance" value="2.5"/>
-        </emitter>
-        <shape type="sphere">
-            <point name="center" value="0.5, 0.5, -0.6"/><float name="radius" value="0.3"/>
-        </shape>
-    </scene>"""
-    path = folder / "scene.xml"
-    path.write_text(textwrap.dedent(text))
-    return path
+    return small_scene(folder, f'<string name="filename" value="{data}"/>'
+                               f'<string name="field" value="f"/>{extra}', RES)
 
 
 COLOUR = ('<string name="color_field" value="f"/>'

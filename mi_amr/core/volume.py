@@ -28,7 +28,7 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from mi_amr.core import levels
+from mi_amr.core import extremes, levels
 from mi_amr.core.boxes import intersection_volume, overlap_pairs
 from mi_amr.core.buffers import aligned_full
 from mi_amr.errors import AMRError, shown
@@ -360,7 +360,8 @@ class AMRVolume:
             raise AMRError(f"{self.source_prefix()}unknown field '{field}'; "
                            f"available: {list(self.field_names)}")
         if field not in self._ranges:
-            self._ranges[field] = np.array([_finite_range(g.fields[field]) for g in self.grids])
+            self._ranges[field] = np.array([extremes.finite_range((g.fields[field],))
+                                            for g in self.grids])
         ranges = self._ranges[field]
         if grid is not None:
             if not 0 <= grid < len(self.grids):
@@ -834,13 +835,6 @@ def _covered_boxes(volume: AMRVolume):
         ca, fb = overlap_pairs(lo[coarse], hi[coarse], flo, fhi)
         c = coarse[ca]
         yield c, np.maximum(lo[c], flo[fb]) - lo[c], np.minimum(hi[c], fhi[fb]) - lo[c]
-
-
-def _finite_range(arr: np.ndarray):
-    finite = arr[np.isfinite(arr)] if not np.all(np.isfinite(arr)) else arr
-    if finite.size == 0:
-        return (math.nan, math.nan)
-    return (float(finite.min()), float(finite.max()))
 
 
 def _format_bytes(n: int) -> str:
