@@ -117,18 +117,32 @@ CENTROID_ABS = 5e-3
 # longer than an exact frame at 256^2 on two busy cores; 2^19 takes about a quarter of that.
 SHADOW_CACHE_POINTS = 2 ** 19
 # finest cells of the band's leaves: the longest stretch of a lit piece's shadow ray that is
-# composited exactly before its cache is read (mi_amr.kernels.shadow_grid: one cache cell,
+# taken apart from its cache before the cache is read (mi_amr.kernels.shadow_grid: one cache cell,
 # which at the full size is under 3 finest cells on the report's scenes); it bounds that
 # stretch for the viewer's coarse preview caches.
 SHADOW_REACH_CELLS = 4.0
 # share of a pixel: a lit piece (or sample) whose light makes more of its pixel than this (the
-# transmittance from the eye to it times its opacity) gets that exact stretch; a fainter one
-# reads the cache at itself. The faint haze of the shells scene holds most lit pieces, and
-# its shadow on itself changes slowly: at 0.1, 16 spp, 128^2, against exact at the same
-# samples, relative RMSE 0.016 (one band) and 0.016 (shells), 0.016 and 0.014 with the
-# stretch everywhere, 0.065 and 0.038 with none; at 512^2 the shells' frame costs 1.11x
-# the cache read at every piece instead of 2.2x, the one band's 1.28x instead of 1.46x.
+# transmittance from the eye to it times its opacity) takes its first stretch apart from the
+# cache (mi_amr.kernels.near); a fainter one reads the cache at itself. The faint haze of the
+# shells scene holds most lit pieces, and its shadow on itself changes slowly: at 0.1, 16 spp,
+# 128^2, against exact at the same samples, relative RMSE 0.017 (one band) and 0.016 (shells)
+# with the near ramp, 0.016 and 0.016 with that stretch composited exactly, 0.016 and 0.014
+# exactly everywhere, 0.065 and 0.038 with none.
 SHADOW_NEAR_WEIGHT = 0.1
+# |cos|: a lit piece's shadow ray whose direction makes less than this with the value's
+# gradient (it runs within about 17 degrees of the band's surface) bends its near ramp to the
+# value reconstructed at the stretch's end (mi_amr.kernels.near); the reconstruction is the
+# ramp's dear part, so the other rays keep it straight. On a thin band (width 0.005,
+# tests/test_volume_shadows.py) the straight ramp's mean |error| against the exact stretch is
+# 0.03-0.06 at such rays, the bent one's 0.01-0.02; at rays that leave the band faster both
+# are within 0.003-0.025, and on the report's rougher Q field the straight one is the closer
+# (0.004 against 0.007).
+NEAR_RAMP_GRAZING = 0.3
+# transmittance: mean |ramp - exact| of a lit point's first stretch on a thin band (width
+# 0.005, tests/test_volume_shadows.py test13) over the points whose shadow ray runs within
+# NEAR_RAMP_GRAZING of the band, and half of it over all points; measured 0.014 and 0.011
+# there for the two lights (0.011 and 0.010 over all), 0.042 with the ramp kept straight.
+NEAR_RAMP_MEAN_ABS = 0.025
 # points: the cache of the viewer's previews (mi_amr.workflows.viewer), a 64th of the full one:
 # a slider that moves a band builds the cache again for each preview, and at the full size that
 # build (1.7 s for the shells scene) would be most of the preview.
@@ -150,8 +164,9 @@ SHADOW_CACHE_MEAN_ABS = 0.03
 # point itself: what is left is the grid's smoothing of the other band's shadow).
 SHADOW_NEAR_MEAN_ABS = 0.035
 # relative RMSE: the same scene with bands of width 0.005 at 4 spp, cached against exact
-# (tests/test_volume_shadows.py test11; measured 0.0097, 0.0105 with the exact stretch for
-# every lit piece, 0.0163 with none, 0.0123 with it only for the pieces too faint to count).
+# (tests/test_volume_shadows.py test11; measured 0.0103 with the near ramp, 0.0097 with the
+# first stretch composited exactly instead, 0.0105 with that for every lit piece, 0.0163 with
+# none, 0.0123 with it only for the pieces too faint to count).
 SHADOW_THIN_REL_RMSE = 0.0115
 # relative RMSE: a volume image with corrected shadows (volume_shadows="corrected": the cache
 # and one exact shadow ray per camera sample) against the exact image of the same seed, at

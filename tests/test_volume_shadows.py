@@ -5,9 +5,11 @@
 and within :data:`~mi_amr.tolerances.SHADOW_CACHE_MEAN_ABS` between them; built again for a
 new band or light, not for a camera move, and a new light direction compiles nothing.
 ``volume_shadows="corrected"`` (the cache and one exact shadow ray per camera sample)
-converges to the exact image as the samples grow. A lit piece whose light counts composites
-the first grid cell of its shadow ray exactly, from its own leaf, and reads the grid beyond:
-on a thin band that is far closer to the exact transmittance than the grid read at the piece.
+converges to the exact image as the samples grow. A lit piece whose light counts takes the
+first grid cell of its shadow ray apart from the grid, and reads the grid beyond: composited
+exactly from its own leaf (the sampling methods; on a thin band far closer to the exact
+transmittance than the grid read at the piece), or from the value around it (the exact
+method's near ramp, held against that exact stretch).
 """
 
 import textwrap
@@ -425,8 +427,8 @@ def test10_a_shadow_ray_started_in_its_leaf_matches_the_search_from_the_root(var
 
 def test11_a_thin_band_s_image_gets_the_exact_stretch_where_its_light_counts(variant, folder):
     """Thinner bands (width 0.005) at 4 spp: the pieces whose light counts
-    (:class:`~mi_amr.kernels.composite.NearStretch`) composite the first grid cell of their
-    shadow ray exactly, and the image is within :data:`~mi_amr.tolerances.SHADOW_THIN_REL_RMSE`
+    (:class:`~mi_amr.kernels.near.NearStretch`) take the first grid cell of their shadow ray
+    from their near ramp, and the image is within :data:`~mi_amr.tolerances.SHADOW_THIN_REL_RMSE`
     of exact shadow rays; reading the grid at every piece is not."""
     mi = variant
     images = {s: np.array(mi.render(load(folder, s, band_width=0.005), seed=0, spp=4))
@@ -458,3 +460,55 @@ def test12_a_lamp_within_the_exact_stretch_is_never_looked_past(variant, folder)
     near_T, _, exact_T = _cached_shadows(mi, scene, pts)[1]
     assert np.ptp(exact_T) > 0.01, "the lamp's light must pass some of the band"
     assert np.max(np.abs(near_T - exact_T)) < 1e-5
+
+
+def test13_the_near_ramp_follows_the_exact_stretch(variant, folder):
+    """A lit piece's first stretch from the value around it
+    (:class:`~mi_amr.kernels.near.NearRamp`) against that stretch composited exactly, on a
+    thin band (width 0.005) itself, towards both lights: within
+    :data:`~mi_amr.tolerances.NEAR_RAMP_MEAN_ABS` where the shadow ray runs nearly along the
+    band (a straight ramp would keep it in the band for the whole stretch there), and within
+    half of that over all points."""
+    import drjit as dr
+
+    from mi_amr.kernels import reconstruct as rec
+    from mi_amr.kernels.composite import Bands
+    from mi_amr.kernels.near import NearRamp
+    from mi_amr.kernels.ray import RayContext
+    from mi_amr.plugin import bridge, shading
+
+    mi = variant
+    scene = load(folder, band_width=0.005)
+    render(mi, scene)
+    integ = scene.integrator()
+    m, cfg = integ.m, integ.config()
+    rng = np.random.default_rng(11)
+    u = rng.normal(size=(3000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    pts = 0.5 + rng.choice([0.3, 0.4], len(u))[:, None] * u * np.array([1.0, 0.8, 0.5])
+    n = len(pts)
+    p = m.Array3f(*(m.Float(pts[:, a]) for a in range(3)))
+    on = m.Bool(np.ones(n, dtype=bool))
+    values, grad = rec.reconstruct(integ.dev, cfg.basis, p, integ.dev.arrays(cfg.basis, False),
+                                   on)
+    ray = RayContext(integ.dev, cfg, p, m.Array3f(0.0, 0.0, 1.0), m.Float(np.zeros(n)),
+                     m.Float(np.ones(n)), on)
+    ramp = NearRamp(ray=ray, p=p, value=values[0], gradient=grad,
+                    centres=Bands.of(ray, None).centres)
+    P = integ.frame.to_scene @ bridge.to_mi3(p, mi.Point3f)
+    it = dr.zeros(mi.Interaction3f, n)
+    it.p = P
+    for emitter, grid in zip(scene.emitters(), integ.shadow_caches.grids(integ, scene)):
+        ds, _ = emitter.sample_direction(it, mi.Point2f(0.5), True)
+        shadow_ray = shading.shadow_ray(P, ds)
+        shadow_ray.maxt = dr.minimum(shadow_ray.maxt, bridge.to_mi(grid.reach, mi.Float))
+        exact = np.array(integ.iso_transmittance(shadow_ray, True, mi.Bool(True)))
+        seg = bridge.to_kernel3(m, integ.frame.to_volume @ (ds.d * shadow_ray.maxt))
+        near = np.array(ramp.transmittance(seg, on))
+        g, s = np.array(grad), np.array(seg)
+        across = np.abs((g * s).sum(0)) / (np.linalg.norm(g, axis=0) * np.linalg.norm(s, axis=0))
+        grazing = across < tol.NEAR_RAMP_GRAZING
+        assert 0.1 < np.mean(exact) < 0.95 and grazing.sum() > 100, "the band must shadow itself"
+        err = np.abs(near - exact)
+        assert np.mean(err[grazing]) < tol.NEAR_RAMP_MEAN_ABS, np.mean(err[grazing])
+        assert np.mean(err) < 0.5 * tol.NEAR_RAMP_MEAN_ABS, np.mean(err)

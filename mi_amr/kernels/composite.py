@@ -25,6 +25,7 @@ from mi_amr.kernels.band import (Ramp, alpha, combine, corrected, cut_point, dep
                                  segment_alpha_and_centroid, segment_alpha_and_point)
 from mi_amr.kernels.config import bisect_depth, holds
 from mi_amr.kernels.device import lnot
+from mi_amr.kernels.near import NearRamp, NearStretch
 from mi_amr.kernels.ray import RayContext
 from mi_amr.kernels.transfer2d import SUPPORT_HI, SUPPORT_LO
 from mi_amr.kernels.transfer2d import alpha as alpha2d
@@ -143,23 +144,6 @@ class Shading:
 
     color_of: Callable
     lighting: Lighting
-
-
-@dataclass
-class NearStretch:
-    """What a lit point tells its cached shadows (see the plugin's ``CachedShadow``): the
-    camera ray's ``walk``, whose leaf holds the point, and the lanes ``where`` the first grid
-    cell of the shadow ray is composited exactly: those whose light makes more than
-    :data:`~mi_amr.tolerances.SHADOW_NEAR_WEIGHT` of the pixel (the light reaching them from
-    the eye times their opacity)."""
-
-    walk: Walk
-    where: Bool
-
-    @staticmethod
-    def of(walk: Walk, lit, T, alpha) -> "NearStretch":
-        """For a piece or sample of opacity ``alpha`` behind transmittance ``T``, ``lit``."""
-        return NearStretch(walk=walk, where=lit & (T * alpha > tol.SHADOW_NEAR_WEIGHT))
 
 
 def composite(ray: RayContext, jitter, shading: Optional[Shading] = None,
@@ -609,7 +593,9 @@ def _piece_colour(ray: RayContext, cp: CubicPiece, along: Along, turns, have, ba
     s_best, best_alpha = _light_place(ray, piece, subs, bands.centres)
     lit = have & (best_alpha > tol.ALPHA_LIT)
     p_lit = ray.at(cp.t + s_best)
-    ctx = lighting.sample(p_lit, lit, True, NearStretch.of(along.walk, lit, along.T, best_alpha))
+    ramp = NearRamp.at(ray, cp, piece.gradient, s_best, bands.centres)
+    ctx = lighting.sample(p_lit, lit, True,
+                          NearStretch.of(along.walk, lit, along.T, best_alpha, ramp))
     C_p, T_p, D_p = _piece_light(ray, piece, subs, Lit(shading, ctx, lit, bands.centres))
     if D_p is None:
         return C_p, T_p, PieceLight.none(m)

@@ -152,7 +152,7 @@ class VolumeLighting:
         """The light samples at volume point ``p``, shadowed where ``visible``: through the
         lights' caches where they have one, else by exact shadow rays. ``near``: where and
         from which leaf the caches' exact stretch is taken
-        (:class:`~mi_amr.kernels.composite.NearStretch`; None: everywhere, from the root)."""
+        (:class:`~mi_amr.kernels.near.NearStretch`; None: exactly everywhere, from the root)."""
         integ = self.shader.integ
         t = self._t(p)
         shadows = integ.shadows() if visible else False

@@ -7,8 +7,9 @@ A cache is filled with the same exact compositing that a per-piece shadow ray ru
 one wavefront of rays from the grid's points. It is built again when what it depends on
 changes: the volume, the bands (isovalues, widths, supports, peaks) or the 2D transfer
 function, the volume's placement in the scene, or the light; never for a camera move. A lit
-piece's shadow (:class:`CachedShadow`) is the exact compositing over the first grid cell of its
-shadow ray (the band's shadow on itself) times the cache read beyond it. The meshes' shadows
+piece's shadow (:class:`CachedShadow`) is the transmittance over the first grid cell of its
+shadow ray (the band's shadow on itself: from the value around the piece, or composited
+exactly, see :mod:`mi_amr.kernels.near`) times the cache read beyond it. The meshes' shadows
 are not in it: a lit piece still tests them with Mitsuba's shadow ray. Lights
 whose direction depends on the light sample (area lights, environments) have no cache and
 keep exact shadow rays.
@@ -28,7 +29,7 @@ import numpy as np
 
 from mi_amr import tolerances as tol
 from mi_amr.kernels.arrays import device_array
-from mi_amr.kernels.composite import NearStretch
+from mi_amr.kernels.near import NearStretch
 from mi_amr.kernels.device import opaque_floats
 from mi_amr.kernels.shadow_grid import (GridPlan, TransmittanceGrid, band_leaves, lookup,
                                         needed_points, plan, point_positions)
@@ -162,14 +163,15 @@ def _build(integ, emitter, grid: GridPlan, index) -> TransmittanceGrid:
 
 @dataclass(frozen=True)
 class CachedShadow:
-    """The band's transmittance towards one cached light, at scene points: ``transmittance``
-    (``(ray, from_iso, active)``, the exact shadow compositing, see
-    :meth:`~mi_amr.plugin.integrator._AMRIso.iso_transmittance`) over the first ``grid.reach``
-    of the shadow ray, times the ``grid`` read where that stretch ends; ``to_volume`` takes
-    scene points to the volume's world space and ``m`` is the kernels' backend. ``near`` (a
-    :class:`~mi_amr.kernels.composite.NearStretch`) limits the exact stretch to the lanes
-    whose light counts (the others read the grid at the point itself) and starts it in the
-    camera ray's leaf; None: everywhere, searched from the root."""
+    """The band's transmittance towards one cached light, at scene points: that of the first
+    ``grid.reach`` of the shadow ray, times the ``grid`` read where that stretch ends;
+    ``to_volume`` takes scene points to the volume's world space and ``m`` is the kernels'
+    backend. The first stretch is ``near``'s (a :class:`~mi_amr.kernels.near.NearStretch`):
+    taken only on the lanes whose light counts (the others read the grid at the point
+    itself), from the value around the point where it has a ramp, else composited by
+    ``transmittance`` (``(ray, from_iso, active)``, the exact shadow compositing, see
+    :meth:`~mi_amr.plugin.integrator._AMRIso.iso_transmittance`) from the camera ray's leaf;
+    without ``near``: composited everywhere, searched from the root."""
 
     m: Any
     grid: TransmittanceGrid
@@ -185,8 +187,12 @@ class CachedShadow:
         reach = dr.select(exact, bridge.to_mi(self.grid.reach, mi.Float), 0.0)
         beyond = active & (ray.maxt > reach)
         ray.maxt = dr.minimum(ray.maxt, reach)
-        near = self.transmittance(ray, True, exact,
-                                  start=None if self.near is None else self.near.walk)
+        if self.near is not None and self.near.ramp is not None:
+            seg = bridge.to_kernel3(self.m, self.to_volume @ (ds.d * ray.maxt))
+            near = bridge.to_mi(self.near.ramp.transmittance(seg, self.m.Bool(exact)), mi.Float)
+        else:
+            near = self.transmittance(ray, True, exact,
+                                      start=None if self.near is None else self.near.walk)
         far = bridge.to_kernel3(self.m, self.to_volume @ (P + ds.d * reach))
         return near * bridge.to_mi(lookup(self.m, self.grid, far, self.m.Bool(beyond)),
                                    mi.Float)
