@@ -111,11 +111,13 @@ CENTROID_ABS = 5e-3
 # ---------------------------------------------------------------------- volume shadows
 
 # points: the most a transmittance cache holds per light (volume_shadows="cache",
-# mi_amr.kernels.shadow_grid), 2 MiB of float32. Beyond it the grid is coarsened evenly. Its
+# mi_amr.kernels.shadow_grid), 4 MiB of float32. Beyond it the grid is coarsened evenly. Its
 # build is one exact shadow ray per point, so the cap bounds the first frame and the frame
-# after a new light or band too: at 2^21 the shells scene's build (807k points filled) took
-# longer than an exact frame at 256^2 on two busy cores; 2^19 takes about a quarter of that.
-SHADOW_CACHE_POINTS = 2 ** 19
+# after a new light or band too, and a coarser grid blurs the shadows that small vortices cast
+# and the edge of a band's shadow on itself. At 128^2, 16 multi-jittered spp, against exact at
+# 64 spp, relative RMSE 0.020 / 0.018 / 0.017 (one band) and 0.017 / 0.013 / 0.010 (shells)
+# at 2^19 / 2^20 / 2^21, with builds of 0.6 / 1.1 / 1.9 s and 1.5 / 2.7 / 5.0 s.
+SHADOW_CACHE_POINTS = 2 ** 20
 # finest cells of the band's leaves: the longest stretch of a lit piece's shadow ray that is
 # taken apart from its cache before the cache is read (mi_amr.kernels.shadow_grid: one cache cell,
 # which at the full size is under 3 finest cells on the report's scenes); it bounds that
@@ -143,9 +145,9 @@ NEAR_RAMP_GRAZING = 0.3
 # NEAR_RAMP_GRAZING of the band, and half of it over all points; measured 0.014 and 0.011
 # there for the two lights (0.011 and 0.010 over all), 0.042 with the ramp kept straight.
 NEAR_RAMP_MEAN_ABS = 0.025
-# points: the cache of the viewer's previews (mi_amr.workflows.viewer), a 64th of the full one:
-# a slider that moves a band builds the cache again for each preview, and at the full size that
-# build (1.7 s for the shells scene) would be most of the preview.
+# points: the cache of the viewer's previews (mi_amr.workflows.viewer), a 128th of the full
+# one: a slider that moves a band builds the cache again for each preview, and at the full size
+# that build (2.7 s for the shells scene) would be most of the preview.
 PREVIEW_SHADOW_CACHE_POINTS = 2 ** 13
 # relative RMSE: a volume image shadowed through the transmittance caches against the same
 # image with exact per-piece shadow rays (tests/test_volume_shadows.py: two bands of an
