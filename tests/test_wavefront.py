@@ -189,3 +189,49 @@ def test06_a_stratified_sampler_keeps_its_strata_per_pixel_in_tile_order(variant
     tiled, scan = errors["multijitter"]
     assert tiled < 0.75 * errors["independent"][0], errors
     assert tiled < 1.2 * scan, errors
+    # `python -m mi_amr render` and the viewer render in passes: a pixel's 16 samples stay in
+    # one, so they keep their strata.
+    import drjit as dr
+
+    from mi_amr.workflows.render import render_passes
+
+    passes = rmse(render_passes(mi, dr, np, scene, 16, quiet=True)[..., :3])
+    assert passes < 0.75 * errors["independent"][0], (passes, errors)
+
+
+def test07_a_sampler_that_rounds_its_count_renders_what_mitsubas_loop_renders(variant, folder):
+    """A stratified sampler keeps a square number of samples (3 spp become 4): the wavefront
+    takes the count the sampler kept, as Mitsuba's loop does (it crashed on a wavefront of
+    the count asked for)."""
+    mi = variant
+    from mi_amr.plugin.twins import Twins, with_twins
+
+    scene = _scene(folder, "rounded", spp=1, sampler="stratified")
+    integ = scene.integrator()
+    ours = np.array(mi.render(scene, seed=3, spp=3,
+                              integrator=with_twins(integ, Twins(tile_order=False))))
+    theirs = np.array(mi.render(scene, seed=3, spp=3,
+                                integrator=with_twins(integ, Twins(wavefront_loop=False))))
+    assert ours[..., :3].std() > 0.01, "the test scene shows nothing"
+    np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-6)
+    tiled = np.array(mi.render(scene, seed=3, spp=3), dtype=np.float64)
+    assert abs(tiled.mean() - theirs.mean()) < 0.02 * theirs.mean()
+
+
+def test08_passes_keep_a_stratified_samplers_samples_of_a_pixel_together(scene_data_ready):
+    """The volume scenes' multi-jittered sampler asks the render workflow and the viewer for
+    passes of up to 16 samples, the independent sampler for passes of one."""
+    import mitsuba as mi
+
+    from mi_amr.plugin.scene import load_scene
+    from mi_amr.workflows import project
+    from mi_amr.workflows.render import (STRATIFIED_PASS_SPP, least_pass_spp, pass_samples,
+                                         scene_pass_spp)
+
+    volume = load_scene(project.scenes_dir() / "sphere_wake_volume.xml", resx=8, resy=8, spp=1)
+    assert scene_pass_spp(volume) == STRATIFIED_PASS_SPP == 16
+    assert pass_samples(16, STRATIFIED_PASS_SPP) == [16]
+    assert pass_samples(64, STRATIFIED_PASS_SPP) == [16] * 4
+    independent = mi.load_dict({"type": "independent", "sample_count": 4})
+    assert least_pass_spp(volume.integrator(), independent) == 1
+    assert least_pass_spp(volume.integrator(), mi.load_dict({"type": "ldsampler"})) == 16

@@ -123,6 +123,9 @@ def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, *,
     order = integrator.pixel_orders(width, height) if tiled else None
     sampler = sensor.sampler().clone()
     sampler.set_sample_count(spp)
+    # (A stratified or low-discrepancy sampler rounds the count to a square or a power of two:
+    # the wavefront takes the count it kept, as Mitsuba's loop does.)
+    spp = int(sampler.sample_count())
     sampler.set_samples_per_wavefront(spp)
     n = width * height * spp
     sampler.seed(seed, n)

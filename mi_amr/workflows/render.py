@@ -54,7 +54,7 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
     _check_png_size(output, size)
     total_spp = sensor.sampler().sample_count()
     _check_film_entries(scene_path, size, len(_channels(scene, aovs)),
-                        max(pass_samples(total_spp, least_pass_spp(scene.integrator()))))
+                        max(pass_samples(total_spp, scene_pass_spp(scene))))
     say(f"  scene ready in {t1 - t0:.1f} s; rendering {size[0]}x{size[1]} at {total_spp} spp")
     image = render_passes(mi, dr, np, scene, total_spp, quiet)
     t2 = time.perf_counter()
@@ -121,15 +121,29 @@ def _check_defines(scene_path, defines: dict) -> None:
 
 
 STOCHASTIC_PASS_SPP = 4    # stochastic layers: samples a pass at least (see pass_samples)
+# a sampler other than `independent` (multijitter, stratified, ldsampler, orthogonal): samples a
+# pass at least. Its strata are the samples of one pass, so a pixel's samples go in one pass,
+# up to the 16 that a pass takes at most (see pass_samples).
+STRATIFIED_PASS_SPP = 16
 
 
-def least_pass_spp(integrator) -> int:
-    """Samples a pass at least for ``integrator``: :data:`STOCHASTIC_PASS_SPP` where its
-    frames of 2 or more spp share the numbers that pick by SIMD packet (``amr_iso``'s
-    ``picks_by_packet``, stochastic layers: faster, and stratified over a pixel's samples;
-    frames of 1 spp keep a number per lane), else 1."""
+def least_pass_spp(integrator, sampler=None) -> int:
+    """Samples a pass at least for ``integrator`` and the sensor's ``sampler``:
+    :data:`STRATIFIED_PASS_SPP` where the sampler stratifies a pixel's samples (any but
+    Mitsuba's ``independent``), :data:`STOCHASTIC_PASS_SPP` where the integrator's frames of 2
+    or more spp share the numbers that pick by SIMD packet (``amr_iso``'s ``picks_by_packet``,
+    stochastic layers: faster, and stratified over a pixel's samples; frames of 1 spp keep a
+    number per lane), else 1."""
+    name = getattr(sampler, "class_name", None)
+    if name is not None and name() != "IndependentSampler":
+        return STRATIFIED_PASS_SPP
     shares = getattr(integrator, "picks_by_packet", None)
     return STOCHASTIC_PASS_SPP if shares is not None and shares() else 1
+
+
+def scene_pass_spp(scene) -> int:
+    """:func:`least_pass_spp` of ``scene``'s integrator and its first sensor's sampler."""
+    return least_pass_spp(scene.integrator(), scene.sensors()[0].sampler())
 
 
 def pass_samples(total: int, least: int = 1) -> list:
@@ -147,7 +161,7 @@ def render_passes(mi, dr, np, scene, total_spp, quiet):
     :mod:`mi_amr.plugin.aovs`) as the last pass gave them, whole numbers kept whole."""
     from tqdm import tqdm
 
-    per_pass = pass_samples(total_spp, least_pass_spp(scene.integrator()))
+    per_pass = pass_samples(total_spp, scene_pass_spp(scene))
     passes = len(per_pass)
     accum = None
     with tqdm(total=total_spp, unit="spp", disable=quiet or passes == 1, leave=False) as bar:

@@ -48,7 +48,7 @@ from mi_amr.errors import AMRError
 from mi_amr.plugin.camera import Camera, scene_camera, sensor_key, set_camera
 from mi_amr.plugin.inputs import colormap_table
 from mi_amr.plugin.scene import load_scene
-from mi_amr.workflows.render import least_pass_spp, pass_samples
+from mi_amr.workflows.render import pass_samples, scene_pass_spp
 from mi_amr.workflows.viewer import tiles
 
 HISTOGRAM_BINS = 128
@@ -421,7 +421,7 @@ class Session:
         """The ``spp``-sample image, in the passes of :func:`refine_passes`; None when
         ``before_pass()`` returns True (a newer request: the rest is dropped)."""
         accum = None
-        for seed, n in refine_passes(spp, least_pass_spp(self.scene.integrator())):
+        for seed, n in refine_passes(spp, scene_pass_spp(self.scene)):
             if before_pass is not None and before_pass():
                 return None
             part = self.render(size, n, seed) * n
@@ -445,7 +445,7 @@ class Session:
         if size == tile or self._tiling["principal"] is None:
             return self.render_refined(size, spp)
         edge = tiles.margin(self._tiling["radius"])
-        passes = refine_passes(spp, least_pass_spp(self.scene.integrator()))
+        passes = refine_passes(spp, scene_pass_spp(self.scene))
         image = None
         try:
             for k, t in enumerate(tiles.layout(size, tile, edge)):
