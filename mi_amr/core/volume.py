@@ -666,7 +666,9 @@ def _check_grid_fields(g, i: int, names, prefix: str, allow_nonfinite: bool) -> 
             if bad:
                 raise AMRError(f"{prefix}{g.describe(i)}: field '{name}' has {bad} non-finite "
                                f"value(s) (NaN/Inf); clean the data or pass "
-                               f"allow_nonfinite=True to treat them as missing")
+                               f"allow_nonfinite=True (to mi_amr.load or from_grids; a scene "
+                               f"reads a .npz saved from such a volume) to treat them as "
+                               f"missing")
 
 
 def _check_levels(records, columns, prefix: str) -> tuple:

@@ -12,7 +12,7 @@ from mi_amr.errors import AMRError
 from mi_amr.readers import amrex, native, vdb, ytsource
 
 
-def load(path, fields=None, *, level_buffers=(), **options):
+def load(path, fields=None, *, level_buffers=(), allow_nonfinite: bool = False, **options):
     """Read an AMR volume from ``path``.
 
     Recognised: mi_amr's ``.npz`` files (see :mod:`mi_amr.readers.native`), AMReX plotfile
@@ -22,7 +22,9 @@ def load(path, fields=None, *, level_buffers=(), **options):
     ``options`` go to ``yt.load``). ``fields``
     (a name or a list of names) reads only those fields from disk. ``level_buffers``: fields
     that mi_amr's ``.npz`` reader gives a buffer per level (see :func:`native.load`); the
-    other readers ignore it. Derived fields (``speed``, ``q_criterion``) are not read here;
+    other readers ignore it. ``allow_nonfinite=True`` keeps NaN and Inf values as missing data
+    (see :meth:`AMRVolume.from_grids`) in any format; an mi_amr ``.npz`` file saved with it
+    keeps them without being asked. Derived fields (``speed``, ``q_criterion``) are not read here;
     see :func:`mi_amr.derive`. Raises
     :class:`~mi_amr.AMRError` for a missing file, something that is neither a regular file nor
     a folder (a FIFO or a device, which would block or never end), an unrecognised format or a
@@ -33,16 +35,17 @@ def load(path, fields=None, *, level_buffers=(), **options):
         fields = [fields]
     if native.is_native(path):
         _no_options(path, options, "an mi_amr .npz file")
-        return native.load(path, fields, level_buffers=level_buffers)
+        return native.load(path, fields, level_buffers=level_buffers,
+                           allow_nonfinite=allow_nonfinite)
     if amrex.is_plotfile(path):
         _no_options(path, options, "an AMReX plotfile")
-        return amrex.load(path, fields)
+        return amrex.load(path, fields, allow_nonfinite=allow_nonfinite)
     if vdb.is_vdb(path):
         _no_options(path, options, "an OpenVDB file")
-        return vdb.load(path, fields)
+        return vdb.load(path, fields, allow_nonfinite=allow_nonfinite)
     ds = ytsource.open_dataset(path, **options)
     if ds is not None:
-        return ytsource.from_yt(ds, fields, source=str(path))
+        return ytsource.from_yt(ds, fields, source=str(path), allow_nonfinite=allow_nonfinite)
     raise AMRError(f"{path}: unrecognised format; mi_amr reads its own .npz volumes, AMReX "
                    f"plotfile folders (a folder with a Header whose first line is e.g. "
                    f"HyperCLaw-V1.1) and OpenVDB .vdb files; {ytsource.why_not(path)}")

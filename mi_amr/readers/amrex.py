@@ -146,11 +146,12 @@ def is_plotfile(path) -> bool:
     return bool(_VERSION_RE.match(first.decode("latin-1").strip()))
 
 
-def load(path, fields=None) -> AMRVolume:
+def load(path, fields=None, *, allow_nonfinite: bool = False) -> AMRVolume:
     """Read the AMReX plotfile folder ``path``; ``fields`` (names) limits what is read from disk.
 
     Grids get world origins ``prob_lo + (box_lo - domain_lo) * dx`` and the Header's cell sizes;
-    8-byte reals become float64 arrays, 4-byte reals float32, in native byte order. Raises
+    8-byte reals become float64 arrays, 4-byte reals float32, in native byte order.
+    ``allow_nonfinite=True`` keeps NaN and Inf values as missing data. Raises
     :class:`AMRError` naming the file for anything malformed or missing.
     """
     root = Path(path)
@@ -169,7 +170,7 @@ def load(path, fields=None) -> AMRVolume:
             origin = header.prob_lo + (np.array(box.lo) - domain_lo) * dx
             grids.append({"level": entry.level, "origin": origin, "spacing": dx,
                           "fields": {name: arrays[c] for name, c in zip(wanted, comps)}})
-    return AMRVolume.from_grids(grids, source=str(root))
+    return AMRVolume.from_grids(grids, allow_nonfinite=allow_nonfinite, source=str(root))
 
 
 class FabStream:

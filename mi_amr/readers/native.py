@@ -73,12 +73,13 @@ def field_names(path) -> list:
         return _names(path, _entry(path, archive, "field_names"))
 
 
-def load(path, fields=None, *, level_buffers=()) -> AMRVolume:
+def load(path, fields=None, *, level_buffers=(), allow_nonfinite: bool = False) -> AMRVolume:
     """Read a file written by :func:`mi_amr.core.npz.save`; ``fields`` (a name or a list of
     names) limits what is read from disk. Each field is read into one buffer, its levels
     aligned slices of it; a field named in ``level_buffers`` gets a buffer per level instead,
     so that a level's arrays, once dropped, free their memory on their own (the velocity that
-    :func:`mi_amr.core.derive.derive` consumes level by level)."""
+    :func:`mi_amr.core.derive.derive` consumes level by level). NaN and Inf values are kept as
+    missing data where the file was saved so or ``allow_nonfinite`` is True."""
     path = Path(path)
     with _archive(path) as archive, _damage(path):
         index = _read_index(path, archive)
@@ -92,7 +93,8 @@ def load(path, fields=None, *, level_buffers=()) -> AMRVolume:
     fields = {n: [data[n][r][a:a + b - c].reshape(sh) for r, a, b, c, sh in
                   zip(rank, within, offsets[1:], offsets, shapes)] for n in wanted}
     return AMRVolume.from_columns({k: index[k] for k in ("level", "origin", "spacing", "shape")},
-                                  fields, data, allow_nonfinite=index["allow_nonfinite"],
+                                  fields, data,
+                                  allow_nonfinite=index["allow_nonfinite"] or allow_nonfinite,
                                   source=str(path))
 
 

@@ -204,11 +204,12 @@ def field_names(path) -> list:
     return field_names_of(read_header(path))
 
 
-def load(path, fields=None) -> AMRVolume:
+def load(path, fields=None, *, allow_nonfinite: bool = False) -> AMRVolume:
     """Read the VDB file ``path``; ``fields`` (names) limits the grids read from disk.
 
     Every grid (of a wanted field) becomes one dense AMR grid over the box of its active voxels
-    (see the module docstring for placement, values and levels). Values are float32. Raises
+    (see the module docstring for placement, values and levels). Values are float32;
+    ``allow_nonfinite=True`` keeps NaN and Inf values as missing data. Raises
     :class:`AMRError` naming the file and the grid for unsupported grid types or transforms,
     voxel sizes that are not a 2/4 chain, grids of one patch whose boxes differ, and truncated
     or corrupt files.
@@ -223,7 +224,7 @@ def load(path, fields=None) -> AMRVolume:
         wanted = [fields] if isinstance(fields, str) else list(dict.fromkeys(fields))
         for r in records:
             r["fields"] = {n: r["fields"][n] for n in wanted}
-    return AMRVolume.from_grids(records, source=str(path))
+    return AMRVolume.from_grids(records, allow_nonfinite=allow_nonfinite, source=str(path))
 
 
 def read_header(path) -> VDBHeader:

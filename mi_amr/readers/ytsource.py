@@ -34,7 +34,8 @@ def installed() -> bool:
     return importlib.util.find_spec("yt") is not None
 
 
-def from_yt(ds, fields=None, *, source: str | None = None) -> AMRVolume:
+def from_yt(ds, fields=None, *, source: str | None = None,
+            allow_nonfinite: bool = False) -> AMRVolume:
     """Convert the grid-based yt dataset ``ds`` into an :class:`~mi_amr.AMRVolume`.
 
     ``fields`` lists what to read: yt field tuples such as ``("boxlib", "x_velocity")`` or
@@ -43,6 +44,7 @@ def from_yt(ds, fields=None, *, source: str | None = None) -> AMRVolume:
     reads every on-disk grid field. A field is named in the volume by its plain name. Only the
     requested fields are read; each grid's cached yt data is released once copied.
     ``source`` labels error messages (default: the dataset's file name).
+    ``allow_nonfinite=True`` keeps NaN and Inf values as missing data.
 
     Raises :class:`~mi_amr.AMRError` when yt is not installed, ``ds`` is not a yt dataset, is
     not a 3-D Cartesian grid dataset (particles only, an octree, an unstructured mesh), a
@@ -76,7 +78,7 @@ def from_yt(ds, fields=None, *, source: str | None = None) -> AMRVolume:
         g.clear_data()
         grids.append({"level": int(g.Level), "origin": _code_length(g.LeftEdge),
                       "spacing": _code_length(g.dds), "fields": arrays})
-    return AMRVolume.from_grids(grids, source=label)
+    return AMRVolume.from_grids(grids, allow_nonfinite=allow_nonfinite, source=label)
 
 
 def open_dataset(path, **options):
