@@ -116,7 +116,8 @@ CENTROID_ABS = 5e-3
 # after a new light or band too, and a coarser grid blurs the shadows that small vortices cast
 # and the edge of a band's shadow on itself. At 128^2, 16 multi-jittered spp, against exact at
 # 64 spp, relative RMSE 0.020 / 0.018 / 0.017 (one band) and 0.017 / 0.013 / 0.010 (shells)
-# at 2^19 / 2^20 / 2^21, with builds of 0.6 / 1.1 / 1.9 s and 1.5 / 2.7 / 5.0 s.
+# at 2^19 / 2^20 / 2^21; the build's work about doubles with each doubling of the points, and
+# 2^20 is the smallest cap that keeps both scenes clear of 0.02.
 SHADOW_CACHE_POINTS = 2 ** 20
 # finest cells of the band's leaves: the longest stretch of a lit piece's shadow ray that is
 # taken apart from its cache before the cache is read (mi_amr.kernels.shadow_grid: one cache cell,
@@ -147,7 +148,7 @@ NEAR_RAMP_GRAZING = 0.3
 NEAR_RAMP_MEAN_ABS = 0.025
 # points: the cache of the viewer's previews (mi_amr.workflows.viewer), a 128th of the full
 # one: a slider that moves a band builds the cache again for each preview, and at the full size
-# that build (2.7 s for the shells scene) would be most of the preview.
+# that build would take longer than the preview's frame itself.
 PREVIEW_SHADOW_CACHE_POINTS = 2 ** 13
 # relative RMSE: a volume image shadowed through the transmittance caches against the same
 # image with exact per-piece shadow rays (tests/test_volume_shadows.py: two bands of an
