@@ -218,20 +218,38 @@ def test07_a_sampler_that_rounds_its_count_renders_what_mitsubas_loop_renders(va
     assert abs(tiled.mean() - theirs.mean()) < 0.02 * theirs.mean()
 
 
-def test08_passes_keep_a_stratified_samplers_samples_of_a_pixel_together(scene_data_ready):
-    """The volume scenes' multi-jittered sampler asks the render workflow and the viewer for
-    passes of up to 16 samples, the independent sampler for passes of one."""
-    import mitsuba as mi
-
+def test08_a_stratified_samplers_passes_are_parts_of_one_set(variant, folder, scene_data_ready):
+    """With a sampler that stratifies, the render workflow's and the viewer's passes are
+    equal parts of one set of the image's samples at one seed (one sample a pass up to 16):
+    the progress bar moves, each stratum is drawn once, and no pass compiles a kernel of its
+    own. With the independent sampler the passes are as before."""
+    mi = variant
     from mi_amr.plugin.scene import load_scene
     from mi_amr.workflows import project
-    from mi_amr.workflows.render import (STRATIFIED_PASS_SPP, least_pass_spp, pass_samples,
-                                         scene_pass_spp)
+    from mi_amr.workflows.render import Pass, pass_samples, render_pass, scene_passes
+    from mi_amr.workflows.render import stratified_passes as plan
 
     volume = load_scene(project.scenes_dir() / "sphere_wake_volume.xml", resx=8, resy=8, spp=1)
-    assert scene_pass_spp(volume) == STRATIFIED_PASS_SPP == 16
-    assert pass_samples(16, STRATIFIED_PASS_SPP) == [16]
-    assert pass_samples(64, STRATIFIED_PASS_SPP) == [16] * 4
-    independent = mi.load_dict({"type": "independent", "sample_count": 4})
-    assert least_pass_spp(volume.integrator(), independent) == 1
-    assert least_pass_spp(volume.integrator(), mi.load_dict({"type": "ldsampler"})) == 16
+    assert scene_passes(volume, 4) == [Pass(0, 1, j, 4) for j in range(4)]
+    for total in (1, 2, 3, 16, 17, 20, 64, 100, 1000, 1001):
+        passes = plan(total)
+        q = -(-total // 16)
+        assert sum(p.spp for p in passes) == total and max(p.spp for p in passes) == q
+        assert len(passes) <= 17 and (total > 16 or len(passes) == total)
+        for seed in {p.seed for p in passes}:          # each set: its passes, end to end
+            parts = [p for p in passes if p.seed == seed]
+            assert [p.first for p in parts] == [parts[0].spp * i for i in range(len(parts))]
+            assert len({p.spp for p in parts}) == 1
+            assert {p.count for p in parts} == {sum(p.spp for p in parts)}
+    assert plan(100)[-1] == Pass(1, 2, 0, 2) and len(plan(64)) == 16
+    surface = _scene(folder, "independent_passes", spp=1)
+    assert scene_passes(surface, 20) == [Pass(s, n) for s, n in enumerate(pass_samples(20))]
+
+    scene = _scene(folder, "stratified_passes", spp=1, sampler="multijitter")
+    images = [np.array(render_pass(mi, scene, p)) for p in plan(3)[:1]]
+    compiled = [kernels_compiled(lambda p=p: np.array(render_pass(mi, scene, p)))[1]
+                for p in plan(3)[1:]]
+    assert compiled == [0, 0], compiled
+    assert images[0][..., :3].std() > 0.01, "the test scene shows nothing"
+    with pytest.raises(ValueError, match="not a pass of a set"):
+        render_pass(mi, scene, Pass(0, 2, 1, 4))

@@ -152,10 +152,10 @@ class _AMRIso:
                 f"method={o.method}, reconstruction={o.reconstruction}]")
 
     # ------------------------------------------------------------------ rendering
-    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+    def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True, part=None):
         """Mitsuba's render loop with the wavefront's lanes in tiles of pixels
-        (:mod:`mi_amr.plugin.wavefront`); Mitsuba's own where that module does not apply (or
-        the twins say so)."""
+        (:mod:`mi_amr.plugin.wavefront`; ``part``: a pass of a stratified set, see there);
+        Mitsuba's own where that module does not apply (or the twins say so)."""
         sensor = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
         # (Start table and shadow caches before the trace: a kernel they launched inside it
         # would take some of the frame's work, and the next frame would compile another.)
@@ -164,9 +164,9 @@ class _AMRIso:
         self.shadow_caches.grids(self, scene)
         args = (self, scene, sensor, seed, spp, develop, evaluate)
         image = wavefront.render(*args, tiled=self.twins.tile_order,
-                                 by_sample=self.picks_by_packet()) \
+                                 by_sample=self.picks_by_packet(), part=part) \
             if self.twins.wavefront_loop and wavefront.supported(sensor, spp) else \
-            mi.SamplingIntegrator.render(*args)
+            mi.SamplingIntegrator.render(*wavefront.own_seed(args, part))
         aovs.unfiltered(self, scene, sensor, image, evaluate)
         return image
 

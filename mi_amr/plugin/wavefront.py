@@ -111,24 +111,31 @@ def supported(sensor, spp: int) -> bool:
 
 
 def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, *,
-           tiled=True, by_sample=False):
+           tiled=True, by_sample=False, part=None):
     """Render ``scene`` through ``sensor`` with ``integrator.sample``, the wavefront's pixels
     in tile order (scanlines where ``tiled`` is False, the slow twin; the tile orders come from
     ``integrator.pixel_orders``, an :class:`Orders`). Returns the developed image as
     ``mi.render`` does (None unless ``develop``). ``by_sample`` (tile order and 2 or more
     samples per pixel only): each packet holds one sample index of :data:`PACKET` pixels,
-    and :func:`packet_u` gives the packet's shared numbers."""
+    and :func:`packet_u` gives the packet's shared numbers. ``part`` ``(first, count)``: the
+    frame's ``spp`` samples are samples ``first .. first + spp - 1`` (``first`` a multiple of
+    ``spp``) of a set of ``count`` a pixel that the sampler stratifies: frames of one set at
+    one seed together draw each stratum once."""
     film = sensor.film()
     width, height, spp, border = film_shape(sensor, spp)
     order = integrator.pixel_orders(width, height) if tiled else None
-    sampler = sensor.sampler().clone()
-    sampler.set_sample_count(spp)
-    # (A stratified or low-discrepancy sampler rounds the count to a square or a power of two:
-    # the wavefront takes the count it kept, as Mitsuba's loop does.)
-    spp = int(sampler.sample_count())
+    sampler = _sampler(sensor, spp, part)
+    spp = int(sampler.sample_count()) if part is None else spp
     sampler.set_samples_per_wavefront(spp)
     n = width * height * spp
     sampler.seed(seed, n)
+    if part is not None:
+        for _ in range(part[0] // spp):
+            sampler.advance()                   # the set's next spp samples
+        # (Evaluated, the advanced index is a kernel input like the first pass's: advanced as
+        # an expression, each pass would compile a kernel of its own.)
+        sampler.schedule_state()
+        dr.eval()
     film.prepare(integrator.aov_names())
     block = film.create_block()
     block.set_offset(film.crop_offset())
@@ -157,6 +164,30 @@ def render(integrator, scene, sensor, seed, spp, develop=True, evaluate=True, *,
         dr.eval()
         dr.sync_thread()
     return result
+
+
+def own_seed(args: tuple, part) -> tuple:
+    """Mitsuba's ``render`` arguments ``(integrator, scene, sensor, seed, spp, develop,
+    evaluate)`` for its own loop, which cannot draw a ``part`` of a stratified set
+    (:func:`render`): the part gets a seed of its own, so that the passes of a set differ
+    (unstratified)."""
+    if part is None:
+        return args
+    seed = (args[3] * 0x9E3779B1 + part[0] + 1) % 2 ** 32
+    return args[:3] + (seed,) + args[4:]
+
+
+def _sampler(sensor, spp: int, part):
+    """A clone of the sensor's sampler for ``spp`` samples a pixel, or (``part``) for the
+    set of ``part[1]`` that they are a part of. A stratified or low-discrepancy sampler
+    rounds its count up to a square or a power of two: a frame takes the count it kept, as
+    Mitsuba's loop does."""
+    sampler = sensor.sampler().clone()
+    sampler.set_sample_count(spp if part is None else part[1])
+    if part is not None and (part[0] % spp or part[0] + spp > int(sampler.sample_count())):
+        raise ValueError(f"samples {part[0]}..{part[0] + spp - 1} are not a pass of a set of "
+                         f"{int(sampler.sample_count())}")
+    return sampler
 
 
 def tiled_lanes(order, n: int, spp: int, by_sample: bool):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from mi_amr.core.atomic import check_output, replacing
@@ -54,7 +55,7 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
     _check_png_size(output, size)
     total_spp = sensor.sampler().sample_count()
     _check_film_entries(scene_path, size, len(_channels(scene, aovs)),
-                        max(pass_samples(total_spp, scene_pass_spp(scene))))
+                        max(p.spp for p in scene_passes(scene, total_spp)))
     say(f"  scene ready in {t1 - t0:.1f} s; rendering {size[0]}x{size[1]} at {total_spp} spp")
     image = render_passes(mi, dr, np, scene, total_spp, quiet)
     t2 = time.perf_counter()
@@ -121,58 +122,91 @@ def _check_defines(scene_path, defines: dict) -> None:
 
 
 STOCHASTIC_PASS_SPP = 4    # stochastic layers: samples a pass at least (see pass_samples)
-# a sampler other than `independent` (multijitter, stratified, ldsampler, orthogonal): samples a
-# pass at least. Its strata are the samples of one pass, so a pixel's samples go in one pass,
-# up to the 16 that a pass takes at most (see pass_samples).
-STRATIFIED_PASS_SPP = 16
+MAX_PASSES = 16            # passes of an image, at most (more samples make larger passes)
 
 
-def least_pass_spp(integrator, sampler=None) -> int:
-    """Samples a pass at least for ``integrator`` and the sensor's ``sampler``:
-    :data:`STRATIFIED_PASS_SPP` where the sampler stratifies a pixel's samples (any but
-    Mitsuba's ``independent``), :data:`STOCHASTIC_PASS_SPP` where the integrator's frames of 2
-    or more spp share the numbers that pick by SIMD packet (``amr_iso``'s ``picks_by_packet``,
-    stochastic layers: faster, and stratified over a pixel's samples; frames of 1 spp keep a
-    number per lane), else 1."""
-    name = getattr(sampler, "class_name", None)
-    if name is not None and name() != "IndependentSampler":
-        return STRATIFIED_PASS_SPP
+@dataclass(frozen=True)
+class Pass:
+    """One pass of an image: ``spp`` samples a pixel drawn at ``seed``. Where ``count`` is
+    not 0, the sampler stratifies a pixel's samples, and these are samples ``first .. first
+    + spp - 1`` of the image's ``count``: the passes share the seed and together draw each
+    stratum once (``amr_iso``'s ``render(..., part=(first, count))``)."""
+
+    seed: int
+    spp: int
+    first: int = 0
+    count: int = 0
+
+
+def least_pass_spp(integrator) -> int:
+    """Samples a pass at least for ``integrator``: :data:`STOCHASTIC_PASS_SPP` where its
+    frames of 2 or more spp share the numbers that pick by SIMD packet (``amr_iso``'s
+    ``picks_by_packet``, stochastic layers: faster, and stratified over a pixel's samples;
+    frames of 1 spp keep a number per lane), else 1."""
     shares = getattr(integrator, "picks_by_packet", None)
     return STOCHASTIC_PASS_SPP if shares is not None and shares() else 1
 
 
-def scene_pass_spp(scene) -> int:
-    """:func:`least_pass_spp` of ``scene``'s integrator and its first sensor's sampler."""
-    return least_pass_spp(scene.integrator(), scene.sensors()[0].sampler())
+def stratified_passes(total: int) -> list:
+    """The passes of a ``total``-spp image whose sampler stratifies: passes of ``q`` =
+    ``ceil(total / MAX_PASSES)`` samples a pixel (one up to 16 spp), all parts of one set at
+    seed 0 as far as whole passes go, and what is left, fewer than ``q``, one more pass that
+    is a set of its own (seed 1)."""
+    q = -(-total // MAX_PASSES)
+    whole = total - total % q
+    return [Pass(0, q, first, whole) for first in range(0, whole, q)] + \
+        ([Pass(1, total - whole, 0, total - whole)] if total > whole else [])
+
+
+def scene_passes(scene, total: int) -> list:
+    """The :class:`Pass` es of a ``total``-spp image of ``scene``: :func:`stratified_passes`
+    where ``amr_iso`` renders it and the first sensor's sampler stratifies (any but Mitsuba's
+    ``independent``), else :func:`pass_samples` at seeds 0, 1, ... The render workflow and the
+    viewer's refinement both take these, so a scene the viewer saves renders to the same
+    pixels."""
+    integrator = scene.integrator()
+    sampler = scene.sensors()[0].sampler()
+    if hasattr(integrator, "picks_by_packet") and \
+            sampler.class_name() != "IndependentSampler":
+        return stratified_passes(total)
+    return [Pass(seed, n) for seed, n in
+            enumerate(pass_samples(total, least_pass_spp(integrator)))]
+
+
+def render_pass(mi, scene, p: Pass):
+    """``mi.render`` of pass ``p`` of ``scene`` (its first sensor): the developed image."""
+    if p.count:
+        return scene.integrator().render(scene, 0, p.seed, p.spp, True, True,
+                                         part=(p.first, p.count))
+    return mi.render(scene, spp=p.spp, seed=p.seed)
 
 
 def pass_samples(total: int, least: int = 1) -> list:
-    """Samples per pass of a ``total``-spp image: passes of at most 16 spp -- one sample a
-    pass (``least`` a pass) up to 16 passes -- so a progress bar moves and memory stays
-    bounded. The render workflow and the viewer's refinement both take these, seeds 0, 1, ...
-    in turn, so a scene the viewer saves renders to the same pixels."""
-    passes = max(min(-(-total // max(least, 1)), 16), -(-total // 16))
+    """Samples per pass of a ``total``-spp image drawn independently: passes of at most 16
+    spp -- one sample a pass (``least`` a pass) up to :data:`MAX_PASSES` passes -- so a
+    progress bar moves and memory stays bounded."""
+    passes = max(min(-(-total // max(least, 1)), MAX_PASSES), -(-total // 16))
     return [total // passes + (1 if i < total % passes else 0) for i in range(passes)]
 
 
 def render_passes(mi, dr, np, scene, total_spp, quiet):
-    """The image (all film channels), rendered in the passes of :func:`pass_samples`: the
+    """The image (all film channels), rendered in the passes of :func:`scene_passes`: the
     colour and alpha averaged over the passes, the AOVs (the same every pass, unfiltered, see
     :mod:`mi_amr.plugin.aovs`) as the last pass gave them, whole numbers kept whole."""
     from tqdm import tqdm
 
-    per_pass = pass_samples(total_spp, scene_pass_spp(scene))
-    passes = len(per_pass)
+    passes = scene_passes(scene, total_spp)
     accum = None
-    with tqdm(total=total_spp, unit="spp", disable=quiet or passes == 1, leave=False) as bar:
-        for i, n in enumerate(per_pass):
-            img = mi.render(scene, spp=n, seed=i)
+    with tqdm(total=total_spp, unit="spp", disable=quiet or len(passes) == 1,
+              leave=False) as bar:
+        for p in passes:
+            img = render_pass(mi, scene, p)
             dr.eval(img)
             dr.sync_thread()
             last = np.array(img)
-            part = last[..., :4] * n
+            part = last[..., :4] * p.spp
             accum = part if accum is None else accum + part
-            bar.update(n)
+            bar.update(p.spp)
     return np.concatenate([accum / total_spp, last[..., 4:]], axis=-1)
 
 

@@ -48,7 +48,7 @@ from mi_amr.errors import AMRError
 from mi_amr.plugin.camera import Camera, scene_camera, sensor_key, set_camera
 from mi_amr.plugin.inputs import colormap_table
 from mi_amr.plugin.scene import load_scene
-from mi_amr.workflows.render import pass_samples, scene_pass_spp
+from mi_amr.workflows.render import Pass, render_pass, scene_passes
 from mi_amr.workflows.viewer import tiles
 
 HISTOGRAM_BINS = 128
@@ -92,14 +92,6 @@ def structure(state: ViewState) -> tuple:
     again (and compiles its kernels once); every other change is an ``mi.traverse`` update."""
     return (state.field, state.color_field, state.colormap is None, state.mode, state.method,
             state.reconstruction, state.layers, len(state.isovalues), state.tf2d is None)
-
-
-def refine_passes(total: int, least: int = 1) -> list:
-    """``(seed, spp)`` of the passes that make a ``total``-spp image, exactly as
-    ``python -m mi_amr render`` makes it (:func:`mi_amr.workflows.render.pass_samples`, seeds
-    0, 1, ...; ``least``: samples a pass at least), so a saved scene renders to the same
-    pixels (``tests/test_viewer.py`` checks it)."""
-    return list(enumerate(pass_samples(total, least)))
 
 
 class Session:
@@ -397,9 +389,11 @@ class Session:
         return values[np.isfinite(values)]
 
     # ------------------------------------------------------------------ rendering
-    def render(self, size, spp: int, seed: int = 0, preview: bool = False) -> np.ndarray:
+    def render(self, size, spp: int, seed: int = 0, preview: bool = False,
+               part=(0, 0)) -> np.ndarray:
         """One ``mi.render`` of the current state at ``size`` pixels ``(width, height)``: a
-        linear RGBA float32 array ``(height, width, 4)`` (alpha: coverage by surfaces).
+        linear RGBA float32 array ``(height, width, 4)`` (alpha: coverage by surfaces);
+        ``part``: ``(first, count)`` of a :class:`~mi_amr.workflows.render.Pass`.
         ``preview``: volume mode's shadow caches at
         :data:`~mi_amr.tolerances.PREVIEW_SHADOW_CACHE_POINTS` (built again for the next
         frame that is not a preview)."""
@@ -412,19 +406,21 @@ class Session:
         if caches is not None:
             caches.max_points = tol.PREVIEW_SHADOW_CACHE_POINTS if preview else \
                 tol.SHADOW_CACHE_POINTS
-        image = mi.render(self.scene, spp=spp, seed=seed)
+        image = render_pass(mi, self.scene, Pass(seed, spp, *part))
         dr.eval(image)
         dr.sync_thread()
         return np.array(image, dtype=np.float32)
 
     def render_refined(self, size, spp: int, before_pass=None) -> Optional[np.ndarray]:
-        """The ``spp``-sample image, in the passes of :func:`refine_passes`; None when
-        ``before_pass()`` returns True (a newer request: the rest is dropped)."""
+        """The ``spp``-sample image, in the passes that ``python -m mi_amr render`` takes
+        (:func:`~mi_amr.workflows.render.scene_passes`), so a saved scene renders to the same
+        pixels (``tests/test_viewer.py`` checks it); None when ``before_pass()`` returns True
+        (a newer request: the rest is dropped)."""
         accum = None
-        for seed, n in refine_passes(spp, scene_pass_spp(self.scene)):
+        for p in scene_passes(self.scene, spp):
             if before_pass is not None and before_pass():
                 return None
-            part = self.render(size, n, seed) * n
+            part = self.render(size, p.spp, p.seed, part=(p.first, p.count)) * p.spp
             accum = part if accum is None else accum + part
         return (accum / spp).astype(np.float32)
 
@@ -445,13 +441,13 @@ class Session:
         if size == tile or self._tiling["principal"] is None:
             return self.render_refined(size, spp)
         edge = tiles.margin(self._tiling["radius"])
-        passes = refine_passes(spp, scene_pass_spp(self.scene))
+        passes = scene_passes(self.scene, spp)
         image = None
         try:
             for k, t in enumerate(tiles.layout(size, tile, edge)):
                 self._aim_tile(size, tile, (t.x0, t.y0))
-                accum = sum(self._pass(tile, n, seed + k * len(passes)) * n
-                            for seed, n in passes)
+                accum = sum(self._pass(tile, dataclasses.replace(
+                    p, seed=p.seed + k * len(passes))) * p.spp for p in passes)
                 if image is None:
                     image = np.zeros((size[1], size[0], accum.shape[-1]), dtype=np.float32)
                 rows, cols = t.taken()
@@ -474,9 +470,9 @@ class Session:
         self.params.update()
         self._film = tile
 
-    def _pass(self, size, spp: int, seed: int) -> np.ndarray:
-        """One ``mi.render`` at the film size already written (a tile's camera kept)."""
-        image = mi.render(self.scene, spp=spp, seed=seed)
+    def _pass(self, size, p: Pass) -> np.ndarray:
+        """Pass ``p`` at the film size already written (a tile's camera kept)."""
+        image = render_pass(mi, self.scene, p)
         dr.eval(image)
         dr.sync_thread()
         return np.array(image, dtype=np.float32)[..., :4]      # colour and alpha, no AOVs
