@@ -242,6 +242,8 @@ def test08_a_stratified_samplers_passes_are_parts_of_one_set(variant, folder, sc
             assert len({p.spp for p in parts}) == 1
             assert {p.count for p in parts} == {sum(p.spp for p in parts)}
     assert plan(100)[-1] == Pass(1, 2, 0, 2) and len(plan(64)) == 16
+    assert plan(16, 4) == [Pass(0, 4, first, 16) for first in (0, 4, 8, 12)]   # (stochastic
+    assert plan(3, 4) == [Pass(0, 3, 0, 3)]                                     # layers)
     surface = _scene(folder, "independent_passes", spp=1)
     assert scene_passes(surface, 20) == [Pass(s, n) for s, n in enumerate(pass_samples(20))]
 

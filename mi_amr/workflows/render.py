@@ -147,12 +147,12 @@ def least_pass_spp(integrator) -> int:
     return STOCHASTIC_PASS_SPP if shares is not None and shares() else 1
 
 
-def stratified_passes(total: int) -> list:
+def stratified_passes(total: int, least: int = 1) -> list:
     """The passes of a ``total``-spp image whose sampler stratifies: passes of ``q`` =
-    ``ceil(total / MAX_PASSES)`` samples a pixel (one up to 16 spp), all parts of one set at
-    seed 0 as far as whole passes go, and what is left, fewer than ``q``, one more pass that
-    is a set of its own (seed 1)."""
-    q = -(-total // MAX_PASSES)
+    ``ceil(total / MAX_PASSES)`` samples a pixel (one up to 16 spp; ``least`` at least, as
+    :func:`pass_samples` takes it), all parts of one set at seed 0 as far as whole passes go,
+    and what is left, fewer than ``q``, one more pass that is a set of its own (seed 1)."""
+    q = min(max(-(-total // MAX_PASSES), least), total)
     whole = total - total % q
     return [Pass(0, q, first, whole) for first in range(0, whole, q)] + \
         ([Pass(1, total - whole, 0, total - whole)] if total > whole else [])
@@ -168,7 +168,7 @@ def scene_passes(scene, total: int) -> list:
     sampler = scene.sensors()[0].sampler()
     if hasattr(integrator, "picks_by_packet") and \
             sampler.class_name() != "IndependentSampler":
-        return stratified_passes(total)
+        return stratified_passes(total, least_pass_spp(integrator))
     return [Pass(seed, n) for seed, n in
             enumerate(pass_samples(total, least_pass_spp(integrator)))]
 
