@@ -204,6 +204,29 @@ def test06_the_outgoing_queue_is_bounded_and_a_stalled_page_is_dropped():
     asyncio.run(run())
 
 
+def test06b_a_page_that_closes_during_a_send_ends_the_pump_quietly():
+    """A page whose socket closes while a frame is being sent (the server raises its
+    disconnect error from the send) ends the pump without an exception: it was left in the
+    task, unretrieved, and asyncio printed its traceback on the viewer's stderr (a CI run's
+    test05 caught it)."""
+    from mi_amr.workflows.viewer import hub
+
+    class Closing:                      # a socket closed by the page mid-send
+        async def send_text(self, text):
+            raise ConnectionResetError("the page went away")
+
+        send_bytes = send_text
+
+    async def run():
+        client = hub.Client(Closing())
+        client.post({"type": "notice", "message": "x"})
+        client.post_frame(b"frame")
+        await asyncio.wait_for(client.pump(), 10)
+        assert not client.messages and client.frame is None
+
+    asyncio.run(run())
+
+
 # ---------------------------------------------------------------------- hosts
 
 def test07_only_named_hosts_and_their_own_origin_may_open_the_socket(tmp_path, variant):

@@ -81,9 +81,10 @@ class Client:
         self.wake.set()
 
     async def pump(self) -> None:
-        """Send what waits, in order, until the page is dropped; each send must finish
+        """Send what waits, in order, until the page is dropped or gone; each send must finish
         within :attr:`send_timeout_s` (a page that does not read stops the sends: the socket's
-        buffer fills)."""
+        buffer fills). A send that fails (the page closed its socket meanwhile) ends the pump
+        quietly: the page's own request loop sees the close."""
         while self.dropped is None:
             await self.wake.wait()
             self.wake.clear()
@@ -97,6 +98,10 @@ class Client:
                     await asyncio.wait_for(send, self.send_timeout_s)
                 except asyncio.TimeoutError:
                     self.drop(f"a message not taken within {self.send_timeout_s:g} s")
+                except Exception:       # (the server's disconnect or closed-socket error)
+                    self.messages.clear()
+                    self.frame = None
+                    return
 
 
 class Hub:
