@@ -85,9 +85,10 @@ def setup(request):
     return dev, cfg, shapes
 
 
-def quadrature(shapes, o, d, t1, n=2_000_000):
+def quadrature(shapes, o, d, t1, n=2_000_000, colour=lambda v: v):
     """``(C, T)`` of the ray ``o + t d``, ``t`` in ``[0, t1]``, by the midpoint rule in
-    float64."""
+    float64; the bands' colours at the colour field's value ``colour(v)`` where the field
+    is ``v``."""
     t = (np.arange(n) + 0.5) * (t1 / n)
     v = 2.0 * (o[0] + t * d[0])
     tau = np.zeros(n)
@@ -96,7 +97,7 @@ def quadrature(shapes, o, d, t1, n=2_000_000):
         x = v - c
         tau_k = np.where((x > shape.lo) & (x < shape.hi), shape.extinction_numpy(x), 0.0)
         tau += tau_k
-        E += tau_k[:, None] * np.stack(band_color(k, v), axis=-1)
+        E += tau_k[:, None] * np.stack(band_color(k, colour(v)), axis=-1)
     depth = np.linalg.norm(d) * t1 / n * tau
     front = np.exp(-(np.cumsum(depth) - depth))
     light = front[:, None] * (-np.expm1(-depth))[:, None] * \
@@ -119,6 +120,31 @@ def test01_a_ray_through_three_bands_matches_float64_quadrature(setup, direction
     C = np.array([res.C.x.numpy()[0], res.C.y.numpy()[0], res.C.z.numpy()[0]])
     assert T_ref > tol.T_MIN * 3     # no early termination: the whole ray counts
     assert C_ref.max() > 0.2
+    np.testing.assert_allclose(C, C_ref, atol=MATCH, rtol=0)
+    assert res.T.numpy()[0] == pytest.approx(T_ref, abs=MATCH)
+
+
+@pytest.mark.parametrize("basis", [True, False], ids=["basis", "finest"])
+def test01d_the_colour_comes_from_the_colour_field(basis):
+    """With a colour field other than the field (``c = 3 - 2x`` beside ``f = 2x``), each
+    band's colour follows ``c``: the march reads the colour field only for the pieces it
+    shades, and its cubic there is the colour's, not the field's."""
+    vol = linear_cube()
+    vol = vol.with_fields({"c": [3.0 - g.fields["f"] for g in vol.grids]})
+    dev = PreparedVolume(vol, "f", "c", m=M).device
+    shapes = [band.OpacityBand(width=w, peak=p, dx0=1.0 / 32) for _, w, p in BANDS]
+    cfg = MarchConfig(method="exact", basis=basis,
+                      isovalues=opaque_floats(M, [c for c, _, _ in BANDS]),
+                      step_scale=opaque_floats(M, [0.5]), num_iso=len(BANDS),
+                      band=band.band_inputs(M, shapes), shading_extrema=False)
+    o, d, t1 = np.array([0.02, 0.37, 0.41]), np.array([0.9, 0.05, -0.03]), 0.96 / 0.9
+    res = composite(RayContext(dev, cfg, M.Array3f(*map(float, o)), M.Array3f(*map(float, d)),
+                               M.Float(0.0), M.Float(t1), M.Bool(True)),
+                    M.Float(0.5), Shading(color_of, FlatLight()))
+    C_ref, T_ref = quadrature(shapes, o, d, t1, n=400_000, colour=lambda v: 3.0 - v)
+    C_field, _ = quadrature(shapes, o, d, t1, n=400_000)
+    assert np.abs(C_ref - C_field).max() > 20 * MATCH      # the two colourings differ
+    C = np.array([res.C.x.numpy()[0], res.C.y.numpy()[0], res.C.z.numpy()[0]])
     np.testing.assert_allclose(C, C_ref, atol=MATCH, rtol=0)
     assert res.T.numpy()[0] == pytest.approx(T_ref, abs=MATCH)
 

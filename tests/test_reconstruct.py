@@ -362,6 +362,34 @@ def test07b_segment_gradient_equals_the_point_gradient_inside_one_piece(hierarch
     np.testing.assert_allclose(got, slow, rtol=0, atol=1e-4 * scale)
 
 
+@pytest.mark.parametrize("basis", [True, False], ids=["basis", "finest"])
+def test07c_shading_read_gives_the_colour_cubic_of_the_whole_read(hierarchy, basis):
+    """Where a volume march reads the colour field only for the pieces it shades
+    (:func:`segment_shading`: the gradient's cells read once for the field's gradient and the
+    colour's cubic), the colour's cubic numerator is the one :func:`segment_cubic` gives when
+    it reads both fields for every piece (its slow twin), and the gradient is
+    :func:`segment_gradient`'s."""
+    vol, _ = hierarchy
+    vol = vol.with_fields({"c": [np.cos(3.0 * g.fields["f"]) for g in vol.grids]})
+    dev = PreparedVolume(vol, "f", "c", m=M).device
+    arrays = dev.arrays(basis, color=True)
+    assert arrays[1] is not arrays[0]
+    p0, dirs, length, seg, _, _ = pieces(vol, dev, basis)
+    active = dr.full(M.Bool, True, len(p0))
+    nums, den = rec.segment_cubic(dev, basis, seg, arrays, active)
+    gradient, cnum = rec.segment_shading(dev, basis, seg, arrays, active)
+    alone = rec.segment_gradient(dev, basis, seg, arrays, active)
+    dr.eval(nums, den, cnum, gradient.gn, gradient.gd, alone.gn, alone.gd)
+    want = np.stack([c.numpy() for c in nums[1]])
+    scale = np.abs(want).max()
+    assert scale > 0 and not np.allclose(want, np.stack([c.numpy() for c in nums[0]]))
+    np.testing.assert_allclose(np.stack([c.numpy() for c in cnum]), want, rtol=0,
+                               atol=1e-6 * scale)
+    for got, ref in ((gradient.gn, alone.gn), (gradient.gd, alone.gd)):
+        np.testing.assert_array_equal(np.array([[c.numpy() for c in q] for q in got]),
+                                      np.array([[c.numpy() for c in q] for q in ref]))
+
+
 @pytest.mark.parametrize("dense", [True, False])
 @pytest.mark.parametrize("hierarchy", sorted(HIERARCHIES))
 def test08_brick_pools_equal_their_slow_twin(hierarchy, dense):

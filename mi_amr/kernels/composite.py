@@ -526,13 +526,16 @@ def _piece(ray: RayContext, cp: CubicPiece, leaf, turns, lighting, have):
     section 3.2; inside a trilinear cell that term is close to a quadratic in ``t``, whose
     extremum is found from its values at the piece's front, middle and back). The gradient,
     where shading or a 2D transfer function needs it, comes from the piece's cells read once
-    (:func:`~mi_amr.kernels.reconstruct.segment_gradient`), at any point of the piece."""
+    (:func:`~mi_amr.kernels.reconstruct.segment_shading`), at any point of the piece; where
+    it is shaded, so does the colour field's cubic (the march reads the field alone)."""
     cfg, length = ray.cfg, cp.length
-    extra, gradient = [], None
+    extra, gradient, cnum = [], None, cp.nums[0]
     if lighting is not None or cfg.transfer2d is not None:
-        arrays = ray.dev.arrays(cfg.basis, color=True)
+        arrays = ray.dev.arrays(cfg.basis, color=lighting is not None)
         seg = rec.Segment(leaf=leaf, p0=ray.at(cp.t), d=ray.d, s_mid=0.5 * length)
-        quadratics = rec.segment_gradient(ray.dev, cfg.basis, seg, arrays, have)
+        quadratics, colour = rec.segment_shading(ray.dev, cfg.basis, seg,
+                                                 _distinct(arrays), have)
+        cnum = cnum if colour is None else colour
 
         def gradient(s):
             return quadratics.at(s, cp.num, cp.den)
@@ -546,7 +549,12 @@ def _piece(ray: RayContext, cp: CubicPiece, leaf, turns, lighting, have):
     values = [roots.cubic(cp.num, s) / roots.cubic(cp.den, s) for s in s_pts]
     if lighting is None:
         return Piece(s_pts=s_pts, values=values, gradient=gradient)
-    return Piece(s_pts=s_pts, values=values, cnum=cp.nums[1], den=cp.den, gradient=gradient)
+    return Piece(s_pts=s_pts, values=values, cnum=cnum, den=cp.den, gradient=gradient)
+
+
+def _distinct(arrays):
+    """``arrays`` without a colour array that is the field's own (nothing to read twice)."""
+    return arrays[:1] if len(arrays) > 1 and arrays[1] is arrays[0] else arrays
 
 
 @dataclass
@@ -606,7 +614,9 @@ def _piece_colour(ray: RayContext, cp: CubicPiece, along: Along, turns, have, ba
 @dr.syntax
 def _composite_exact(ray: RayContext, shading: Optional[Shading], start: Optional[Walk]):
     m, cfg = ray.m, ray.cfg
-    arrays = ray.dev.arrays(cfg.basis, color=True)
+    # The field alone along the march: the colour field is read where a piece is shaded
+    # (:func:`_piece`), with the cells its gradient reads.
+    arrays = ray.dev.arrays(cfg.basis)
     bands = Bands.of(ray, shading)
     corrects = shading is not None and shading.lighting.corrects
     # (No light, no pick, where nothing is shaded or corrected: a loop variable that never

@@ -388,33 +388,72 @@ def segment_gradient(dev, basis: bool, seg: Segment, arrays, active) -> Gradient
     ``seg``, which must lie in one dual cell of every level it blends (a cubic piece does):
     the same cells as :func:`segment_cubic`, read once for every point of the segment
     (:meth:`GradientPiece.at`), where :func:`reconstruct` reads them per point."""
+    return segment_shading(dev, basis, seg, arrays[:1], active)[0]
+
+
+def segment_shading(dev, basis: bool, seg: Segment, arrays, active):
+    """``(gradient, cnum)``: :func:`segment_gradient` of the first of ``arrays`` along
+    ``seg`` and, where a second array is given, that array's cubic numerator over the
+    denominator that :func:`segment_cubic` gives (its ``num[1]``; None with one array). Each
+    corner is read once for both, so a march can take the field's cubic alone for every
+    piece and read the colour field only where a piece is shaded."""
     if basis:
-        return _basis_segment_gradient(dev, seg, arrays[:1], active)
+        return _basis_segment_shading(dev, seg, arrays, active)
     g = dr.gather(dev.m.UInt32, dev.leaf_owner, seg.leaf, active)
     ok = active & (g != NO_GRID)
-    return GradientPiece(*_gradient_quadratics(dev.m, *_finest_factors(dev, g, seg, arrays[:1],
-                                                                         ok)))
+    return _shading_parts(dev.m, _finest_factors(dev, g, seg, arrays, ok), len(arrays) > 1)
 
 
-def _added(sums, quadratics):
-    """``sums`` (18 Floats) plus the coefficients of ``quadratics`` (``(gn, gd)``), in order."""
-    gn, gd = quadratics
-    return [a + c for a, c in zip(sums, [c for q in gn + gd for c in q])]
+def _shading_parts(m, factors, color: bool):
+    """The :class:`GradientPiece` of the first array of ``factors`` (``(fx, fy, fz, fetch)``,
+    as :func:`_cubics` takes them) and, where ``color``, the second array's cubic numerator
+    (None otherwise); each corner fetched once for both."""
+    fx, fy, fz, fetch = factors
+    seen = {}
+
+    def once(*corner):
+        # (By identity: a finest-level corner index is a Dr.Jit array; the factors hold each
+        # one for the whole call.)
+        key = tuple(id(i) for i in corner)
+        if key not in seen:
+            seen[key] = fetch(*corner)
+        return seen[key]
+
+    gradient = GradientPiece(*_gradient_quadratics(m, fx, fy, fz, once))
+    if not color:
+        return gradient, None
+
+    def second(*corner):
+        vals, has = once(*corner)
+        return vals[1:2], has
+
+    return gradient, _cubics(m, fx, fy, fz, second, 1)[0][0]
+
+
+def _added(sums, gradient: GradientPiece):
+    """``sums`` (18 Floats) plus the coefficients of ``gradient``'s quadratics, in order."""
+    return [a + c for a, c in zip(sums, [c for q in gradient.gn + gradient.gd for c in q])]
 
 
 @dr.syntax
-def _basis_segment_gradient(dev, seg: Segment, arrays, active) -> GradientPiece:
+def _basis_segment_shading(dev, seg: Segment, arrays, active):
     m = dev.m
+    color = len(arrays) > 1
     levels = dr.gather(m.UInt32, dev.leaf_levels, seg.leaf, active)
     sums = [m.Float(0.0) for _ in range(18)]       # gn, then gd: 3 axes x 3 coefficients
+    # (None without a colour array: a loop variable that never changes makes Dr.Jit trace
+    # the loop again without it.)
+    cnum = [m.Float(0.0) for _ in range(4)] if color else None
     while dr.hint(active & (levels != 0), label="level_gradients",
                   exclude=[active, arrays, dev, m, seg]):
         level = dr.tzcnt(levels)
         levels &= levels - 1
-        sums = _added(sums, _gradient_quadratics(m, *_level_factors(dev, level, seg, arrays,
-                                                                    active)))
+        gradient, c = _shading_parts(m, _level_factors(dev, level, seg, arrays, active), color)
+        sums = _added(sums, gradient)
+        if dr.hint(color, mode="scalar"):
+            cnum = [cnum[i] + c[i] for i in range(4)]
     return GradientPiece(gn=[sums[3 * a:3 * a + 3] for a in range(3)],
-                         gd=[sums[9 + 3 * a:12 + 3 * a] for a in range(3)])
+                         gd=[sums[9 + 3 * a:12 + 3 * a] for a in range(3)]), cnum
 
 
 @dr.syntax
