@@ -52,6 +52,7 @@ def _add_data_commands(sub) -> None:
     s.add_argument("path")
     s.add_argument("--fields", nargs="+", help="only these fields (stored, or derived: "
                                                "q_criterion, speed, vorticity)")
+    _add_allow_nonfinite(s)
     s.set_defaults(run=_info)
 
     from mi_amr.synthetic.datasets import DATASETS, SIZES
@@ -95,6 +96,7 @@ def _add_render(sub) -> None:
     s.add_argument("--field", required=True, help="stored or derived field")
     s.add_argument("-o", "--output", required=True, help="PNG to write")
     s.add_argument("--bins", type=int, default=256)
+    _add_allow_nonfinite(s)
     axis = s.add_mutually_exclusive_group()
     axis.add_argument("--log-value", dest="value_scale", action="store_const", const="log",
                       default="auto", help="a log value axis (symlog where values reach 0); "
@@ -162,7 +164,7 @@ def _add_bench(sub) -> None:
 def _info(args) -> None:
     from mi_amr.workflows.info import info_text
 
-    print(info_text(args.path, args.fields))
+    print(info_text(args.path, args.fields, allow_nonfinite=args.allow_nonfinite))
 
 
 def _dataset(args) -> None:
@@ -187,14 +189,23 @@ def _add_data_scene(s) -> None:
                    help="data file: the isovalue (default: picked from the histogram)")
     s.add_argument("--save-scene", metavar="XML", help="data file: also write the scene made "
                                                       "for it here (for editing)")
+    _add_allow_nonfinite(s, "data file: ")
+
+
+def _add_allow_nonfinite(s, where: str = "") -> None:
+    s.add_argument("--allow-nonfinite", action="store_true",
+                   help=f"{where}keep NaN and Inf values as missing data (else a file holding "
+                        f"them is refused)")
 
 
 def _data_scene(args, source, resolution=None):
     from mi_amr.workflows.datafile import scene_file
 
+    # (Only when asked: a scene made without it does not name the parameter.)
+    extra = {"allow_nonfinite": True} if args.allow_nonfinite else {}
     return scene_file(source, field=args.field, isovalue=args.isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
-                      force=getattr(args, "force", False))
+                      force=getattr(args, "force", False), **extra)
 
 
 def _render(args) -> None:
@@ -212,7 +223,8 @@ def _histogram(args) -> None:
     if args.bins < 2:
         raise AMRError(f"--bins must be >= 2, got {args.bins}")
     out = histogram_figure(args.path, args.field, args.output, bins=args.bins,
-                           overwrite=args.force, value_scale=args.value_scale)
+                           overwrite=args.force, value_scale=args.value_scale,
+                           allow_nonfinite=args.allow_nonfinite)
     print(f"wrote {out}")
 
 

@@ -5,6 +5,12 @@ long-lived thread reports a bug and goes on."""
 import traceback
 
 
+# Where a user keeps NaN and Inf values as missing data: the end of the message that refuses
+# a file holding them.
+ALLOW_NONFINITE_HOW = ("allow_nonfinite=True (mi_amr.load, from_grids), the scene parameter "
+                       "allow_nonfinite, or --allow-nonfinite on the command line")
+
+
 class AMRError(ValueError):
     """A user-facing error: the message names the file, grid or parameter and what was expected.
 

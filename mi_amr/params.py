@@ -148,6 +148,10 @@ TABLE = (
           "pixel's samples, and shadow rays play Russian roulette where under a quarter of the "
           "light gets through; alpha is then the share of samples that stop at a layer)",
           choices=LAYER_MODES),
+    Param("allow_nonfinite", "boolean", False,
+          "keep the file's NaN and Inf values as missing data (no weight, as "
+          ":func:`mi_amr.load` with ``allow_nonfinite=True``); without it such a file is "
+          "refused, naming the grid and field"),
 )
 BY_NAME = {p.name: p for p in TABLE}
 TRAVERSABLE = tuple(p.name for p in TABLE if p.traversable)

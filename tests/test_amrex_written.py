@@ -96,12 +96,19 @@ def test06_a_fab_of_doubles_under_a_float_header_is_refused(plotfile):
         mi_amr.load(plotfile)
 
 
-def test07_a_nan_in_a_fab_is_refused_naming_it(plotfile):
+def _with_a_nan(plotfile):
+    """``plotfile`` with one NaN: the sixth value of level 1's FAB 0's first component
+    (``density`` of grid 1)."""
     path = _cell_d(plotfile, 1)
     data = bytearray(path.read_bytes())
-    at = data.index(b"\n") + 1 + 8 * 5          # the sixth value of FAB 0's first component
+    at = data.index(b"\n") + 1 + 8 * 5
     data[at:at + 8] = np.array([np.nan]).tobytes()
     path.write_bytes(bytes(data))
+    return plotfile
+
+
+def test07_a_nan_in_a_fab_is_refused_naming_it(plotfile):
+    _with_a_nan(plotfile)
     with pytest.raises(AMRError, match=r"plt00000: grid 1 \(level 1, origin \(0\.25, 0\.25, "
                                        r"0\.25\)\): field 'density' has 1 non-finite value"):
         mi_amr.load(plotfile)
@@ -136,3 +143,64 @@ def test09_a_fifo_as_fab_file_is_refused_without_blocking(plotfile):
     assert run.returncode == 2, run.stderr
     assert "Level_1/Cell_D_00000: not a regular file" in run.stderr
     assert "Traceback" not in run.stderr
+
+
+def test10_allow_nonfinite_keeps_nan_values_in_a_scene_and_on_the_command_line(
+        plotfile, tmp_path, capsys):
+    """A plotfile with a NaN renders from the command line with ``--allow-nonfinite``, which
+    the scene made for it keeps as the ``allow_nonfinite`` parameter; without either the file
+    is refused, naming the grid, the field and both ways to keep the values. The snapshot of
+    the file read with NaN kept is not read back for a scene that refuses them."""
+    from mi_amr import cli
+    from mi_amr.kernels import snapshot
+
+    _with_a_nan(plotfile)
+    out, scene, bare = tmp_path / "nan.png", tmp_path / "nan.xml", tmp_path / "bare.xml"
+    render = ["render", str(plotfile), "-o", str(out), "--resolution", "32", "24", "--spp", "1",
+              "--field", "density"]
+    with snapshot.using(str(tmp_path / "cache")):
+        assert cli.main(render) == 2
+        err = capsys.readouterr().err
+        assert "grid 1 (level 1" in err and "field 'density' has 1 non-finite" in err
+        assert "--allow-nonfinite" in err and "scene parameter allow_nonfinite" in err
+        assert "Traceback" not in err and not out.exists()
+        assert cli.main(render + ["--allow-nonfinite", "--save-scene", str(scene)]) == 0
+        assert out.exists()
+        assert '<boolean name="allow_nonfinite" value="true"/>' in scene.read_text()
+        again = ["render", str(scene), "-o", str(tmp_path / "again.png"), "--spp", "1"]
+        assert cli.main(again) == 0
+        assert cli.main(again + ["--force", "--allow-nonfinite"]) == 2
+        assert "its amr_iso parameter allow_nonfinite" in capsys.readouterr().err
+        bare.write_text(scene.read_text().replace(
+            '<boolean name="allow_nonfinite" value="true"/>', ""))
+        assert cli.main(["render", str(bare), "-o", str(tmp_path / "bare.png")]) == 2
+        assert "field 'density' has 1 non-finite" in capsys.readouterr().err
+        assert cli.main(["info", str(plotfile), "--allow-nonfinite"]) == 0
+        assert "density" in capsys.readouterr().out
+
+
+def test11_a_series_colour_range_keeps_nan_values_where_the_scene_does(plotfile, tmp_path):
+    """The colour range of a time series reads each file as its frames will: a scene with
+    ``allow_nonfinite`` gets the range of the finite values of a plotfile (read a box at a
+    time) and of an ``.npz`` file (a stretch at a time) holding a NaN; a scene without it
+    leaves such a file out of the range (its frames fail, naming it)."""
+    from mi_amr.workflows import movie
+
+    _with_a_nan(plotfile)
+    vol = mi_amr.load(plotfile, allow_nonfinite=True)
+    values = np.concatenate([g.fields["density"].ravel() for g in vol.grids])
+    want = (float(np.nanmin(values)), float(np.nanmax(values)))
+    vol.allow_nonfinite = False                 # a file that does not allow its NaN
+    npz = tmp_path / "nan.npz"
+    vol.save(npz)
+    for path in (plotfile, npz):
+        with pytest.raises(AMRError, match="non-finite"):
+            movie._file_range(path, "density")
+        assert movie._file_range(path, "density", allow_nonfinite=True) == want
+    scene = tmp_path / "scene.xml"
+    made = mi_amr.plugin.autoscene.data_scene(plotfile, "density", 1.0, allow_nonfinite=True,
+                                              color_field="density", colormap="viridis")
+    scene.write_text(made.xml())
+    assert movie.series_color_range([plotfile, npz], scene) == want
+    scene.write_text(made.xml().replace('<boolean name="allow_nonfinite" value="true"/>', ""))
+    assert movie.series_color_range([plotfile, npz], scene) is None

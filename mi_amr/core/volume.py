@@ -31,7 +31,7 @@ import numpy as np
 from mi_amr.core import extremes, levels
 from mi_amr.core.boxes import intersection_volume, overlap_pairs
 from mi_amr.core.buffers import aligned_full
-from mi_amr.errors import AMRError, shown
+from mi_amr.errors import ALLOW_NONFINITE_HOW, AMRError, shown
 
 ALLOWED_RATIOS = (2, 4)
 # How far (in cells) a grid corner may sit from the lattice and still count as aligned: float
@@ -665,10 +665,8 @@ def _check_grid_fields(g, i: int, names, prefix: str, allow_nonfinite: bool) -> 
             bad = arr.size - int(np.count_nonzero(np.isfinite(arr)))
             if bad:
                 raise AMRError(f"{prefix}{g.describe(i)}: field '{name}' has {bad} non-finite "
-                               f"value(s) (NaN/Inf); clean the data or pass "
-                               f"allow_nonfinite=True (to mi_amr.load or from_grids; a scene "
-                               f"reads a .npz saved from such a volume) to treat them as "
-                               f"missing")
+                               f"value(s) (NaN/Inf); clean the data, or keep them as missing "
+                               f"data with {ALLOW_NONFINITE_HOW}")
 
 
 def _check_levels(records, columns, prefix: str) -> tuple:

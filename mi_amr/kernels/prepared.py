@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import time
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import drjit as dr
 
@@ -184,30 +185,44 @@ class Preparations:
             self.report(text)
 
     def prepare(self, path, field: str, color_field: str | None = None, *,
-                leaf_cells: int = params.default("leaf_cells"), m=None) -> PreparedVolume:
+                leaf_cells: int = params.default("leaf_cells"), m=None,
+                allow_nonfinite: bool = False) -> PreparedVolume:
         """:func:`prepare_file`, given again while it is kept."""
         path = os.path.abspath(path)
         try:
             stamp = os.stat(path).st_mtime_ns
         except OSError:
             raise AMRError(f"{path}: no such file or folder") from None
-        key = (path, stamp, field, color_field, leaf_cells, getattr(m, "__name__", None))
+        key = (path, stamp, field, color_field, leaf_cells, getattr(m, "__name__", None),
+               bool(allow_nonfinite))
         if key in self._kept:
             self._kept.move_to_end(key)
             return self._kept[key]
         while self._kept and len(self._kept) >= self.SIZE:
             self._kept.popitem(last=False)
-        prepared = prepare_file(path, field, color_field, leaf_cells=leaf_cells, m=m,
-                                by=self)
+        prepared = prepare_file(path, field, color_field, m=m, by=self,
+                                how=LoadOptions(leaf_cells, allow_nonfinite))
         self._kept[key] = prepared
         return prepared
 
 
-def prepare_file(path, field: str, color_field: str | None = None, *,
-                 leaf_cells: int = params.default("leaf_cells"), m=None,
-                 by: "Preparations | None" = None) -> PreparedVolume:
-    """Load ``path`` (only what is needed) and prepare it, or read it back from its snapshot.
-    ``by``: the :class:`Preparations` it is made for, whose ``report`` hears each step and
+@dataclass(frozen=True)
+class LoadOptions:
+    """How :func:`prepare_file` reads and prepares a file: the kd-tree's leaf size
+    (``leaf_cells``, cells) and whether NaN and Inf values are kept as missing data
+    (``allow_nonfinite``, as :func:`mi_amr.load` takes it; else a file holding them is
+    refused)."""
+
+    leaf_cells: int = params.default("leaf_cells")
+    allow_nonfinite: bool = False
+
+
+def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
+                 by: "Preparations | None" = None,
+                 how: LoadOptions = LoadOptions()) -> PreparedVolume:
+    """Load ``path`` (only what is needed) and prepare it as ``how`` says, or read it back
+    from its snapshot. ``by``: the :class:`Preparations` it is made for, whose ``report``
+    hears each step and
     whose ``cache`` holds the snapshots (without one: no report, and the cache that
     ``$MI_AMR_CACHE`` describes, see :meth:`SnapshotCache.from_env
     <mi_amr.kernels.snapshot.SnapshotCache.from_env>`). Keeps nothing: a
@@ -219,8 +234,8 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
     say = report or (lambda text: None)
     cache = by.cache if by is not None and by.cache is not None else \
         snapshot.SnapshotCache.from_env()
-    snap_key = snapshot.entry_key(path, field, color_field, leaf_cells) \
-        if cache.enabled else None
+    snap_key = snapshot.entry_key(path, field, color_field, how.leaf_cells,
+                                  how.allow_nonfinite) if cache.enabled else None
     memory.keep_freed_memory()          # for the read's buffers, or the snapshot's
     t0 = time.perf_counter()
     snap = cache.load(snap_key) if snap_key else None
@@ -228,7 +243,7 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
         prepared = PreparedVolume.restore(snap, m=m, report=report)
         prepared._lap("snapshot", t0)
     else:
-        prepared = _prepare_from_file(path, field, color_field, leaf_cells, m, report)
+        prepared = _prepare_from_file(path, (field, color_field), how, m, report)
         if snap_key:
             t0 = time.perf_counter()
             if cache.save(snap_key, prepared):
@@ -239,14 +254,16 @@ def prepare_file(path, field: str, color_field: str | None = None, *,
     return prepared
 
 
-def _prepare_from_file(path, field, color_field, leaf_cells, m, report) -> PreparedVolume:
-    """Read what ``field``/``color_field`` need from ``path`` and prepare it."""
+def _prepare_from_file(path, fields, how: LoadOptions, m, report) -> PreparedVolume:
+    """Read what ``fields`` (``(field, color_field)``) need from ``path`` and prepare it."""
     from mi_amr.readers import available_fields, load
 
+    field, color_field = fields
     say = report or (lambda text: None)
     names = fields_to_read(field, color_field, available_fields(path))
     t0 = time.perf_counter()
-    volume = load(path, fields=names, level_buffers=set(names) - {field, color_field})
+    volume = load(path, fields=names, level_buffers=set(names) - {field, color_field},
+                  allow_nonfinite=how.allow_nonfinite)
     read = time.perf_counter() - t0
     say(f"  read {os.path.basename(path)} ({', '.join(names)}: {volume.num_cells:,} cells, "
         f"{len(volume.grids):,} grids) in {read:.2f} s")
@@ -259,7 +276,7 @@ def _prepare_from_file(path, field, color_field, leaf_cells, m, report) -> Prepa
     derive_s = time.perf_counter() - t0
     if derived:
         say(f"{_STEPS['derive']} in {derive_s:.2f} s")
-    prepared = PreparedVolume(volume, field, color_field, leaf_cells=leaf_cells, m=m,
+    prepared = PreparedVolume(volume, field, color_field, leaf_cells=how.leaf_cells, m=m,
                               report=report)
     prepared.timings = {"read": read, **prepared.timings, "derive": derive_s}
     return prepared

@@ -188,10 +188,13 @@ def using(where):
 
 # ---------------------------------------------------------------------- the key
 
-def entry_key(path, field: str, color_field, leaf_cells: int) -> str:
-    """The key of the snapshot of ``path`` prepared for ``field``/``color_field``."""
+def entry_key(path, field: str, color_field, leaf_cells: int,
+              allow_nonfinite: bool = False) -> str:
+    """The key of the snapshot of ``path`` prepared for ``field``/``color_field`` (with NaN and
+    Inf values kept as missing data where ``allow_nonfinite``: a file refused without it has
+    no snapshot to be read back from)."""
     parts = (FORMAT, _code_hash(), os.path.abspath(path), _stamp(path), field, color_field,
-             int(leaf_cells))
+             int(leaf_cells), bool(allow_nonfinite))
     return hashlib.sha256(repr(parts).encode()).hexdigest()[:32]
 
 

@@ -145,12 +145,16 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     ``vorticity`` / ``vorticity_magnitude``; default: the first stored field) at
     ``isovalue`` (default: picked from the field's histogram,
     :func:`mi_amr.core.suggest.suggest_isovalues`). ``params`` are further ``amr_iso``
-    parameters (e.g. ``color_field="speed", colormap="viridis"``)."""
+    parameters (e.g. ``color_field="speed", colormap="viridis"``); ``allow_nonfinite``, which
+    a volume that keeps NaN or Inf values as missing data sets, reads the file so here too."""
     path, volume = _source(source)
+    if volume is not None and volume.allow_nonfinite:
+        params.setdefault("allow_nonfinite", True)
     width, height = (int(x) for x in resolution)
     if width < 1 or height < 1 or int(spp) < 1:
         raise AMRError(f"resolution and spp must be positive, got {resolution} and {spp}")
-    field, volume = _field_volume(path, volume, field, need_values=isovalue is None)
+    field, volume = _field_volume(path, volume, field, need_values=isovalue is None,
+                                  allow_nonfinite=bool(params.get("allow_nonfinite", False)))
     suggested = [] if isovalue is not None else suggest_isovalues(volume, field)
     value = float(isovalue) if isovalue is not None else suggested[0]
     if not np.isfinite(value):
@@ -188,9 +192,10 @@ def _source(source):
     return str(Path(source).resolve()), None
 
 
-def _field_volume(path: str, volume, field, need_values: bool):
+def _field_volume(path: str, volume, field, need_values: bool, allow_nonfinite: bool):
     """``(field name, volume holding it)``; the field is checked against the file (default:
-    the first stored field)."""
+    the first stored field), read with NaN and Inf values as missing data where
+    ``allow_nonfinite``."""
     from mi_amr.plugin.datafields import load_with_fields
     from mi_amr.readers import available_fields
 
@@ -201,5 +206,6 @@ def _field_volume(path: str, volume, field, need_values: bool):
         field = stored[0]
     if volume is not None and field in volume.field_names:
         return field, volume
-    volume, names = load_with_fields(path, [field], derive_them=need_values)
+    volume, names = load_with_fields(path, [field], derive_them=need_values,
+                                     allow_nonfinite=allow_nonfinite)
     return names[0], volume

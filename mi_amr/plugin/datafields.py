@@ -10,10 +10,11 @@ from mi_amr.errors import AMRError
 ALIASES = {"vorticity": "vorticity_magnitude"}
 
 
-def load_with_fields(path, fields=None, *, derive_them: bool = True):
+def load_with_fields(path, fields=None, *, derive_them: bool = True,
+                     allow_nonfinite: bool = False):
     """``(volume, names)``: ``path`` read with ``fields`` (stored or derived; default: every
     stored field) and, with ``derive_them``, the derived ones computed; ``names`` in the order
-    asked, aliases resolved."""
+    asked, aliases resolved. ``allow_nonfinite``: as :func:`mi_amr.load` takes it."""
     from mi_amr.core.derive import DERIVED_FIELDS, VELOCITY_NAMES, derive
     from mi_amr.kernels.prepared import fields_to_read
     from mi_amr.readers import available_fields, load
@@ -28,7 +29,7 @@ def load_with_fields(path, fields=None, *, derive_them: bool = True):
         raise AMRError(f"{path}: no field(s) {', '.join(repr(u) for u in unknown)}; it holds "
                        f"{', '.join(stored)}{derived}")
     read = list(dict.fromkeys(n for f in names for n in fields_to_read(f, None, stored)))
-    volume = load(path, fields=read)
+    volume = load(path, fields=read, allow_nonfinite=allow_nonfinite)
     derived = [f for f in names if f not in volume.field_names]
     if derived and derive_them:
         volume = derive(volume, *derived)

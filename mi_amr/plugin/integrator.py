@@ -99,7 +99,8 @@ class _AMRIso:
 
     def _prepare(self, path):
         self.prep = self.preparations.prepare(path, self.opt.field, self.opt.color_field,
-                                              leaf_cells=self.opt.leaf_cells, m=self.m)
+                                              leaf_cells=self.opt.leaf_cells, m=self.m,
+                                              allow_nonfinite=self.opt.allow_nonfinite)
         self.dev = self.prep.device
         self.prep.search_ready(self.opt.reconstruction == "basis")
 

@@ -54,6 +54,7 @@ class Options:
     aovs: bool
     leaf_cells: int
     max_layers: int
+    allow_nonfinite: bool
     layers: str
 
 

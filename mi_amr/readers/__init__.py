@@ -66,16 +66,17 @@ def available_fields(path) -> list:
     return list(load(path).field_names)
 
 
-def stream_fields(path, names):
+def stream_fields(path, names, allow_nonfinite: bool = False):
     """Fields ``names`` of ``path`` to read a stretch at a time (no field-sized buffer, no
     grid built): :class:`native.FieldStream` for mi_amr's ``.npz`` files,
     :class:`amrex.FabStream` (a box at a time) for AMReX plotfiles; None for the other formats
-    (use :func:`load`)."""
+    (use :func:`load`). ``allow_nonfinite``: NaN and Inf values pass, as :func:`load` takes
+    it (else they end the reading with an AMRError)."""
     path = _existing(path)
     if native.is_native(path):
-        return native.FieldStream(path, names)
+        return native.FieldStream(path, names, allow_nonfinite=allow_nonfinite)
     if amrex.is_plotfile(path):
-        return amrex.FabStream(path, names)
+        return amrex.FabStream(path, names, allow_nonfinite=allow_nonfinite)
     return None
 
 

@@ -180,13 +180,14 @@ class FabStream:
     the Header and each level's box list (and checks them against each other); ``chunks()``
     yields, per box, the named fields' values (1-D arrays in native byte order, one per name,
     each box's own real type, so ``same_dtype``: a chunk's arrays share one dtype). A value
-    that is not finite ends as an AMRError naming the FAB, as :func:`load` refuses it."""
+    that is not finite ends as an AMRError naming the FAB, as :func:`load` refuses it, unless
+    ``allow_nonfinite``."""
 
-    allow_nonfinite = False
     same_dtype = True
 
-    def __init__(self, path, names):
+    def __init__(self, path, names, *, allow_nonfinite: bool = False):
         self.root, self.names = Path(path), list(names)
+        self.allow_nonfinite = bool(allow_nonfinite)
 
     def __enter__(self) -> "FabStream":
         header = read_header(self.root)
@@ -209,7 +210,7 @@ class FabStream:
             for i, arrays in _fabs(cell_h, cell, self._nfields, self._comps):
                 values = [arrays[c].reshape(-1) for c in self._comps]
                 for name, a in zip(self.names, values):
-                    if not np.isfinite(a).all():
+                    if not self.allow_nonfinite and not np.isfinite(a).all():
                         raise AMRError(f"{cell_h.parent / cell.fabs[i][0]}: FAB {i}: field "
                                        f"'{name}' has non-finite value(s) (NaN/Inf)")
                 yield values

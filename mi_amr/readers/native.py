@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_amr.core.buffers import ALIGN, aligned_empty
-from mi_amr.errors import AMRError
+from mi_amr.errors import ALLOW_NONFINITE_HOW, AMRError
 from mi_amr.readers.fields import requested
 from mi_amr.core.npz import MAGIC, VERSION
 from mi_amr.core.volume import AMRVolume
@@ -217,14 +217,17 @@ class FieldStream:
     needs no grid (a colour range): no buffer of a field's size is made, and the grids'
     boxes are not checked (:func:`load` checks them). ``with FieldStream(path, names) as s:``
     opens the archive and checks the index and the fields' entries; ``s.allow_nonfinite`` is
-    the file's flag, ``s.dtypes`` the fields' dtypes (``s.same_dtype``: all one), and
+    the file's flag or the ``allow_nonfinite`` given, ``s.dtypes`` the fields' dtypes
+    (``s.same_dtype``: all one), and
     ``s.chunks()`` yields lists of 1-D
     arrays, one per name, each the same stretch of at most ``chunk_values`` values of that
     field's row of every grid's values (file order). The arrays are read-only and valid until
     the next chunk. Damage found while reading ends as an AMRError naming the file."""
 
-    def __init__(self, path, names, chunk_values: int = _STREAM_VALUES):
+    def __init__(self, path, names, chunk_values: int = _STREAM_VALUES, *,
+                 allow_nonfinite: bool = False):
         self.path, self.names, self.chunk_values = Path(path), list(names), int(chunk_values)
+        self.allow_nonfinite = bool(allow_nonfinite)
 
     def __enter__(self) -> "FieldStream":
         self._archive = _archive(self.path)
@@ -240,7 +243,7 @@ class FieldStream:
         except BaseException:
             self._archive.__exit__(None, None, None)
             raise
-        self.allow_nonfinite = index["allow_nonfinite"]
+        self.allow_nonfinite = index["allow_nonfinite"] or self.allow_nonfinite
         self.dtypes = [dtype for _, dtype, _ in self._entries]
         self.same_dtype = len(set(self.dtypes)) == 1
         return self
@@ -279,8 +282,8 @@ class FieldStream:
                 bad = np.flatnonzero(~finite)
                 grid = int(np.searchsorted(self._offsets, at + bad[0], side="right")) - 1
                 raise AMRError(f"{self.path}: grid {grid}: field '{name}' has non-finite "
-                               f"value(s) (NaN/Inf); clean the data or save it with "
-                               f"allow_nonfinite=True to treat them as missing")
+                               f"value(s) (NaN/Inf); clean the data, or keep them as "
+                               f"missing data with {ALLOW_NONFINITE_HOW}")
 
 
 def _read_values(f, dtype, n: int) -> np.ndarray:

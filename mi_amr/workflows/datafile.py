@@ -29,10 +29,14 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
     folder (removed when the block ends). Prints the field and isovalue it picked."""
     if is_scene_file(source):
         given = [n for n, v in (("--field", field), ("--isovalue", isovalue),
-                                ("--save-scene", save_scene)) if v is not None]
+                                ("--save-scene", save_scene),
+                                ("--allow-nonfinite", params.get("allow_nonfinite")))
+                 if v is not None]
         if given:
+            keep = ", and NaN/Inf values kept with its amr_iso parameter allow_nonfinite" \
+                if "--allow-nonfinite" in given else ""
             raise AMRError(f"{source} is a scene file: {', '.join(given)} apply to data files "
-                           f"only (set a scene's <default>s with -D NAME=VALUE)")
+                           f"only (set a scene's <default>s with -D NAME=VALUE{keep})")
         yield Path(source)
         return
     if save_scene is not None:

@@ -75,10 +75,11 @@ def _value_edges(values, bins: int, kind: str, linthresh):
 
 
 def histogram_figure(path, field: str, output, *, bins: int = 256, overwrite: bool = False,
-                     value_scale: str = "auto") -> Path:
+                     value_scale: str = "auto", allow_nonfinite: bool = False) -> Path:
     """Write the histogram of ``field`` of the file ``path`` to ``output`` (PNG, atomically),
     ``bins`` bins (2 to :data:`MAX_BINS`) on each axis; ``value_scale`` as :func:`value_axis`
-    takes it."""
+    takes it; ``allow_nonfinite``: NaN and Inf values are missing data (left out), as
+    :func:`mi_amr.load` takes it."""
     if not 2 <= bins <= MAX_BINS:
         raise AMRError(f"--bins must be between 2 and {MAX_BINS}, got {bins}")
     output = check_output(output, suffixes=(".png",), overwrite=overwrite, make_folders=True)
@@ -86,7 +87,8 @@ def histogram_figure(path, field: str, output, *, bins: int = 256, overwrite: bo
     from mi_amr.kernels.prepared import fields_to_read
     from mi_amr.readers import available_fields, load
 
-    volume = load(path, fields=fields_to_read(field, None, available_fields(path)))
+    volume = load(path, fields=fields_to_read(field, None, available_fields(path)),
+                  allow_nonfinite=allow_nonfinite)
     if field not in volume.field_names and field in DERIVED_FIELDS:
         volume = derive(volume, field)
     v, g = value_and_gradient(volume, field)

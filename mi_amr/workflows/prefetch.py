@@ -27,8 +27,9 @@ class Prefetcher:
         """Prepare ``path`` for ``integrator`` (its field, colour field, backend), unless it is
         prepared (or being prepared) for it already."""
         opt = integrator.opt
-        args = (integrator.preparations, str(path), opt.field, opt.color_field, opt.leaf_cells,
-                integrator.m, opt.reconstruction == "basis")
+        args = (integrator.preparations, str(path), opt.field, opt.color_field,
+                (opt.leaf_cells, opt.allow_nonfinite), integrator.m,
+                opt.reconstruction == "basis")
         if args == self._args:
             return
         self.wait()
@@ -37,12 +38,14 @@ class Prefetcher:
                                         name="mi_amr-prefetch", daemon=True)
         self._thread.start()
 
-    def _prepare(self, preparations, path, field, color_field, leaf_cells, m, basis) -> None:
+    def _prepare(self, preparations, path, field, color_field, how, m, basis) -> None:
+        """``how``: ``(leaf_cells, allow_nonfinite)``, as the integrator's options give them."""
         import drjit as dr
 
+        leaf_cells, allow_nonfinite = how
         try:
-            preparations.prepare(path, field, color_field, leaf_cells=leaf_cells,
-                                 m=m).search_ready(basis)
+            preparations.prepare(path, field, color_field, leaf_cells=leaf_cells, m=m,
+                                 allow_nonfinite=allow_nonfinite).search_ready(basis)
             dr.sync_thread()
         except AMRError:                # a bad file: the step loads it itself and says why
             pass

@@ -40,13 +40,14 @@ def series_color_range(files, scene_path, defines=None, progress: bool = False) 
     field, color_field = _scene_fields(scene_path, defines)
     if color_field is None:
         return None
+    wanted = (color_field, _scene_allows_nonfinite(scene_path, defines))
     lo, hi = float("inf"), float("-inf")
-    streamed = parallel.map_ordered(lambda f: _quick_range(f, color_field), files)
+    streamed = parallel.map_ordered(lambda f: _quick_range(f, wanted), files)
     with tqdm(total=len(files), desc="colour range", unit="file", disable=not progress,
               leave=False) as bar:
         for f, got in zip(files, streamed):
             if got is _LOAD:
-                got = _guarded(_loaded_range, f, color_field)
+                got = _guarded(_loaded_range, f, *wanted)
             bar.update()
             if got is not None:
                 lo, hi = min(lo, got[0]), max(hi, got[1])
@@ -64,11 +65,13 @@ def _guarded(fn, *args):
         return None
 
 
-def _quick_range(path, name):
-    """:func:`_file_range` where the file can be read a stretch at a time, :data:`_LOAD`
-    where it must be loaded, None where it cannot be read."""
+def _quick_range(path, wanted):
+    """:func:`_file_range` of ``wanted`` (``(name, allow_nonfinite)``) where the file can be
+    read a stretch at a time, :data:`_LOAD` where it must be loaded, None where it cannot be
+    read."""
+    name, allow_nonfinite = wanted
     try:
-        got = _streamed_range(path, name, _names_to_read(path, name))
+        got = _streamed_range(path, name, _names_to_read(path, name), allow_nonfinite)
     except AMRError:
         return None
     return _LOAD if got is None else got
@@ -81,21 +84,22 @@ def _names_to_read(path, name) -> list:
     return fields_to_read(name, None, available_fields(path))
 
 
-def _file_range(path, name) -> tuple:
+def _file_range(path, name, allow_nonfinite: bool = False) -> tuple:
     """``(min, max)`` of the finite values of field ``name`` of data file ``path``, derived
     from what it holds where it is not stored (the speed straight from the velocity, without
-    writing the field)."""
-    got = _streamed_range(path, name, _names_to_read(path, name))
-    return _loaded_range(path, name) if got is None else got
+    writing the field); NaN and Inf values refused unless ``allow_nonfinite``, as the frames
+    load the file."""
+    got = _streamed_range(path, name, _names_to_read(path, name), allow_nonfinite)
+    return _loaded_range(path, name, allow_nonfinite) if got is None else got
 
 
-def _loaded_range(path, name) -> tuple:
+def _loaded_range(path, name, allow_nonfinite: bool = False) -> tuple:
     """:func:`_file_range` from the file loaded (the field derived where it is not stored)."""
     from mi_amr.core.derive import DERIVED_FIELDS, derive, speed_range
     from mi_amr.readers import load
 
     names = _names_to_read(path, name)
-    vol = load(path, fields=names, level_buffers=names)
+    vol = load(path, fields=names, level_buffers=names, allow_nonfinite=allow_nonfinite)
     if name not in vol.field_names and name in DERIVED_FIELDS:
         got = speed_range(vol) if name == "speed" else None
         if got is not None:
@@ -104,7 +108,7 @@ def _loaded_range(path, name) -> tuple:
     return vol.value_range(name)
 
 
-def _streamed_range(path, name, names):
+def _streamed_range(path, name, names, allow_nonfinite: bool = False):
     """:func:`_file_range` from the file read a stretch at a time where its format allows
     (no field-sized buffer, no grids built: the frame that loads the file checks them), for
     a stored field and the speed; None otherwise."""
@@ -114,7 +118,7 @@ def _streamed_range(path, name, names):
 
     if names != [name] and name != "speed":
         return None
-    stream = stream_fields(path, names)
+    stream = stream_fields(path, names, allow_nonfinite)
     if stream is None:
         return None
     with stream:
@@ -127,6 +131,25 @@ def _streamed_range(path, name, names):
 
 def _scene_fields(scene_path, defines):
     """``(field, color_field)`` of the scene's amr_iso integrator, read from its XML."""
+    from mi_amr.plugin.options import NO_COLOR_FIELD
+
+    value = _scene_values(scene_path, defines)
+    color = value("color_field") if value("colormap") else None
+    off = color is not None and color.strip().lower() in NO_COLOR_FIELD
+    return value("field"), None if off else color
+
+
+def _scene_allows_nonfinite(scene_path, defines) -> bool:
+    """Does the scene's amr_iso integrator keep NaN and Inf values as missing data
+    (``allow_nonfinite``)?"""
+    allow = _scene_values(scene_path, defines)("allow_nonfinite")
+    return allow is not None and allow.strip().lower() == "true"
+
+
+def _scene_values(scene_path, defines):
+    """``value(name)``: the scene's amr_iso parameter ``name`` as its XML writes it, its
+    ``$default`` references filled in (``defines`` over the scene's ``<default>``s), or None
+    where the integrator does not set it."""
     import re
 
     try:
@@ -146,11 +169,7 @@ def _scene_fields(scene_path, defines):
         return re.sub(r"\$(\w+)", lambda m: str(values.get(m.group(1), m.group(0))),
                       node.get("value"))
 
-    from mi_amr.plugin.options import NO_COLOR_FIELD
-
-    color = value("color_field") if value("colormap") else None
-    off = color is not None and color.strip().lower() in NO_COLOR_FIELD
-    return value("field"), None if off else color
+    return value
 
 
 def _has_filename_default(scene_path) -> bool:
