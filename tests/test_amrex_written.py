@@ -204,3 +204,20 @@ def test11_a_series_colour_range_keeps_nan_values_where_the_scene_does(plotfile,
     assert movie.series_color_range([plotfile, npz], scene) == want
     scene.write_text(made.xml().replace('<boolean name="allow_nonfinite" value="true"/>', ""))
     assert movie.series_color_range([plotfile, npz], scene) is None
+
+
+def test12_python_s_show_and_explore_keep_nan_values_when_asked(plotfile, tmp_path):
+    """``mi_amr.show`` and ``mi_amr.explore`` of a plotfile holding a NaN: refused, naming the
+    field, unless ``allow_nonfinite=True``."""
+    _with_a_nan(plotfile)
+    with pytest.raises(AMRError, match="field 'density' has 1 non-finite"):
+        mi_amr.show(plotfile, "density", resolution=(16, 12), spp=1)
+    image = mi_amr.show(plotfile, "density", resolution=(16, 12), spp=1, allow_nonfinite=True)
+    assert image.size == (16, 12) and np.isfinite(image.numpy()).all()
+    with pytest.raises(AMRError, match="field 'density' has 1 non-finite"):
+        mi_amr.explore(plotfile, "density", out_dir=tmp_path)
+    explorer = mi_amr.explore(plotfile, "density", out_dir=tmp_path, allow_nonfinite=True)
+    try:
+        assert explorer.url.startswith("http://127.0.0.1:")
+    finally:
+        explorer.close()
