@@ -93,8 +93,7 @@ class _AMRIso:
         self._prepare(resolve_data_file(opt.filename))
         self.frame = VolumeFrame(to_world)
         data_range = self.prep.volume.value_range(self.prep.color_field)
-        self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host,
-                                  host_transfer2d(opt))
+        self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host, host_transfer2d(opt))
         options.warn_outside(self.prep, opt.isovalues)
 
     def _prepare(self, path):
