@@ -169,8 +169,12 @@ def test10_allow_nonfinite_keeps_nan_values_in_a_scene_and_on_the_command_line(
         assert '<boolean name="allow_nonfinite" value="true"/>' in scene.read_text()
         again = ["render", str(scene), "-o", str(tmp_path / "again.png"), "--spp", "1"]
         assert cli.main(again) == 0
+        assert cli.main(again + ["--force", "--allow-nonfinite", "--field", "density"]) == 2
+        err = capsys.readouterr().err
+        assert f"{scene} is a scene file: --field, --allow-nonfinite apply to data files" in err
+        assert "its amr_iso parameter allow_nonfinite" in err
         assert cli.main(again + ["--force", "--allow-nonfinite"]) == 2
-        assert "its amr_iso parameter allow_nonfinite" in capsys.readouterr().err
+        assert "--allow-nonfinite applies to data files only" in capsys.readouterr().err
         bare.write_text(scene.read_text().replace(
             '<boolean name="allow_nonfinite" value="true"/>', ""))
         assert cli.main(["render", str(bare), "-o", str(tmp_path / "bare.png")]) == 2

@@ -35,8 +35,9 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
         if given:
             keep = ", and NaN/Inf values kept with its amr_iso parameter allow_nonfinite" \
                 if "--allow-nonfinite" in given else ""
-            raise AMRError(f"{source} is a scene file: {', '.join(given)} apply to data files "
-                           f"only (set a scene's <default>s with -D NAME=VALUE{keep})")
+            verb = "applies" if len(given) == 1 else "apply"
+            raise AMRError(f"{source} is a scene file: {', '.join(given)} {verb} to data "
+                           f"files only (set a scene's <default>s with -D NAME=VALUE{keep})")
         yield Path(source)
         return
     if save_scene is not None:
