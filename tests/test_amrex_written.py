@@ -218,6 +218,11 @@ def test12_python_s_show_and_explore_keep_nan_values_when_asked(plotfile, tmp_pa
         mi_amr.show(plotfile, "density", resolution=(16, 12), spp=1)
     image = mi_amr.show(plotfile, "density", resolution=(16, 12), spp=1, allow_nonfinite=True)
     assert image.size == (16, 12) and np.isfinite(image.numpy()).all()
+    # as a scene reads a boolean: the string "false" keeps the refusal, anything else is named
+    with pytest.raises(AMRError, match="field 'density' has 1 non-finite"):
+        mi_amr.scene(plotfile, "density", allow_nonfinite="false")
+    with pytest.raises(AMRError, match="parameter 'allow_nonfinite' must be true or false"):
+        mi_amr.scene(plotfile, "density", allow_nonfinite="maybe")
     with pytest.raises(AMRError, match="field 'density' has 1 non-finite"):
         mi_amr.explore(plotfile, "density", out_dir=tmp_path)
     explorer = mi_amr.explore(plotfile, "density", out_dir=tmp_path, allow_nonfinite=True)

@@ -153,8 +153,10 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     width, height = (int(x) for x in resolution)
     if width < 1 or height < 1 or int(spp) < 1:
         raise AMRError(f"resolution and spp must be positive, got {resolution} and {spp}")
+    from mi_amr.plugin.options import boolean
+
     field, volume = _field_volume(path, volume, field, need_values=isovalue is None,
-                                  allow_nonfinite=bool(params.get("allow_nonfinite", False)))
+                                  allow_nonfinite=boolean(params, "allow_nonfinite"))
     suggested = [] if isovalue is not None else suggest_isovalues(volume, field)
     value = float(isovalue) if isovalue is not None else suggested[0]
     if not np.isfinite(value):

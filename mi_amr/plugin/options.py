@@ -192,6 +192,12 @@ def _number(values, name, integer=False):
     return x
 
 
+def boolean(values, name) -> bool:
+    """Parameter ``name`` of ``values`` (its default where absent) as the scene reads a
+    ``boolean``: True, False, or the strings ``true``/``false``; anything else is refused."""
+    return _bool(values, name)
+
+
 def _bool(values, name):
     v = _value(values, name)
     if isinstance(v, bool):
