@@ -22,6 +22,7 @@ import numpy as np
 from mi_amr.core.framing import Framing, frame_box
 from mi_amr.core.suggest import suggest_isovalues
 from mi_amr.errors import AMRError
+from mi_amr.plugin.options import boolean
 
 RESOLUTION = (768, 576)      # pixels (width, height) unless asked otherwise
 SPP = 4
@@ -153,8 +154,6 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     width, height = (int(x) for x in resolution)
     if width < 1 or height < 1 or int(spp) < 1:
         raise AMRError(f"resolution and spp must be positive, got {resolution} and {spp}")
-    from mi_amr.plugin.options import boolean
-
     field, volume = _field_volume(path, volume, field, need_values=isovalue is None,
                                   allow_nonfinite=boolean(params, "allow_nonfinite"))
     suggested = [] if isovalue is not None else suggest_isovalues(volume, field)

@@ -195,10 +195,6 @@ def _number(values, name, integer=False):
 def boolean(values, name) -> bool:
     """Parameter ``name`` of ``values`` (its default where absent) as the scene reads a
     ``boolean``: True, False, or the strings ``true``/``false``; anything else is refused."""
-    return _bool(values, name)
-
-
-def _bool(values, name):
     v = _value(values, name)
     if isinstance(v, bool):
         return v
@@ -278,7 +274,7 @@ _READERS = {
     "string": _string,
     "float": _number,
     "integer": lambda values, name: _number(values, name, integer=True),
-    "boolean": _bool,
+    "boolean": boolean,
     "2 floats": _pair,
 }
 

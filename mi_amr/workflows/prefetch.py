@@ -26,9 +26,11 @@ class Prefetcher:
     def start(self, integrator, path) -> None:
         """Prepare ``path`` for ``integrator`` (its field, colour field, backend), unless it is
         prepared (or being prepared) for it already."""
+        from mi_amr.kernels.prepared import LoadOptions
+
         opt = integrator.opt
         args = (integrator.preparations, str(path), opt.field, opt.color_field,
-                (opt.leaf_cells, opt.allow_nonfinite), integrator.m,
+                LoadOptions(opt.leaf_cells, opt.allow_nonfinite), integrator.m,
                 opt.reconstruction == "basis")
         if args == self._args:
             return
@@ -39,13 +41,12 @@ class Prefetcher:
         self._thread.start()
 
     def _prepare(self, preparations, path, field, color_field, how, m, basis) -> None:
-        """``how``: ``(leaf_cells, allow_nonfinite)``, as the integrator's options give them."""
+        """``how``: the :class:`~mi_amr.kernels.prepared.LoadOptions` of the integrator's."""
         import drjit as dr
 
-        leaf_cells, allow_nonfinite = how
         try:
-            preparations.prepare(path, field, color_field, leaf_cells=leaf_cells, m=m,
-                                 allow_nonfinite=allow_nonfinite).search_ready(basis)
+            preparations.prepare(path, field, color_field, leaf_cells=how.leaf_cells, m=m,
+                                 allow_nonfinite=how.allow_nonfinite).search_ready(basis)
             dr.sync_thread()
         except AMRError:                # a bad file: the step loads it itself and says why
             pass
