@@ -695,8 +695,11 @@ def test18f_a_plotfile_streams_its_fields_a_box_at_a_time(tmp_path, dtype, monke
     """A time series' colour range of a plotfile is read a box at a time
     (``amrex.FabStream``), no volume loaded: a stored field's range and the speed's are those
     of the loaded (and derived) fields, in doubles and singles; a NaN in a FAB (which
-    :func:`load` refuses) ends the stream with an AMRError naming the FAB."""
+    :func:`load` refuses) ends the stream with an AMRError naming the FAB and the ways to
+    keep such values."""
     from amrex_writer import write_plotfile
+
+    from mi_amr.errors import ALLOW_NONFINITE_HOW
 
     import mi_amr.readers as readers
     from mi_amr.core.derive import derive
@@ -724,8 +727,10 @@ def test18f_a_plotfile_streams_its_fields_a_box_at_a_time(tmp_path, dtype, monke
     at = data.index(b"\n") + 1            # the first value of box 0 of level 1
     data[at:at + np.dtype(dtype).itemsize] = np.array([np.nan], dtype=dtype).tobytes()
     fab.write_bytes(bytes(data))
-    with pytest.raises(AMRError, match=re.escape(str(fab)) + ": FAB 0: field 'vx' has non-fin"):
+    with pytest.raises(AMRError, match=re.escape(str(fab)) + ": FAB 0: field 'vx' has non-fin"
+                       ) as refused:
         movie._file_range(root, "speed")
+    assert ALLOW_NONFINITE_HOW in str(refused.value)      # how to keep them, as load says
 
 
 def test19_a_movie_whose_cluster_loses_every_worker_stops_with_one_error(series, tmp_path):

@@ -36,7 +36,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mi_amr.errors import AMRError, shown
+from mi_amr.errors import ALLOW_NONFINITE_HOW, AMRError, shown
 from mi_amr.core.volume import AMRVolume
 from mi_amr.readers.fields import requested
 
@@ -212,7 +212,9 @@ class FabStream:
                 for name, a in zip(self.names, values):
                     if not self.allow_nonfinite and not np.isfinite(a).all():
                         raise AMRError(f"{cell_h.parent / cell.fabs[i][0]}: FAB {i}: field "
-                                       f"'{name}' has non-finite value(s) (NaN/Inf)")
+                                       f"'{name}' has non-finite value(s) (NaN/Inf); clean "
+                                       f"the data, or keep them as missing data with "
+                                       f"{ALLOW_NONFINITE_HOW}")
                 yield values
 
 
