@@ -218,6 +218,43 @@ def test07_a_sampler_that_rounds_its_count_renders_what_mitsubas_loop_renders(va
     assert abs(tiled.mean() - theirs.mean()) < 0.02 * theirs.mean()
 
 
+def test07b_the_wavefront_size_check_counts_the_samples_the_sampler_keeps(variant):
+    """:func:`wavefront.supported` leaves a wavefront of 2^32 lanes or more to Mitsuba's loop;
+    it counts the samples a frame takes: 3 asked of a stratified sampler are 4, so a film of
+    2^30 pixels (a stand-in: a real one would hold gigabytes) is too large at 3 spp, and an
+    independent sampler keeps 3. A pass of a set takes the count given."""
+    mi = variant
+    from mi_amr.plugin import wavefront
+
+    class Film:
+        def crop_size(self):
+            return (1 << 15, 1 << 15)
+
+        def rfilter(self):
+            return mi.load_dict({"type": "box"})
+
+        def sample_border(self):
+            return False
+
+        def flags(self):
+            return 0
+
+    class Sensor:
+        def __init__(self, sampler):
+            self._sampler = mi.load_dict({"type": sampler, "sample_count": 1})
+
+        def film(self):
+            return Film()
+
+        def sampler(self):
+            return self._sampler
+
+    assert not wavefront.supported(Sensor("stratified"), 3)
+    assert wavefront.supported(Sensor("independent"), 3)
+    assert wavefront.supported(Sensor("stratified"), 3, part=(0, 9))
+    assert not wavefront.supported(Sensor("independent"), 4)
+
+
 def test08_a_stratified_samplers_passes_are_parts_of_one_set(variant, folder, scene_data_ready):
     """With a sampler that stratifies, the render workflow's and the viewer's passes are
     equal parts of one set of the image's samples at one seed (one sample a pass up to 16):

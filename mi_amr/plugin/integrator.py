@@ -165,7 +165,7 @@ class _AMRIso:
         args = (self, scene, sensor, seed, spp, develop, evaluate)
         image = wavefront.render(*args, tiled=self.twins.tile_order,
                                  by_sample=self.picks_by_packet(), part=part) \
-            if self.twins.wavefront_loop and wavefront.supported(sensor, spp) else \
+            if self.twins.wavefront_loop and wavefront.supported(sensor, spp, part) else \
             mi.SamplingIntegrator.render(*wavefront.own_seed(args, part))
         aovs.unfiltered(self, scene, sensor, image, evaluate)
         return image

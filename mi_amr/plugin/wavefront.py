@@ -100,12 +100,16 @@ def film_shape(sensor, spp: int):
             spp or sensor.sampler().sample_count(), border)
 
 
-def supported(sensor, spp: int) -> bool:
+def supported(sensor, spp: int, part=None) -> bool:
     """Does :func:`render` handle this variant, film and wavefront? (Else Mitsuba's loop does,
-    which also splits a wavefront of more than 2^32 lanes into passes.)"""
+    which also splits a wavefront of more than 2^32 lanes into passes.) The wavefront holds
+    the samples that :func:`render` takes: the count the sampler keeps of ``spp`` (rounded up
+    by a stratified sampler), or ``spp`` itself for a ``part`` of a set."""
     if not (dr.is_jit_v(mi.Float) and mi.is_rgb and not mi.is_polarized):
         return False
     width, height, spp, _ = film_shape(sensor, spp)
+    if part is None:
+        spp = int(_sampler(sensor, spp, None).sample_count())
     return not mi.has_flag(sensor.film().flags(), mi.FilmFlags.Special) and \
         width * height * spp < 2 ** 32
 
