@@ -187,6 +187,9 @@ def _add_data_scene(s) -> None:
                                    "(q_criterion, speed, vorticity); default: the first stored")
     s.add_argument("--isovalue", type=float,
                    help="data file: the isovalue (default: picked from the histogram)")
+    s.add_argument("--mode", choices=("surface", "volume"),
+                   help="data file: the isosurface (surface, the default) or a translucent "
+                        "band about the isovalue (volume; its width picked from the histogram)")
     s.add_argument("--save-scene", metavar="XML", help="data file: also write the scene made "
                                                       "for it here (for editing)")
     _add_allow_nonfinite(s, "data file: ")
@@ -201,8 +204,10 @@ def _add_allow_nonfinite(s, where: str = "") -> None:
 def _data_scene(args, source, resolution=None):
     from mi_amr.workflows.datafile import scene_file
 
-    # (Only when asked: a scene made without it does not name the parameter.)
+    # (Only when asked: a scene made without them does not name the parameters.)
     extra = {"allow_nonfinite": True} if args.allow_nonfinite else {}
+    if args.mode is not None:
+        extra["mode"] = args.mode
     return scene_file(source, field=args.field, isovalue=args.isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
                       force=getattr(args, "force", False), **extra)

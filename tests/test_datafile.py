@@ -408,3 +408,96 @@ def test14_view_serves_a_data_file(tmp_path):
         proc.send_signal(signal.SIGINT)
         proc.wait(timeout=60)
     assert not list(tmp_path.glob("mi_amr_scene_*")), "the made scene is left behind"
+
+
+def test15_the_picked_band_width_is_half_the_nearer_side_of_a_rank_window():
+    """:func:`suggest_band_width` on values whose answer is known: 0, 1, ..., 1000 about 500
+    (the window of 2 % of the ranks each side ends 20 values away: a width of 10), values
+    denser on one side, a field that is flat about the isovalue, and a constant one."""
+    from mi_amr.core.suggest import BAND_RANKS, suggest_band_width
+
+    assert BAND_RANKS == 0.02
+    assert suggest_band_width(np.arange(1001.0), 500.0) == pytest.approx(10.0)
+    assert suggest_band_width(np.arange(1001.0), 100.0) == pytest.approx(10.0)
+    # Denser above the isovalue: the band follows the denser side.
+    skewed = np.sort(np.concatenate([np.linspace(0, 100, 500), np.linspace(100, 110, 500)]))
+    w = suggest_band_width(skewed, 100.0)
+    assert 0 < w < 0.2
+    flat = np.sort(np.concatenate([np.full(1000, 3.0), [0.0, 10.0]]))
+    assert suggest_band_width(flat, 3.0) == pytest.approx(0.01 * 10.0)
+    tiny = suggest_band_width(np.full(10, 0.0), 0.0)
+    assert tiny > 0 and np.float32(tiny) > 0
+
+
+def ball_volume(scale=1000.0):
+    """One grid over the unit cube whose field ``f`` is ``scale`` times the distance from the
+    centre: a data file in other units than the sphere wake's Q."""
+    def fn(p):
+        return scale * np.linalg.norm(p - 0.5, axis=-1)
+
+    return AMRVolume.from_grids([grid(0, (0, 0, 0), (1, 1, 1), 1 / 24, fn)])
+
+
+def test16_volume_mode_for_a_data_file_picks_its_band_from_the_histogram(mi, tmp_path, capsys):
+    """``--mode volume`` (and ``mode="volume"`` in Python): the band's width is picked about
+    the isovalue, said, and written into the saved scene, whose pixels are the dict's. The
+    parameter's default width (0.004, in the sphere wake's units) on a field of hundreds shows
+    next to nothing, which the picked band does not; ``mi_amr.explore`` serves the same band.
+    With a 2D transfer function no band is picked (the two refuse each other). A scene file
+    takes no ``--mode``."""
+    import mi_amr
+    from mi_amr.core.suggest import leaf_values, suggest_band_width
+    from mi_amr.plugin.autoscene import data_scene
+
+    path = save(ball_volume(), tmp_path / "ball.npz")
+    out, xml = tmp_path / "v.png", tmp_path / "v.xml"
+    rc, text, err = render_cli(["render", path, "--mode", "volume", "--isovalue", "300",
+                                "--save-scene", str(xml), "-o", str(out), "--resolution", "48",
+                                "40", "--spp", "1"], capsys)
+    assert rc == 0, err
+    want = suggest_band_width(np.sort(leaf_values(mi_amr.load(path), "f")), 300.0)
+    assert 1.0 < want < 100.0
+    assert f"volume band width {want:.6g} (picked from the histogram" in text
+    assert '<string name="mode" value="volume"/>' in xml.read_text()
+    assert f'<float name="band_width" value="{want!r}"/>' in xml.read_text()
+    made = mi_amr.scene(path, isovalue=300.0, mode="volume", resolution=(48, 40), spp=1)
+    assert made["integrator"]["band_width"] == want
+    d = mi.render(mi.load_dict(made), spp=1, seed=0)
+    assert_same_pixels(d, mi.render(mi.load_file(str(xml)), spp=1, seed=0))
+    picked = np.array(d)[..., 3].mean()
+    thin = np.array(mi.render(mi.load_dict(mi_amr.scene(
+        path, isovalue=300.0, mode="volume", band_width=0.004, resolution=(48, 40), spp=1)),
+        spp=1, seed=0))[..., 3].mean()
+    assert picked > 0.05 and thin < 0.1 * picked, (picked, thin)
+    assert "band_width" not in data_scene(path, "f", 300.0, mode="volume",
+                                          transfer2d_blobs="300 0 20 5 1").params
+    assert "band_width" not in data_scene(path, "f", 300.0).params        # surface: none
+    import json
+    import urllib.request
+
+    explorer = mi_amr.explore(path, isovalue=300.0, mode="volume", out_dir=tmp_path,
+                              resolution=(32, 24))
+    try:
+        with urllib.request.urlopen(explorer.url + "api/state", timeout=60) as reply:
+            state = json.loads(reply.read())["state"]
+    finally:
+        explorer.close()
+    assert state["mode"] == "volume" and state["band_width"] == pytest.approx(want, rel=1e-6)
+    scene = tmp_path / "s.xml"
+    scene.write_text("<scene version='3.0.0'/>")
+    one_error(render_cli(["render", str(scene), "--mode", "volume", "-o",
+                          str(tmp_path / "x.png")], capsys), "--mode", "scene file",
+              "parameter mode")
+
+
+def test17_a_field_without_a_finite_value_gets_one_error_from_the_picks(mi, tmp_path, capsys):
+    """A file whose field is NaN in every cell, kept as missing data: picking an isovalue (or
+    a band) from it says so, naming the file and the field, instead of failing on an empty
+    array."""
+    vol = AMRVolume.from_grids([grid(0, (0, 0, 0), (1, 1, 1), 0.25, lambda p: np.full(
+        p.shape[:-1], np.nan))], allow_nonfinite=True)
+    path = save(vol, tmp_path / "empty.npz")
+    one_error(render_cli(["render", path, "--allow-nonfinite", "-o", str(tmp_path / "x.png")],
+                         capsys), "empty.npz", "'f'", "no finite value")
+    one_error(render_cli(["render", path, "--allow-nonfinite", "--isovalue", "1", "--mode",
+                          "volume", "-o", str(tmp_path / "x.png")], capsys), "no finite value")

@@ -20,7 +20,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from mi_amr.core.framing import Framing, frame_box
-from mi_amr.core.suggest import suggest_isovalues
+from mi_amr.core.suggest import leaf_values, suggest_band_width, suggest_isovalues
 from mi_amr.errors import AMRError
 from mi_amr.plugin.options import boolean
 
@@ -37,7 +37,8 @@ DEFAULTS = ("filename", "isovalue", "color_field", "colormap")
 class DataScene:
     """The scene of ``path`` (absolute) showing ``field`` at ``isovalue`` (``picked``: chosen
     from the histogram, with ``suggested`` the other candidates), at ``resolution`` (width,
-    height) and ``spp``; ``params`` are further ``amr_iso`` parameters."""
+    height) and ``spp``; ``params`` are further ``amr_iso`` parameters (``band_width`` among
+    them where ``band_picked``: volume mode's band, picked from the histogram)."""
 
     path: str
     field: str
@@ -48,6 +49,7 @@ class DataScene:
     spp: int
     framing: Framing
     params: dict = dc_field(default_factory=dict)
+    band_picked: bool = False
 
     def integrator_values(self) -> dict:
         """The amr_iso parameters except ``to_world`` (Python values, written as typed)."""
@@ -80,9 +82,11 @@ class DataScene:
         defaults = {k: values.pop(k) for k in DEFAULTS}
         defaults.update(spp=self.spp, resx=self.resolution[0], resy=self.resolution[1])
         how = " (picked from the histogram)" if self.picked else ""
+        band = f", band width {self.params['band_width']!r} (picked from the histogram)" \
+            if self.band_picked else ""
         lines = ['<scene version="3.0.0">',
                  f"    <!-- Made by mi_amr for {_comment(self.path)}: field {_comment(self.field)}"
-                 f", isovalue {self.isovalue!r}{how}. -->"]
+                 f", isovalue {self.isovalue!r}{how}{band}. -->"]
         lines += [f"    <default name={quoteattr(k)} value={quoteattr(str(v))}/>"
                   for k, v in defaults.items()]
         lines += ['', '    <integrator type="amr_iso" id="integrator">']
@@ -147,23 +151,44 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     ``isovalue`` (default: picked from the field's histogram,
     :func:`mi_amr.core.suggest.suggest_isovalues`). ``params`` are further ``amr_iso``
     parameters (e.g. ``color_field="speed", colormap="viridis"``); ``allow_nonfinite``, which
-    a volume that keeps NaN or Inf values as missing data sets, reads the file so here too."""
+    a volume that keeps NaN or Inf values as missing data sets, reads the file so here too.
+    With ``mode="volume"`` and neither ``band_width`` nor a 2D transfer function, the band's
+    width is picked from the histogram about the isovalue
+    (:func:`mi_amr.core.suggest.suggest_band_width`): the parameter's default is in the
+    units of the sphere wake's Q, a band too thin to see in most other fields."""
     path, volume = _source(source)
     if volume is not None and volume.allow_nonfinite:
         params.setdefault("allow_nonfinite", True)
     width, height = (int(x) for x in resolution)
     if width < 1 or height < 1 or int(spp) < 1:
         raise AMRError(f"resolution and spp must be positive, got {resolution} and {spp}")
-    field, volume = _field_volume(path, volume, field, need_values=isovalue is None,
+    pick_band = params.get("mode") == "volume" and not any(
+        k in params for k in ("band_width", "transfer2d", "transfer2d_blobs"))
+    need_values = isovalue is None or pick_band
+    field, volume = _field_volume(path, volume, field, need_values=need_values,
                                   allow_nonfinite=boolean(params, "allow_nonfinite"))
-    suggested = [] if isovalue is not None else suggest_isovalues(volume, field)
+    values = _finite_leaf_values(volume, field) if need_values else None
+    suggested = [] if isovalue is not None else suggest_isovalues(volume, field, values)
     value = float(isovalue) if isovalue is not None else suggested[0]
     if not np.isfinite(value):
         raise AMRError(f"isovalue must be a finite number, got {isovalue}")
+    if pick_band:
+        params["band_width"] = suggest_band_width(values, value)
     lo, hi = volume.bounds
     return DataScene(path=path, field=field, isovalue=value, picked=isovalue is None,
                      suggested=suggested, resolution=(width, height), spp=int(spp),
-                     framing=frame_box(lo, hi, width / height), params=dict(params))
+                     framing=frame_box(lo, hi, width / height), params=dict(params),
+                     band_picked=pick_band)
+
+
+def _finite_leaf_values(volume, field: str) -> np.ndarray:
+    """``field``'s finite leaf values, sorted (what the picks read); one error where it has
+    none (every value NaN or Inf, kept as missing data)."""
+    values = np.sort(leaf_values(volume, field))
+    if values.size == 0:
+        raise AMRError(f"{volume.source_prefix()}field '{field}' has no finite value in its "
+                       f"leaf cells: nothing to pick an isovalue from")
+    return values
 
 
 def scene(source, field=None, isovalue=None, **params) -> dict:

@@ -29,12 +29,15 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
     folder (removed when the block ends). Prints the field and isovalue it picked."""
     if is_scene_file(source):
         given = [n for n, v in (("--field", field), ("--isovalue", isovalue),
-                                ("--save-scene", save_scene),
+                                ("--mode", params.get("mode")), ("--save-scene", save_scene),
                                 ("--allow-nonfinite", params.get("allow_nonfinite")))
                  if v is not None]
         if given:
-            keep = ", and NaN/Inf values kept with its amr_iso parameter allow_nonfinite" \
-                if "--allow-nonfinite" in given else ""
+            keep = "".join(
+                f", and {what} with its amr_iso parameter {name}"
+                for option, what, name in (("--mode", "the mode", "mode"),
+                                           ("--allow-nonfinite", "NaN/Inf values kept",
+                                            "allow_nonfinite")) if option in given)
             verb = "applies" if len(given) == 1 else "apply"
             raise AMRError(f"{source} is a scene file: {', '.join(given)} {verb} to data "
                            f"files only (set a scene's <default>s with -D NAME=VALUE{keep})")
@@ -71,6 +74,9 @@ def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, 
         how = "picked from the histogram" + (f"; also try {others}" if others else "") + \
             "; --isovalue sets it"
     say(f"{made.path}: field {made.field}, isovalue {made.isovalue:.6g} ({how})")
+    if made.band_picked:
+        say(f"  volume band width {made.params['band_width']:.6g} (picked from the histogram; "
+            f"the scene's band_width parameter sets it)")
     return made
 
 

@@ -130,10 +130,12 @@ class Explorer:
 
 def explore(scene_or_file, field=None, isovalue=None, *, port: int = 0,
             host: str = "127.0.0.1", out_dir="out", resolution=None, spp: int = 4,
-            preview_scale: int = 2, variant=None, allow_nonfinite: bool = False) -> Explorer:
+            preview_scale: int = 2, variant=None, allow_nonfinite: bool = False,
+            mode: str | None = None) -> Explorer:
     """Serve the viewer of ``scene_or_file`` (a scene ``.xml`` or a data file, which gets the
     scene of :func:`mi_amr.scene`, with NaN and Inf values kept as missing data where
-    ``allow_nonfinite``) on ``host:port`` (``port`` 0: a free one) in a background
+    ``allow_nonfinite``, in ``mode`` ``"volume"`` where asked: a band about the isovalue, its
+    width picked from the histogram) on ``host:port`` (``port`` 0: a free one) in a background
     thread, print its URL and return the :class:`Explorer` (a notebook shows the page). The
     page saves into ``out_dir`` as ``view --out`` does."""
     _variant(variant)
@@ -146,6 +148,8 @@ def explore(scene_or_file, field=None, isovalue=None, *, port: int = 0,
     cleanup = contextlib.ExitStack()
     try:
         extra = {"allow_nonfinite": True} if allow_nonfinite else {}
+        if mode is not None:
+            extra["mode"] = mode
         scene = cleanup.enter_context(scene_file(scene_or_file, field=field, isovalue=isovalue,
                                                  **extra))
         warning = host_warning(host)
