@@ -442,9 +442,10 @@ def test16_volume_mode_for_a_data_file_picks_its_band_from_the_histogram(mi, tmp
     """``--mode volume`` (and ``mode="volume"`` in Python): the band's width is picked about
     the isovalue, said, and written into the saved scene, whose pixels are the dict's. The
     parameter's default width (0.004, in the sphere wake's units) on a field of hundreds shows
-    next to nothing, which the picked band does not; ``mi_amr.explore`` serves the same band.
-    With a 2D transfer function no band is picked (the two refuse each other). A scene file
-    takes no ``--mode``."""
+    next to nothing, which the picked band does not; ``mi_amr.explore`` serves the same band,
+    and a surface scene whose isovalue is picked carries its band for the viewer's switch to
+    volume mode. With a 2D transfer function no band is picked (the two refuse each other).
+    A scene file takes no ``--mode``."""
     import mi_amr
     from mi_amr.core.suggest import leaf_values, suggest_band_width
     from mi_amr.plugin.autoscene import data_scene
@@ -471,18 +472,26 @@ def test16_volume_mode_for_a_data_file_picks_its_band_from_the_histogram(mi, tmp
     assert picked > 0.05 and thin < 0.1 * picked, (picked, thin)
     assert "band_width" not in data_scene(path, "f", 300.0, mode="volume",
                                           transfer2d_blobs="300 0 20 5 1").params
-    assert "band_width" not in data_scene(path, "f", 300.0).params        # surface: none
+    # A surface scene whose isovalue is given reads no values for a band; one whose isovalue
+    # is picked carries the band it would have in volume mode, which the viewer switches to.
+    assert "band_width" not in data_scene(path, "f", 300.0).params
+    surface = data_scene(path, "f")
+    values = np.sort(leaf_values(mi_amr.load(path), "f"))
+    assert surface.params["band_width"] == suggest_band_width(values, surface.isovalue)
+    assert "band width" not in surface.xml()          # (said in volume mode only)
     import json
     import urllib.request
 
-    explorer = mi_amr.explore(path, isovalue=300.0, mode="volume", out_dir=tmp_path,
-                              resolution=(32, 24))
-    try:
-        with urllib.request.urlopen(explorer.url + "api/state", timeout=60) as reply:
-            state = json.loads(reply.read())["state"]
-    finally:
-        explorer.close()
-    assert state["mode"] == "volume" and state["band_width"] == pytest.approx(want, rel=1e-6)
+    for kw, width in (({"isovalue": 300.0, "mode": "volume"}, want),
+                      ({}, surface.params["band_width"])):
+        explorer = mi_amr.explore(path, out_dir=tmp_path, resolution=(32, 24), **kw)
+        try:
+            with urllib.request.urlopen(explorer.url + "api/state", timeout=60) as reply:
+                state = json.loads(reply.read())["state"]
+        finally:
+            explorer.close()
+        assert state["mode"] == kw.get("mode", "surface"), kw
+        assert state["band_width"] == pytest.approx(width, rel=1e-6), kw
     scene = tmp_path / "s.xml"
     scene.write_text("<scene version='3.0.0'/>")
     one_error(render_cli(["render", str(scene), "--mode", "volume", "-o",

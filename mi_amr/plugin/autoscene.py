@@ -83,7 +83,7 @@ class DataScene:
         defaults.update(spp=self.spp, resx=self.resolution[0], resy=self.resolution[1])
         how = " (picked from the histogram)" if self.picked else ""
         band = f", band width {self.params['band_width']!r} (picked from the histogram)" \
-            if self.band_picked else ""
+            if self.band_picked and self.params.get("mode") == "volume" else ""
         lines = ['<scene version="3.0.0">',
                  f"    <!-- Made by mi_amr for {_comment(self.path)}: field {_comment(self.field)}"
                  f", isovalue {self.isovalue!r}{how}{band}. -->"]
@@ -152,19 +152,20 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     :func:`mi_amr.core.suggest.suggest_isovalues`). ``params`` are further ``amr_iso``
     parameters (e.g. ``color_field="speed", colormap="viridis"``); ``allow_nonfinite``, which
     a volume that keeps NaN or Inf values as missing data sets, reads the file so here too.
-    With ``mode="volume"`` and neither ``band_width`` nor a 2D transfer function, the band's
-    width is picked from the histogram about the isovalue
-    (:func:`mi_amr.core.suggest.suggest_band_width`): the parameter's default is in the
-    units of the sphere wake's Q, a band too thin to see in most other fields."""
+    Without ``band_width`` or a 2D transfer function, volume mode's band width is picked from
+    the histogram about the isovalue (:func:`mi_amr.core.suggest.suggest_band_width`) where
+    ``mode="volume"``, or where the isovalue is picked too (so that the viewer's switch to
+    volume mode shows a band): the parameter's default is in the units of the sphere wake's
+    Q, a band too thin to see in most other fields."""
     path, volume = _source(source)
     if volume is not None and volume.allow_nonfinite:
         params.setdefault("allow_nonfinite", True)
     width, height = (int(x) for x in resolution)
     if width < 1 or height < 1 or int(spp) < 1:
         raise AMRError(f"resolution and spp must be positive, got {resolution} and {spp}")
-    pick_band = params.get("mode") == "volume" and not any(
-        k in params for k in ("band_width", "transfer2d", "transfer2d_blobs"))
-    need_values = isovalue is None or pick_band
+    bands_set = any(k in params for k in ("band_width", "transfer2d", "transfer2d_blobs"))
+    need_values = isovalue is None or (params.get("mode") == "volume" and not bands_set)
+    pick_band = need_values and not bands_set
     field, volume = _field_volume(path, volume, field, need_values=need_values,
                                   allow_nonfinite=boolean(params, "allow_nonfinite"))
     values = _finite_leaf_values(volume, field) if need_values else None

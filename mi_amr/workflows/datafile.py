@@ -74,7 +74,7 @@ def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, 
         how = "picked from the histogram" + (f"; also try {others}" if others else "") + \
             "; --isovalue sets it"
     say(f"{made.path}: field {made.field}, isovalue {made.isovalue:.6g} ({how})")
-    if made.band_picked:
+    if made.band_picked and made.params.get("mode") == "volume":
         say(f"  volume band width {made.params['band_width']:.6g} (picked from the histogram; "
             f"the scene's band_width parameter sets it)")
     return made
