@@ -510,3 +510,41 @@ def test17_a_field_without_a_finite_value_gets_one_error_from_the_picks(mi, tmp_
                          capsys), "empty.npz", "'f'", "no finite value")
     one_error(render_cli(["render", path, "--allow-nonfinite", "--isovalue", "1", "--mode",
                           "volume", "-o", str(tmp_path / "x.png")], capsys), "no finite value")
+
+
+def test18_the_viewer_picks_a_new_fields_bands_in_its_units(mi, tmp_path):
+    """The viewer's field change reloads the scene with the bands of the old field, whose
+    widths are in the old field's units: they are picked again from the new field's
+    histogram about the isovalues (moved into its range first; narrowed where two bands
+    would overlap, which volume mode refuses), in volume mode and out of it."""
+    import mi_amr
+    from mi_amr.core.suggest import leaf_values, suggest_band_width, suggest_band_widths
+    from mi_amr.plugin.autoscene import data_scene
+    from mi_amr.workflows.viewer.state import Session
+
+    vol = AMRVolume.from_grids([grid(0, (0, 0, 0), (1, 1, 1), 1 / 16, lambda p: np.linalg.norm(
+        p - 0.5, axis=-1), ("f",))])
+    vol = vol.with_fields({"g": [1000.0 * g.fields["f"] for g in vol.grids]})
+    path = save(vol, tmp_path / "two.npz")
+    g_values = np.sort(leaf_values(mi_amr.load(path), "g"))
+    for mode in ("volume", "surface"):
+        scene = tmp_path / f"{mode}.xml"
+        scene.write_text(data_scene(path, "f", 0.3, mode=mode, band_width=0.01,
+                                    resolution=(24, 16), spp=1).xml())
+        session = Session(scene, resolution=(24, 16), spp=1)
+        try:
+            assert session.state.band_width == pytest.approx((0.01,))
+            shown = session.apply(session.state.replace(field="g"))[1]
+        finally:
+            session.close()
+        # (0.3 lies below g's values: the isovalue moves to the middle of them, the band too)
+        assert shown.field == "g" and g_values[0] < shown.isovalues[0] < g_values[-1], mode
+        want = suggest_band_width(g_values, shown.isovalues[0])
+        assert shown.band_width == pytest.approx((want,), rel=1e-6), mode
+        assert np.allclose(shown.band_offsets, [(-2 * want, 2 * want)], rtol=1e-6), mode
+    # Two isovalues closer than their picked bands: narrowed to stay apart.
+    wide = suggest_band_width(g_values, 300.0)
+    apart = suggest_band_widths(g_values, [300.0, 500.0])
+    assert apart == [wide, suggest_band_width(g_values, 500.0)] and 4 * max(apart) < 200
+    close = suggest_band_widths(g_values, [300.0, 300.0 + wide])
+    assert all(w < wide / 4 for w in close) and 300.0 + 2 * close[0] < 300.0 + wide - 2 * close[1]

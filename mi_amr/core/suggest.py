@@ -133,6 +133,21 @@ def suggest_band_width(values: np.ndarray, isovalue: float) -> float:
     return float(max(abs(isovalue) * MIN_SPAN, np.finfo(np.float32).tiny))
 
 
+def suggest_band_widths(values: np.ndarray, isovalues) -> list:
+    """:func:`suggest_band_width` of each of ``isovalues``, narrowed where two bands' default
+    supports (two widths each side) would overlap: each to a little under a quarter of the
+    distance to the nearest other isovalue, so that no value lies in two bands (which volume
+    mode refuses). Equal isovalues keep their widths (their bands overlap whatever the
+    width)."""
+    isovalues = [float(v) for v in isovalues]
+    out = []
+    for i, v in enumerate(isovalues):
+        w = suggest_band_width(values, v)
+        gaps = [abs(v - u) for j, u in enumerate(isovalues) if j != i and u != v]
+        out.append(min(w, min(gaps) / 4 * (1 - 1e-6)) if gaps else w)
+    return out
+
+
 def _crossings(volume, field: str, candidates: np.ndarray, min_span: float) -> np.ndarray:
     """For each candidate, the number of neighbouring leaf-cell pairs it separates, counting
     only pairs whose values differ by more than ``min_span`` (noise in a flat region would

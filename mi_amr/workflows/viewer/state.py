@@ -44,6 +44,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_amr import tolerances as tol
+from mi_amr.core.suggest import suggest_band_widths
 from mi_amr.errors import AMRError
 from mi_amr.plugin.camera import Camera, scene_camera, sensor_key, set_camera
 from mi_amr.plugin.inputs import colormap_table
@@ -315,14 +316,22 @@ class Session:
         return self.state
 
     def _into_range(self, state: ViewState, old: ViewState) -> ViewState:
-        """After a new field: isovalues outside its range go to the middle of it; after a new
-        colour field: the colour range is its data range."""
+        """After a new field: isovalues outside its range go to the middle of it, and the
+        bands' widths (in the old field's units) are picked from its histogram about them
+        (:func:`~mi_amr.core.suggest.suggest_band_widths`, supports of two widths each side);
+        after a new colour field: the colour range is its data range."""
         lo, hi = self.value_range()
         changes = {}
         if state.field != old.field and not all(lo <= v <= hi for v in state.isovalues):
             k = len(state.isovalues)
             changes["isovalues"] = tuple(float(lo + (hi - lo) * (i + 1) / (k + 1))
                                          for i in range(k))
+        values = np.sort(self._leaf_values()) if state.field != old.field else None
+        if values is not None and values.size:
+            widths = tuple(float(np.float32(w)) for w in suggest_band_widths(
+                values, changes.get("isovalues", state.isovalues)))
+            changes.update(band_width=widths,
+                           band_offsets=tuple((-2.0 * w, 2.0 * w) for w in widths))
         if state.colormap is not None and state.color_field != old.color_field:
             changes["color_range"] = tuple(self.color_data_range())
         return state.replace(**changes) if changes else state
