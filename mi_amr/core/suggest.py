@@ -23,9 +23,9 @@ TIE = 0.9                  # candidates scoring at least this share of the best 
 DISTINCT = 0.15            # suggestions lie at least this far apart in percentile rank ...
 MIN_SPAN = 0.01            # ... and in value (share of the 2-98 percentile range); a pair of
                            # cells counts only when its values differ by more than this
-BAND_RANKS = 0.02          # a picked band's width: half the values spanned by this share of the
-                           # leaf cells on the nearer side of its isovalue (see
-                           # suggest_band_width)
+BAND_RANKS = 0.02          # a picked band's width: half the distance from its isovalue to the
+                           # value this share of the leaf cells away in rank, on the nearer side
+                           # (suggest_band_width)
 
 
 @dataclass
@@ -115,9 +115,9 @@ def suggest_band_width(values: np.ndarray, isovalue: float) -> float:
     two sides, so that the band's default support (two widths each side) reaches that share
     of the cells on the side where they lie closer together. The hand-tuned bands of the
     sphere wake's Q (``scenes_xml/sphere_wake_volume.xml``, ``sphere_wake_shells.xml``) are
-    within a factor of 2.5 of it. Where the cells
-    near the isovalue all hold it (a flat field), :data:`MIN_SPAN` of the whole range, and
-    for a constant field a width that is positive in single precision."""
+    within a factor of 2.5 of it. Where the cells near the isovalue all hold it (a flat
+    field), :data:`MIN_SPAN` of the whole range; for a constant field, a width that is
+    positive in single precision."""
     # The isovalue's place in the values, as np.quantile counts (0 to 1 from the first value
     # to the last), in the middle of its run of equal values (a flat field's cells hold it).
     at = (np.searchsorted(values, isovalue, "left") +
