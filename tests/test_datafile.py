@@ -344,6 +344,16 @@ def test12_info_prints_each_fields_percentiles_levels_and_isovalues(tmp_path, ca
     rho = text[text.index("rho: ["):]
     p50 = float(rho.split("p50 ")[1].split()[0])
     assert p50 == pytest.approx(np.median(1 + (0.125 + 0.25 * np.arange(8)) ** 2), rel=1e-5)
+    # Each suggested isovalue with the band width volume mode would pick for it.
+    from mi_amr.core.suggest import leaf_values, suggest_band_width
+
+    widths = [float(w) for w in
+              rho.split("their band widths (volume mode): ")[1].split("\n")[0].split(", ")]
+    stats = field_stats(velocity_volume(), "rho")
+    values = np.sort(leaf_values(velocity_volume(), "rho"))
+    assert stats.band_widths == [suggest_band_width(values, v) for v in stats.suggested]
+    assert len(widths) == len(stats.suggested) >= 1
+    assert widths == pytest.approx(stats.band_widths, rel=1e-5)
     one_error(render_cli(["info", path, "--fields", "nope"], capsys), "'nope'", "flow.npz",
               "q_criterion")
 

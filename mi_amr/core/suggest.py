@@ -31,8 +31,9 @@ BAND_RANKS = 0.02          # a picked band's width: half the distance from its i
 @dataclass
 class FieldStats:
     """``field``'s range, its values at :data:`PERCENTILES` and its suggested isovalues (the
-    first is the pick), over ``cells`` finite leaf cells; ``levels`` holds per level ``(level,
-    finite leaf cells, min, max)`` (min and max None for a level with none)."""
+    first is the pick) with volume mode's band width for each (:func:`suggest_band_width`),
+    over ``cells`` finite leaf cells; ``levels`` holds per level ``(level, finite leaf cells,
+    min, max)`` (min and max None for a level with none)."""
 
     field: str
     cells: int
@@ -41,6 +42,7 @@ class FieldStats:
     percentiles: dict
     suggested: list
     levels: list
+    band_widths: list
 
     def text(self) -> str:
         pct = "  ".join(f"p{q} {v:.6g}" for q, v in self.percentiles.items())
@@ -50,6 +52,8 @@ class FieldStats:
             where = f"[{lo:.6g}, {hi:.6g}]" if n else "-"
             lines.append(f"  level {level}: {n:>12,} leaf cells  {where}")
         lines.append("  suggested isovalues: " + ", ".join(f"{v:.6g}" for v in self.suggested))
+        lines.append("  their band widths (volume mode): " +
+                     ", ".join(f"{w:.6g}" for w in self.band_widths))
         return "\n".join(lines)
 
 
@@ -74,10 +78,13 @@ def field_stats(volume, field: str, count: int = 3) -> FieldStats:
         v = leaf_values(volume, field, level)
         levels.append((level, int(v.size), float(v.min()) if v.size else None,
                        float(v.max()) if v.size else None))
+    values = np.sort(values)
     pct = dict(zip(PERCENTILES, np.percentile(values, PERCENTILES).tolist()))
-    return FieldStats(field=field, cells=int(values.size), vmin=float(values.min()),
-                      vmax=float(values.max()), percentiles=pct,
-                      suggested=suggest_isovalues(volume, field, values, count), levels=levels)
+    suggested = suggest_isovalues(volume, field, values, count)
+    return FieldStats(field=field, cells=int(values.size), vmin=float(values[0]),
+                      vmax=float(values[-1]), percentiles=pct, suggested=suggested,
+                      levels=levels, band_widths=[suggest_band_width(values, v)
+                                                  for v in suggested])
 
 
 def suggest_isovalues(volume, field: str, values=None, count: int = 3) -> list:
