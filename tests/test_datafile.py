@@ -558,3 +558,46 @@ def test18_the_viewer_picks_a_new_fields_bands_in_its_units(mi, tmp_path):
     assert apart == [wide, suggest_band_width(g_values, 500.0)] and 4 * max(apart) < 200
     close = suggest_band_widths(g_values, [300.0, 300.0 + wide])
     assert all(w < wide / 4 for w in close) and 300.0 + 2 * close[0] < 300.0 + wide - 2 * close[1]
+
+
+def test19_a_surface_scene_without_bands_gets_them_from_the_histogram_in_the_viewer(
+        mi, tmp_path):
+    """A scene written by hand in surface mode, on a field of hundreds, without
+    ``band_width``: the viewer's bands for a switch to volume mode are picked from the
+    histogram about its isovalues (the parameter's default would show nothing); a scene that
+    sets ``band_width`` keeps its own."""
+    import mi_amr
+    from mi_amr.core.suggest import leaf_values, suggest_band_widths
+    from mi_amr.workflows.viewer.state import Session
+
+    path = save(ball_volume(), tmp_path / "ball.npz")
+    values = np.sort(leaf_values(mi_amr.load(path), "f"))
+    want = suggest_band_widths(values, [250.0, 400.0])
+    for band, widths in (("", want), ('<string name="band_width" value="5"/>', [5.0, 5.0])):
+        scene = tmp_path / "hand.xml"
+        scene.write_text(f"""<scene version="3.0.0">
+            <integrator type="amr_iso">
+                <string name="filename" value="{path}"/>
+                <string name="field" value="f"/>
+                <string name="isovalue" value="250, 400"/>
+                {band}
+            </integrator>
+            <sensor type="perspective">
+                <transform name="to_world">
+                    <lookat origin="2.5, -2, 2" target="0.5, 0.5, 0.5" up="0, 0, 1"/>
+                </transform>
+                <film type="hdrfilm"><integer name="width" value="24"/>
+                    <integer name="height" value="16"/></film>
+            </sensor>
+        </scene>""")
+        session = Session(scene, resolution=(24, 16), spp=1)
+        try:
+            state = session.state
+            assert state.mode == "surface"
+            assert state.band_width == pytest.approx(widths, rel=1e-6), band
+            shown = session.apply(state.replace(mode="volume"))[1]
+            assert shown.band_width == pytest.approx(widths, rel=1e-6), band
+            alpha = session.render((24, 16), 1)[..., 3].mean()
+        finally:
+            session.close()
+        assert alpha > 0.02, (band, alpha)

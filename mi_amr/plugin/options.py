@@ -21,7 +21,8 @@ NO_COLOR_FIELD = ("none", "")    # color_field values that mean "no colour field
 @dataclass
 class Options:
     """Checked parameter values (names as in :data:`mi_amr.params.TABLE`; ``isovalues``,
-    ``iso_colors`` and ``iso_opacity`` hold one entry per isovalue)."""
+    ``iso_colors`` and ``iso_opacity`` hold one entry per isovalue); ``given``: the names of
+    the parameters the scene set (the others hold their defaults)."""
 
     filename: str
     field: str
@@ -56,6 +57,7 @@ class Options:
     max_layers: int
     allow_nonfinite: bool
     layers: str
+    given: frozenset = frozenset()
 
 
 def parse(values: dict) -> Options:
@@ -81,7 +83,7 @@ def parse(values: dict) -> Options:
                   iso_opacity=_opacities(values, k), band_width=_per_iso(values, "band_width", k),
                   band_peak=_per_iso(values, "band_peak", k),
                   band_support=_supports(values, isovalues),
-                  transfer2d_range=_range4(values), **read)
+                  transfer2d_range=_range4(values), given=frozenset(values), **read)
     _check_transfer2d(opt, values)
     if opt.color_field is not None and opt.color_field.strip().lower() in NO_COLOR_FIELD:
         # "none" switches the colour field off (-D color_field=none), with its map and range.

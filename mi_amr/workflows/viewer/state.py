@@ -200,8 +200,11 @@ class Session:
             return tuple(float(x) for x in np.ravel(p[k + name].numpy()))
 
         colors = np.reshape(floats("iso_color"), (-1, 3))
+        # (A surface scene without bands gets them from the histogram for a switch to volume
+        # mode: band_width's default is in the sphere wake's units.)
         band = _bands(floats("band_width"), floats("band_offsets"), floats("band_peak")) \
-            if opt.mode == "volume" else _default_bands(opt)
+            if opt.mode == "volume" else _default_bands(opt, None if "band_width" in opt.given
+                                                         else np.sort(self._leaf_values()))
         direction = irradiance = None
         if self._light:
             m = np.array(p[f"{self._light}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
@@ -522,16 +525,19 @@ def _bands(widths, offsets, peaks) -> tuple:
     return tuple(widths), pairs, tuple(peaks)
 
 
-def _default_bands(opt) -> tuple:
+def _default_bands(opt, values=None) -> tuple:
     """The bands a surface scene would get in volume mode: its band widths (one, or one per
-    isovalue) and peaks, supports of +- 2 widths."""
+    isovalue), or where ``values`` (the field's finite leaf values, sorted) are given, widths
+    picked from them (:func:`~mi_amr.core.suggest.suggest_band_widths`); its peaks, and
+    supports of +- 2 widths."""
     k = len(opt.isovalues)
 
     def per_iso(v):
         v = [float(x) for x in np.atleast_1d(v)]
         return v * k if len(v) == 1 else v
 
-    widths = per_iso(opt.band_width)
+    widths = per_iso(opt.band_width) if values is None or not values.size else \
+        [float(np.float32(w)) for w in suggest_band_widths(values, opt.isovalues)]
     return _bands(widths, [(-2.0 * w, 2.0 * w) for w in widths], per_iso(opt.band_peak))
 
 
