@@ -601,3 +601,36 @@ def test19_a_surface_scene_without_bands_gets_them_from_the_histogram_in_the_vie
         finally:
             session.close()
         assert alpha > 0.02, (band, alpha)
+
+
+def test20_a_matrix_camera_over_a_scene_without_shapes_aims_at_the_volume(mi, tmp_path):
+    """The viewer's home camera of a scene whose camera is a matrix (no ``<lookat>`` to read
+    the target from) and which has no shape (an empty bounding box, whose centre is NaN): the
+    target is on the view axis at the volume's centre, placed by the integrator's
+    ``to_world``; it was NaN."""
+    from mi_amr.workflows.viewer.state import Session
+
+    path = save(ball_volume(), tmp_path / "ball.npz")
+    scene = tmp_path / "matrix.xml"
+    scene.write_text(f"""<scene version="3.0.0">
+        <integrator type="amr_iso">
+            <string name="filename" value="{path}"/>
+            <string name="field" value="f"/>
+            <float name="isovalue" value="300"/>
+            <transform name="to_world"><translate value="2, 0, 0"/></transform>
+        </integrator>
+        <sensor type="perspective">
+            <transform name="to_world">
+                <matrix value="1 0 0 2.5  0 1 0 0.5  0 0 1 -3  0 0 0 1"/>
+            </transform>
+            <film type="hdrfilm"><integer name="width" value="24"/>
+                <integer name="height" value="16"/></film>
+        </sensor>
+    </scene>""")
+    session = Session(scene, resolution=(24, 16), spp=1)
+    try:
+        home = session.home_camera
+    finally:
+        session.close()
+    assert np.allclose(home.origin, (2.5, 0.5, -3.0))
+    assert np.allclose(home.target, (2.5, 0.5, 0.5)), home.target

@@ -84,7 +84,7 @@ def scene_camera(path, defines: dict | None = None, scene=None) -> Camera:
     """The camera of the scene file ``path``: its ``<lookat>`` (``$name`` defaults resolved,
     ``defines`` as with ``-D``). When the camera is given as a matrix, its origin and up are
     read from the loaded ``scene`` and the target is the point on its view axis nearest the
-    centre of the scene's bounding box."""
+    centre of the scene's shapes (:func:`_scene_centre`)."""
     try:
         root = ET.parse(str(path)).getroot()
     except (OSError, ET.ParseError) as e:
@@ -116,8 +116,23 @@ def _camera_of(scene) -> Camera:
     key = sensor_key(params)
     m = np.array(params[f"{key}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
     origin, forward, up = m[:3, 3], m[:3, 2], m[:3, 1]
-    bbox = scene.bbox()
-    centre = 0.5 * (np.array(bbox.min) + np.array(bbox.max)).ravel()
-    reach = max(float(np.dot(centre - origin, forward)), 1e-3)
+    centre = _scene_centre(scene)
+    reach = 1.0 if centre is None else max(float(np.dot(centre - origin, forward)), 1e-3)
     return Camera(tuple(origin), tuple(origin + reach * forward), tuple(up),
                   float(np.array(params[f"{key}.x_fov"]).ravel()[0]))
+
+
+def _scene_centre(scene):
+    """The centre (scene space) of the scene's shapes' bounding box; of the ``amr_iso``
+    volume's bounds placed by its ``to_world`` where the scene has no shape (its bounding box
+    is empty then); None where it has neither."""
+    bbox = scene.bbox()
+    lo, hi = (np.array(b, dtype=np.float64).ravel() for b in (bbox.min, bbox.max))
+    if np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)) and np.all(lo <= hi):
+        return 0.5 * (lo + hi)
+    integ = scene.integrator()
+    prep, frame = getattr(integ, "prep", None), getattr(integ, "frame", None)
+    if prep is None or frame is None:
+        return None
+    lo, hi = prep.volume.bounds
+    return (frame.host @ np.append(0.5 * (np.asarray(lo) + np.asarray(hi)), 1.0))[:3]
