@@ -235,6 +235,10 @@ def test08_bad_inputs_each_get_one_error_naming_them(mi, tmp_path, capsys):
                            "16", "16"], capsys), "f2.npz", "'f'")
     one_error(render_cli(["render", str(tmp_path / "missing.npz"), "-o",
                            str(tmp_path / "x.png")], capsys), "missing.npz")
+    # A derived field of a file without velocity: what it would need, not only what it holds.
+    one_error(render_cli(["render", f_file, "--field", "speed", "-o", str(tmp_path / "x.png")],
+                         capsys), f_file, "'speed'", "it holds f", "velocity components",
+              "vx/vy/vz")
     scene = tmp_path / "s.xml"
     scene.write_text("<scene version='3.0.0'/>")
     one_error(render_cli(["render", str(scene), "--field", "f", "-o", str(tmp_path / "x.png")],

@@ -26,6 +26,10 @@ def load_with_fields(path, fields=None, *, derive_them: bool = True,
     unknown = [f for f in names if f not in stored and not (f in DERIVED_FIELDS and velocity)]
     if unknown:
         derived = f"; from its velocity: {', '.join(DERIVED_FIELDS)}" if velocity else ""
+        if not velocity and any(u in DERIVED_FIELDS for u in unknown):
+            derived = (f"; {', '.join(u for u in unknown if u in DERIVED_FIELDS)} would be "
+                       f"derived from three velocity components, which it lacks (named "
+                       f"{'/'.join(VELOCITY_NAMES[0])}, {'/'.join(VELOCITY_NAMES[1])}, ...)")
         raise AMRError(f"{path}: no field(s) {', '.join(repr(u) for u in unknown)}; it holds "
                        f"{', '.join(stored)}{derived}")
     read = list(dict.fromkeys(n for f in names for n in fields_to_read(f, None, stored)))
