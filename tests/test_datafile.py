@@ -564,6 +564,25 @@ def test18_the_viewer_picks_a_new_fields_bands_in_its_units(mi, tmp_path):
     assert all(w < wide / 4 for w in close) and 300.0 + 2 * close[0] < 300.0 + wide - 2 * close[1]
 
 
+def hand_scene(scene, data, integrator: str, camera: str):
+    """Write a scene as a person would, with no shape: ``amr_iso`` on field ``f`` of ``data``
+    with the further children ``integrator``, a 24 x 16 camera placed by ``camera`` (the
+    children of its ``to_world``)."""
+    scene.write_text(f"""<scene version="3.0.0">
+        <integrator type="amr_iso">
+            <string name="filename" value="{data}"/>
+            <string name="field" value="f"/>
+            {integrator}
+        </integrator>
+        <sensor type="perspective">
+            <transform name="to_world">{camera}</transform>
+            <film type="hdrfilm"><integer name="width" value="24"/>
+                <integer name="height" value="16"/></film>
+        </sensor>
+    </scene>""")
+    return scene
+
+
 def test19_a_surface_scene_without_bands_gets_them_from_the_histogram_in_the_viewer(
         mi, tmp_path):
     """A scene written by hand in surface mode, on a field of hundreds, without
@@ -578,22 +597,9 @@ def test19_a_surface_scene_without_bands_gets_them_from_the_histogram_in_the_vie
     values = np.sort(leaf_values(mi_amr.load(path), "f"))
     want = suggest_band_widths(values, [250.0, 400.0])
     for band, widths in (("", want), ('<string name="band_width" value="5"/>', [5.0, 5.0])):
-        scene = tmp_path / "hand.xml"
-        scene.write_text(f"""<scene version="3.0.0">
-            <integrator type="amr_iso">
-                <string name="filename" value="{path}"/>
-                <string name="field" value="f"/>
-                <string name="isovalue" value="250, 400"/>
-                {band}
-            </integrator>
-            <sensor type="perspective">
-                <transform name="to_world">
-                    <lookat origin="2.5, -2, 2" target="0.5, 0.5, 0.5" up="0, 0, 1"/>
-                </transform>
-                <film type="hdrfilm"><integer name="width" value="24"/>
-                    <integer name="height" value="16"/></film>
-            </sensor>
-        </scene>""")
+        scene = hand_scene(tmp_path / "hand.xml", path,
+                           f'<string name="isovalue" value="250, 400"/>{band}',
+                           '<lookat origin="2.5, -2, 2" target="0.5, 0.5, 0.5" up="0, 0, 1"/>')
         session = Session(scene, resolution=(24, 16), spp=1)
         try:
             state = session.state
@@ -615,22 +621,10 @@ def test20_a_matrix_camera_over_a_scene_without_shapes_aims_at_the_volume(mi, tm
     from mi_amr.workflows.viewer.state import Session
 
     path = save(ball_volume(), tmp_path / "ball.npz")
-    scene = tmp_path / "matrix.xml"
-    scene.write_text(f"""<scene version="3.0.0">
-        <integrator type="amr_iso">
-            <string name="filename" value="{path}"/>
-            <string name="field" value="f"/>
-            <float name="isovalue" value="300"/>
-            <transform name="to_world"><translate value="2, 0, 0"/></transform>
-        </integrator>
-        <sensor type="perspective">
-            <transform name="to_world">
-                <matrix value="1 0 0 2.5  0 1 0 0.5  0 0 1 -3  0 0 0 1"/>
-            </transform>
-            <film type="hdrfilm"><integer name="width" value="24"/>
-                <integer name="height" value="16"/></film>
-        </sensor>
-    </scene>""")
+    scene = hand_scene(tmp_path / "matrix.xml", path,
+                       '<float name="isovalue" value="300"/>'
+                       '<transform name="to_world"><translate value="2, 0, 0"/></transform>',
+                       '<matrix value="1 0 0 2.5  0 1 0 0.5  0 0 1 -3  0 0 0 1"/>')
     session = Session(scene, resolution=(24, 16), spp=1)
     try:
         home = session.home_camera
