@@ -7,6 +7,12 @@ percentiles and evenly spaced values between the 2nd and 98th percentiles; the p
 best-scoring, and among near-ties (within :data:`TIE` of the best) the one nearest their
 middle in percentile rank (a field that jumps from 0 to 1 through cut cells gets a value
 halfway through them, not 0.01; a heavy tail does not pull the pick into it).
+
+The Q-criterion is the exception. Its surface of most crossings is near 0, in the
+small-scale fluctuations everywhere, while vortices are where it is positive (rotation
+dominating strain, Hunt et al. 1988): where at least :data:`Q_POSITIVE_MIN` of its leaf cells
+hold a positive value, its suggestions are the values below which :data:`Q_POSITIVE_RANKS`
+of those positive values lie.
 """
 
 from __future__ import annotations
@@ -23,6 +29,10 @@ TIE = 0.9                  # candidates scoring at least this share of the best 
 DISTINCT = 0.15            # suggestions lie at least this far apart in percentile rank ...
 MIN_SPAN = 0.01            # ... and in value (share of the 2-98 percentile range); a pair of
                            # cells counts only when its values differ by more than this
+# The Q-criterion's suggestions: these shares of its positive leaf values lie below them (0.8
+# gives the sphere wake's hand-tuned 0.05), where at least this share of its cells is positive.
+Q_POSITIVE_RANKS = (0.8, 0.5, 0.95)
+Q_POSITIVE_MIN = 0.01
 BAND_RANKS = 0.02          # a picked band's width: half the distance from its isovalue to the
                            # value this share of the leaf cells away in rank, on the nearer side
                            # (suggest_band_width)
@@ -92,6 +102,10 @@ def suggest_isovalues(volume, field: str, values=None, count: int = 3) -> list:
     values = np.sort(leaf_values(volume, field) if values is None else values)
     if values[0] == values[-1]:
         return [float(values[0])]
+    if field == "q_criterion":
+        positive = values[np.searchsorted(values, 0.0, "right"):]
+        if positive.size >= Q_POSITIVE_MIN * values.size:
+            return [float(v) for v in np.quantile(positive, Q_POSITIVE_RANKS[:count])]
     lo, hi = np.percentile(values, (2, 98))
     if lo == hi:
         lo, hi = values[0], values[-1]
