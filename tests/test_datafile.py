@@ -566,8 +566,8 @@ def test16_volume_mode_for_a_data_file_picks_its_band_from_the_histogram(mi, tmp
 
 def test17_a_field_without_a_finite_value_gets_one_error_from_the_picks(mi, tmp_path, capsys):
     """A file whose field is NaN in every cell, kept as missing data: picking an isovalue (or
-    a band) from it says so, naming the file and the field, instead of failing on an empty
-    array."""
+    a band) from it, or ``info``'s statistics, say so, naming the file and the field, instead
+    of failing on an empty array."""
     vol = AMRVolume.from_grids([grid(0, (0, 0, 0), (1, 1, 1), 0.25, lambda p: np.full(
         p.shape[:-1], np.nan))], allow_nonfinite=True)
     path = save(vol, tmp_path / "empty.npz")
@@ -575,6 +575,9 @@ def test17_a_field_without_a_finite_value_gets_one_error_from_the_picks(mi, tmp_
                          capsys), "empty.npz", "'f'", "no finite value")
     one_error(render_cli(["render", path, "--allow-nonfinite", "--isovalue", "1", "--mode",
                           "volume", "-o", str(tmp_path / "x.png")], capsys), "no finite value")
+    # info's statistics too (they named the volume through a method it does not have)
+    one_error(render_cli(["info", path, "--allow-nonfinite"], capsys), "empty.npz", "'f'",
+              "no finite value")
 
 
 def test18_the_viewer_picks_a_new_fields_bands_in_its_units(mi, tmp_path):

@@ -76,19 +76,28 @@ def leaf_values(volume, field: str, level=None) -> np.ndarray:
     return values[np.isfinite(values)]
 
 
+def finite_leaf_values(volume, field: str) -> np.ndarray:
+    """:func:`leaf_values` of ``field``, sorted (what the picks read); one error naming the
+    source and the field where there is none (every value NaN or Inf, kept as missing
+    data)."""
+    values = np.sort(leaf_values(volume, field))
+    if values.size == 0:
+        raise AMRError(f"{volume.source_prefix()}field '{field}' has no finite value in its "
+                       f"leaf cells: nothing to pick an isovalue from")
+    return values
+
+
 def field_stats(volume, field: str, count: int = 3) -> FieldStats:
     """The statistics of ``field`` (stored or already derived in ``volume``)."""
     if field not in volume.field_names:
-        raise AMRError(f"{volume._label()}no field '{field}'; it holds {list(volume.field_names)}")
-    values = leaf_values(volume, field)
-    if values.size == 0:
-        raise AMRError(f"{volume._label()}field '{field}' has no finite leaf cells")
+        raise AMRError(f"{volume.source_prefix()}no field '{field}'; it holds "
+                       f"{list(volume.field_names)}")
+    values = finite_leaf_values(volume, field)
     levels = []
     for level in range(volume.num_levels):
         v = leaf_values(volume, field, level)
         levels.append((level, int(v.size), float(v.min()) if v.size else None,
                        float(v.max()) if v.size else None))
-    values = np.sort(values)
     pct = dict(zip(PERCENTILES, np.percentile(values, PERCENTILES).tolist()))
     suggested = suggest_isovalues(volume, field, values, count)
     return FieldStats(field=field, cells=int(values.size), vmin=float(values[0]),

@@ -20,7 +20,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from mi_amr.core.framing import Framing, frame_box
-from mi_amr.core.suggest import leaf_values, suggest_band_width, suggest_isovalues
+from mi_amr.core.suggest import finite_leaf_values, suggest_band_width, suggest_isovalues
 from mi_amr.errors import AMRError
 from mi_amr.plugin.options import boolean
 
@@ -168,7 +168,7 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     pick_band = need_values and not bands_set
     field, volume = _field_volume(path, volume, field, need_values=need_values,
                                   allow_nonfinite=boolean(params, "allow_nonfinite"))
-    values = _finite_leaf_values(volume, field) if need_values else None
+    values = finite_leaf_values(volume, field) if need_values else None
     suggested = [] if isovalue is not None else suggest_isovalues(volume, field, values)
     value = float(isovalue) if isovalue is not None else suggested[0]
     if not np.isfinite(value):
@@ -180,16 +180,6 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
                      suggested=suggested, resolution=(width, height), spp=int(spp),
                      framing=frame_box(lo, hi, width / height), params=dict(params),
                      band_picked=pick_band)
-
-
-def _finite_leaf_values(volume, field: str) -> np.ndarray:
-    """``field``'s finite leaf values, sorted (what the picks read); one error where it has
-    none (every value NaN or Inf, kept as missing data)."""
-    values = np.sort(leaf_values(volume, field))
-    if values.size == 0:
-        raise AMRError(f"{volume.source_prefix()}field '{field}' has no finite value in its "
-                       f"leaf cells: nothing to pick an isovalue from")
-    return values
 
 
 def scene(source, field=None, isovalue=None, **params) -> dict:
