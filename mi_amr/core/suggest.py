@@ -107,8 +107,9 @@ def field_stats(volume, field: str, count: int = 3) -> FieldStats:
 
 
 def suggest_isovalues(volume, field: str, values=None, count: int = 3) -> list:
-    """Up to ``count`` isovalues of ``field``, best first (see the module docstring)."""
-    values = np.sort(leaf_values(volume, field) if values is None else values)
+    """Up to ``count`` isovalues of ``field``, best first (see the module docstring);
+    ``values``: its finite leaf values sorted (:func:`finite_leaf_values`), read when None."""
+    values = finite_leaf_values(volume, field) if values is None else values
     if values[0] == values[-1]:
         return [float(values[0])]
     if field == "q_criterion":
