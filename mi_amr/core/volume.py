@@ -224,6 +224,7 @@ class AMRVolume:
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
         out._leaf_flat, out._partly = self._leaf_flat, self._partly
+        out._columns = self._columns            # the same hierarchy
         levels.adopt_caches(out, self)
         return out
 
@@ -238,6 +239,7 @@ class AMRVolume:
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
         out._leaf_flat, out._partly = self._leaf_flat, self._partly
+        out._columns = self._columns            # the same hierarchy
         levels.adopt_caches(out, self)
         return out
 
@@ -262,7 +264,8 @@ class AMRVolume:
 
     @property
     def num_cells(self) -> int:
-        return sum(g.num_cells for g in self.grids)
+        columns = self.grid_columns()
+        return int(columns["offset"][-1]) + int(np.prod(columns["shape"][-1]))
 
     @property
     def nbytes(self) -> int:
