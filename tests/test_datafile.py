@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from conftest import grid
 from mi_amr import AMRVolume
@@ -493,6 +494,25 @@ def test15_the_picked_band_width_is_half_the_nearer_side_of_a_rank_window():
     tiny = suggest_band_width(np.full(10, 0.0), 0.0)
     assert tiny > 0 and np.float32(tiny) > 0
 
+
+
+@settings(max_examples=300, deadline=None)
+@given(values=st.lists(st.floats(-1e6, 1e6, width=32), min_size=1, max_size=60),
+       qs=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=8),
+       double=st.booleans(), scalar=st.booleans())
+def test15b_quantiles_of_sorted_values_are_numpys_to_the_bit(values, qs, double, scalar):
+    """The picks and the viewer read quantiles of the sorted leaf values without NumPy's
+    partition of the whole array: the same numbers and dtype as ``np.quantile`` and
+    ``np.percentile`` (runs of equal values, one value, the ends, a scalar or a list)."""
+    from mi_amr.core.suggest import sorted_percentile, sorted_quantile
+
+    v = np.sort(np.asarray(values, dtype=np.float64 if double else np.float32))
+    q = qs[0] if scalar else qs
+    for ours, numpys in ((sorted_quantile(v, q), np.quantile(v, q)),
+                         (sorted_percentile(v, q * 100 if scalar else tuple(100 * x for x in q)),
+                          np.percentile(v, q * 100 if scalar else tuple(100 * x for x in q)))):
+        assert np.asarray(ours).dtype == np.asarray(numpys).dtype
+        np.testing.assert_array_equal(ours, numpys)
 
 def ball_volume(scale=1000.0):
     """One grid over the unit cube whose field ``f`` is ``scale`` times the distance from the

@@ -76,6 +76,34 @@ def leaf_values(volume, field: str, level=None) -> np.ndarray:
     return values[np.isfinite(values)]
 
 
+def sorted_quantile(values: np.ndarray, q):
+    """``np.quantile(values, q)`` (its default, linear method: the same numbers and dtype) of
+    ``values`` already sorted ascending (1-D, not empty, finite), read at the two values about
+    each quantile instead of partitioning the whole array again for every call."""
+    weak = type(q) in (int, float)          # NumPy keeps a float32 array's precision then
+    q = np.asarray(q, dtype=np.float64)
+    n = values.shape[0]
+    virtual = (n - 1) * q
+    above, below = virtual >= n - 1, virtual < 0
+    prev = np.where(above, -1, np.floor(virtual))
+    after = np.where(below, 0, np.where(above, -1, prev + 1)).astype(np.intp)
+    prev = np.where(below, 0, prev).astype(np.intp)
+    a, b = values[prev], values[after]
+    gamma = virtual - prev
+    if weak:
+        gamma, a, b = float(gamma), a[()], b[()]
+    diff = b - a
+    # NumPy's interpolation: from the nearer of the two ends
+    out = np.where(gamma >= 0.5, b - diff * (1 - gamma), a + diff * gamma)
+    return out[()] if np.ndim(out) == 0 else out
+
+
+def sorted_percentile(values: np.ndarray, p):
+    """``np.percentile(values, p)`` of sorted ``values``, as :func:`sorted_quantile`."""
+    return sorted_quantile(values, p / 100 if type(p) in (int, float) else
+                           np.true_divide(p, 100))
+
+
 def finite_leaf_values(volume, field: str) -> np.ndarray:
     """:func:`leaf_values` of ``field``, sorted (what the picks read); one error naming the
     source and the field where there is none (every value NaN or Inf, kept as missing
@@ -98,7 +126,7 @@ def field_stats(volume, field: str, count: int = 3) -> FieldStats:
         v = leaf_values(volume, field, level)
         levels.append((level, int(v.size), float(v.min()) if v.size else None,
                        float(v.max()) if v.size else None))
-    pct = dict(zip(PERCENTILES, np.percentile(values, PERCENTILES).tolist()))
+    pct = dict(zip(PERCENTILES, sorted_percentile(values, PERCENTILES).tolist()))
     suggested = suggest_isovalues(volume, field, values, count)
     return FieldStats(field=field, cells=int(values.size), vmin=float(values[0]),
                       vmax=float(values[-1]), percentiles=pct, suggested=suggested,
@@ -115,11 +143,11 @@ def suggest_isovalues(volume, field: str, values=None, count: int = 3) -> list:
     if field == "q_criterion":
         positive = values[np.searchsorted(values, 0.0, "right"):]
         if positive.size >= Q_POSITIVE_MIN * values.size:
-            return [float(v) for v in np.quantile(positive, Q_POSITIVE_RANKS[:count])]
-    lo, hi = np.percentile(values, (2, 98))
+            return [float(v) for v in sorted_quantile(positive, Q_POSITIVE_RANKS[:count])]
+    lo, hi = sorted_percentile(values, (2, 98))
     if lo == hi:
         lo, hi = values[0], values[-1]
-    candidates = np.unique(np.concatenate([np.percentile(values, np.arange(5, 96, 5)),
+    candidates = np.unique(np.concatenate([sorted_percentile(values, np.arange(5, 96, 5)),
                                            np.linspace(lo, hi, 35)[1:-1]]))
     scores = _crossings(volume, field, candidates, MIN_SPAN * (hi - lo))
     if scores.max() == 0:
@@ -154,7 +182,8 @@ def suggest_band_width(values: np.ndarray, isovalue: float) -> float:
     at = (np.searchsorted(values, isovalue, "left") +
           np.searchsorted(values, isovalue, "right") - 1) / 2
     rank = min(max(at / max(values.size - 1, 1), 0.0), 1.0)
-    lo, hi = np.quantile(values, (max(rank - BAND_RANKS, 0.0), min(rank + BAND_RANKS, 1.0)))
+    lo, hi = sorted_quantile(values, (max(rank - BAND_RANKS, 0.0),
+                                     min(rank + BAND_RANKS, 1.0)))
     sides = [d for d in (isovalue - lo, hi - isovalue) if d > 0]
     if sides:
         return float(min(sides) / 2)

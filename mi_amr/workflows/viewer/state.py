@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import tempfile
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -44,7 +45,7 @@ import mitsuba as mi
 import numpy as np
 
 from mi_amr import tolerances as tol
-from mi_amr.core.suggest import suggest_band_widths
+from mi_amr.core.suggest import leaf_values, sorted_quantile, suggest_band_widths
 from mi_amr.errors import AMRError
 from mi_amr.plugin.camera import Camera, scene_camera, sensor_key, set_camera
 from mi_amr.plugin.inputs import colormap_table
@@ -108,6 +109,7 @@ class Session:
         self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
                          "steps": 0, "preview_sizes": 0}
         self._reload_count = 0
+        self._values = (None, None, None)   # the volume (weakly), field, its sorted leaf values
         self.series = [str(f) for f in series]
         self.prefetch = Prefetcher()
         self.open(scene_path, resolution=resolution, spp=spp)
@@ -204,7 +206,7 @@ class Session:
         # mode: band_width's default is in the sphere wake's units.)
         band = _bands(floats("band_width"), floats("band_offsets"), floats("band_peak")) \
             if opt.mode == "volume" else _default_bands(opt, None if "band_width" in opt.given
-                                                         else np.sort(self._leaf_values()))
+                                                         else self._leaf_values())
         direction = irradiance = None
         if self._light:
             m = np.array(p[f"{self._light}.to_world"].matrix, dtype=np.float64).reshape(4, 4)
@@ -329,7 +331,7 @@ class Session:
             k = len(state.isovalues)
             changes["isovalues"] = tuple(float(lo + (hi - lo) * (i + 1) / (k + 1))
                                          for i in range(k))
-        values = np.sort(self._leaf_values()) if state.field != old.field else None
+        values = self._leaf_values() if state.field != old.field else None
         if values is not None and values.size:
             widths = tuple(float(np.float32(w)) for w in suggest_band_widths(
                 values, changes.get("isovalues", state.isovalues)))
@@ -362,7 +364,7 @@ class Session:
     def describe(self) -> dict:
         """What the page and the checks need to know about the scene on screen."""
         values = self._leaf_values()
-        quantiles = np.quantile(values, np.linspace(0.0, 1.0, QUANTILES)).tolist() \
+        quantiles = sorted_quantile(values, np.linspace(0.0, 1.0, QUANTILES)).tolist() \
             if values.size else list(np.linspace(*self.value_range(), QUANTILES))
         return {"scene": str(self.base_path), "value_range": self.value_range(),
                 "color_data_range": self.color_data_range(), "histogram": self.histogram(),
@@ -394,11 +396,15 @@ class Session:
         return histogram2d(prep.volume, prep.field, self.value_range())
 
     def _leaf_values(self) -> np.ndarray:
-        """The field's finite values in the leaf cells (cells no finer grid covers)."""
+        """The field's finite values in the leaf cells (cells no finer grid covers), sorted,
+        float64: gathered once for the volume and field on screen (opening a scene reads them
+        for its bands, its histogram and the slider's quantiles)."""
         volume, field = self.integrator.prep.volume, self.integrator.prep.field
-        values = np.concatenate([np.ravel(volume.grids[g].fields[field][volume.leaf_mask(g)])
-                                 for g in range(len(volume.grids))])
-        return values[np.isfinite(values)]
+        held, held_field, values = self._values
+        if held is None or held() is not volume or held_field != field:
+            values = np.sort(leaf_values(volume, field))
+            self._values = (weakref.ref(volume), field, values)
+        return values
 
     # ------------------------------------------------------------------ rendering
     def render(self, size, spp: int, seed: int = 0, preview: bool = False,
