@@ -202,15 +202,12 @@ def _add_allow_nonfinite(s, where: str = "") -> None:
 
 
 def _data_scene(args, source, resolution=None):
-    from mi_amr.workflows.datafile import scene_file
+    from mi_amr.workflows.datafile import asked_params, scene_file
 
-    # (Only when asked: a scene made without them does not name the parameters.)
-    extra = {"allow_nonfinite": True} if args.allow_nonfinite else {}
-    if args.mode is not None:
-        extra["mode"] = args.mode
     return scene_file(source, field=args.field, isovalue=args.isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
-                      force=getattr(args, "force", False), **extra)
+                      force=getattr(args, "force", False),
+                      **asked_params(args.allow_nonfinite, args.mode))
 
 
 def _render(args) -> None:

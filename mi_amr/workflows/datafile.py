@@ -20,6 +20,16 @@ def is_scene_file(path) -> bool:
     return Path(path).suffix.lower() == SCENE_SUFFIX
 
 
+def asked_params(allow_nonfinite: bool = False, mode=None) -> dict:
+    """The amr_iso parameters of a data file's scene that the user asked for, for
+    :func:`scene_file`: only those, so that a scene made without them does not name them (and
+    a scene file given instead can be told which ones apply to data files only)."""
+    params = {"allow_nonfinite": True} if allow_nonfinite else {}
+    if mode is not None:
+        params["mode"] = mode
+    return params
+
+
 @contextlib.contextmanager
 def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
                save_scene=None, force: bool = False, say=print, **params):

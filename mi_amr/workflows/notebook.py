@@ -141,17 +141,14 @@ def explore(scene_or_file, field=None, isovalue=None, *, port: int = 0,
     _variant(variant)
     import uvicorn
 
-    from mi_amr.workflows.datafile import scene_file
+    from mi_amr.workflows.datafile import asked_params, scene_file
     from mi_amr.workflows.viewer.hub import Hub
     from mi_amr.workflows.viewer.server import MAX_MESSAGE, bind, create_app, host_warning
 
     cleanup = contextlib.ExitStack()
     try:
-        extra = {"allow_nonfinite": True} if allow_nonfinite else {}
-        if mode is not None:
-            extra["mode"] = mode
         scene = cleanup.enter_context(scene_file(scene_or_file, field=field, isovalue=isovalue,
-                                                 **extra))
+                                                 **asked_params(allow_nonfinite, mode)))
         warning = host_warning(host)
         if warning:
             print(warning, flush=True)
