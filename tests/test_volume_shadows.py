@@ -233,6 +233,62 @@ def test04_a_new_band_or_light_builds_again_and_compiles_nothing(variant, folder
         before = image
 
 
+
+def test04b_a_build_in_wavefronts_is_the_same_and_stops_when_told(variant, folder, monkeypatch):
+    """The viewer builds a full cache in wavefronts (``stop``: asked before each): the same
+    values as one wavefront, no kernel compiled for the later ones, and when ``stop`` says
+    True nothing is kept (the next frame builds it whole)."""
+    from mi_amr.plugin import shadow_cache
+
+    scene = load(folder)
+    integ = scene.integrator()
+    integ.config()
+    whole = [np.array(g.values) for g in shadow_cache.build_all(integ, scene.emitters())]
+    points = int(np.count_nonzero(whole[0] != 1.0))
+    for parts in (3, 5):            # (the first wavefronts compile their kernel, once)
+        monkeypatch.setattr(tol, "SHADOW_CACHE_BUILD_CHUNK", max(points // parts, 1))
+        asked = []
+        grids, compiled = kernels_compiled(lambda: shadow_cache.build_all(
+            integ, scene.emitters(), stop=lambda: asked.append(1) and False))
+        assert len(asked) >= 2 * parts, "each light's points in several wavefronts"
+        for a, b in zip(whole, grids):
+            np.testing.assert_array_equal(np.array(b.values), a)
+    assert compiled == 0, f"wavefronts of another size compiled {compiled} kernel(s)"
+    caches = integ.shadow_caches
+    caches.max_points = tol.SHADOW_CACHE_POINTS + 1         # (a key not built yet)
+    builds, calls = caches.builds, []
+    assert caches.grids(integ, scene, stop=lambda: len(calls) > 1 or calls.append(1)) is None
+    assert caches.builds == builds and len(calls) == 2
+    assert [np.array(g.values).size for g in caches.grids(integ, scene)] == \
+        [a.size for a in whole] and caches.builds == builds + 1
+
+
+def test04c_the_viewers_refinement_stops_within_the_cache_build(variant, folder, monkeypatch):
+    """A request that comes while the viewer's refined frame builds its full cache stops it
+    at the next wavefront (the render thread then answers the request); left alone, the
+    refined frame is the one it renders without being asked."""
+    from mi_amr.workflows.viewer.state import Session
+
+    monkeypatch.setattr(tol, "SHADOW_CACHE_BUILD_CHUNK", 64)
+    session = Session(scene_xml(folder), resolution=(RES, RES), spp=1)
+    try:
+        caches = session.integrator.shadow_caches
+        session.render((RES, RES), 1, preview=True)
+        builds, asked = caches.builds, []
+        stopped = session.render_refined((RES, RES), 1,
+                                         lambda: len(asked) > 2 or asked.append(1))
+        assert stopped is None
+        assert len(asked) == 3 and caches.builds == builds, "stopped in the build's third part"
+        refined = session.render_refined((RES, RES), 1, lambda: False)
+        assert caches.builds == builds + 1
+        assert caches.max_points == tol.SHADOW_CACHE_POINTS
+        again = session.render_refined((RES, RES), 1)
+        assert caches.builds == builds + 1
+    finally:
+        session.close()
+    # (The film may sum a pixel's samples in another order: the same image to float noise.)
+    np.testing.assert_allclose(again, refined, rtol=1e-5, atol=1e-6)
+
 def test05_exact_keeps_no_cache_and_other_lights_keep_exact_rays(variant, folder):
     mi = variant
     from mi_amr import params

@@ -64,10 +64,12 @@ class ShadowCaches:
         self.builds = 0
         self.max_points = tol.SHADOW_CACHE_POINTS
 
-    def grids(self, integ, scene) -> list:
+    def grids(self, integ, scene, stop: Optional[Callable[[], bool]] = None):
         """Per emitter of ``scene``, its :class:`TransmittanceGrid`, or None where it keeps
         exact shadow rays (every emitter where ``integ`` does not cache: surface mode,
-        ``volume_shadows="exact"``, scalar variants). Built again where the key changed."""
+        ``volume_shadows="exact"``, scalar variants). Built again where the key changed;
+        with ``stop``, in wavefronts of at most ``SHADOW_CACHE_BUILD_CHUNK`` points, asking
+        ``stop()`` before each: None (nothing kept) once it says True."""
         emitters = scene.emitters()
         if not uses_cache(integ):
             return [None] * len(emitters)
@@ -76,8 +78,10 @@ class ShadowCaches:
             # (Asked first inside a symbolic loop, where no kernel may run: exact shadows.)
             return [None] * len(emitters)
         if key != self._key:
-            self._grids = build_all(integ, emitters, self.max_points)
-            self._key, self._dev = key, integ.dev
+            grids = build_all(integ, emitters, self.max_points, stop)
+            if grids is None:
+                return None
+            self._grids, self._key, self._dev = grids, key, integ.dev
             self.builds += 1
         return self._grids
 
@@ -113,9 +117,9 @@ def _emitter_key(emitter) -> tuple:
     return tuple(out)
 
 
-def build_all(integ, emitters, max_points: int = tol.SHADOW_CACHE_POINTS) -> list:
+def build_all(integ, emitters, max_points: int = tol.SHADOW_CACHE_POINTS, stop=None):
     """Fill one grid per cacheable emitter (None for the others), each of at most
-    ``max_points`` points."""
+    ``max_points`` points; ``stop``: as :meth:`ShadowCaches.grids` (None when it stopped)."""
     m = integ.m
     leaves = opacity_leaves(integ)
     shadows = bool(integ.inputs.host["shadows"][0])
@@ -125,7 +129,12 @@ def build_all(integ, emitters, max_points: int = tol.SHADOW_CACHE_POINTS) -> lis
     grid = plan(integ.dev.tree, leaves, max_points)
     # (From aligned memory: the kernel's loads of a misaligned array compile otherwise.)
     index = device_array(m.UInt32, needed_points(grid, integ.dev.tree, leaves), np.uint32)
-    return [_build(integ, e, grid, index) if cacheable(e) else None for e in emitters]
+    out = []
+    for e in emitters:
+        out.append(_build(integ, e, grid, index, stop) if cacheable(e) else None)
+        if cacheable(e) and out[-1] is None:
+            return None
+    return out
 
 
 def opacity_leaves(integ) -> np.ndarray:
@@ -141,24 +150,42 @@ def opacity_leaves(integ) -> np.ndarray:
     return band_leaves(dev.tree, ranges, bands)
 
 
-def _build(integ, emitter, grid: GridPlan, index) -> TransmittanceGrid:
+def _build(integ, emitter, grid: GridPlan, index, stop=None) -> Optional[TransmittanceGrid]:
     """The transmittance from each needed point (flat ``index``) of ``grid`` towards
     ``emitter``: the exact shadow ray of a lit piece there (its mesh test aside), one
-    wavefront. The other points hold 1 (no lookup reads them)."""
+    wavefront, or with ``stop`` one per ``SHADOW_CACHE_BUILD_CHUNK`` points (the same values;
+    None once ``stop()`` says True). The other points hold 1 (no lookup reads them)."""
     m = integ.m
-    p = point_positions(m, grid, index)
+    values = dr.full(m.Float, 1.0, grid.size)
+    n = dr.width(index)
+    step = n if stop is None else tol.SHADOW_CACHE_BUILD_CHUNK
+    for start in range(0, n, max(step, 1)):
+        if stop is not None and stop():
+            return None
+        # (An opaque start: each wavefront is the same kernel.)
+        lanes = dr.opaque(m.UInt32, start) + dr.arange(m.UInt32, min(step, n - start))
+        part = index if step >= n else dr.gather(m.UInt32, index, lanes)
+        _transmittances(integ, emitter, (grid, part), values)
+        dr.eval(values)
+        if stop is not None:
+            dr.sync_thread()            # (launched, a wavefront runs on: wait for it)
+    # (In scene units: a volume-space stretch of the reach is at most this long in the scene.)
+    stretch = float(np.linalg.svd(integ.frame.host[:3, :3], compute_uv=False).max())
+    return TransmittanceGrid.of(m, grid, values, grid.reach * stretch)
+
+
+def _transmittances(integ, emitter, points, values) -> None:
+    """Scatter into ``values`` the transmittance towards ``emitter`` from the points
+    ``points`` (``(grid, flat index)``): 1 where the emitter does not light them."""
+    grid, index = points
+    p = point_positions(integ.m, grid, index)
     P = integ.frame.to_scene @ bridge.to_mi3(p, mi.Point3f)
     it = dr.zeros(mi.Interaction3f, dr.width(index))
     it.p = P
     ds, _ = emitter.sample_direction(it, mi.Point2f(0.5), True)
     lit = ds.pdf > 0.0
     T = integ.iso_transmittance(shading.shadow_ray(P, ds), True, lit)
-    values = dr.full(m.Float, 1.0, grid.size)
-    dr.scatter(values, bridge.to_kernel(m, dr.select(lit, T, 1.0)), index)
-    dr.eval(values)
-    # (In scene units: a volume-space stretch of the reach is at most this long in the scene.)
-    stretch = float(np.linalg.svd(integ.frame.host[:3, :3], compute_uv=False).max())
-    return TransmittanceGrid.of(m, grid, values, grid.reach * stretch)
+    dr.scatter(values, bridge.to_kernel(integ.m, dr.select(lit, T, 1.0)), index)
 
 
 @dataclass(frozen=True)

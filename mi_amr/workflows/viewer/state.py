@@ -433,7 +433,14 @@ class Session:
         """The ``spp``-sample image, in the passes that ``python -m mi_amr render`` takes
         (:func:`~mi_amr.workflows.render.scene_passes`), so a saved scene renders to the same
         pixels (``tests/test_viewer.py`` checks it); None when ``before_pass()`` returns True
-        (a newer request: the rest is dropped)."""
+        (a newer request: the rest is dropped). Volume mode's shadow caches are built first, in
+        wavefronts with ``before_pass()`` asked between them."""
+        caches = getattr(self.integrator, "shadow_caches", None)
+        if caches is not None and before_pass is not None:
+            caches.max_points = tol.SHADOW_CACHE_POINTS
+            self.integrator.config()        # (what the build reads, as a render sets it)
+            if caches.grids(self.integrator, self.scene, stop=before_pass) is None:
+                return None
         accum = None
         for p in scene_passes(self.scene, spp):
             if before_pass is not None and before_pass():
