@@ -49,12 +49,13 @@ def save(volume, path):
     return str(path)
 
 
-def projected_columns(mi, made, shrink=1.0):
-    """The pixel columns (min, max) and rows (min, max) of the data box's corners (shrunk
-    about its centre by ``shrink``), projected by Mitsuba's camera of the made scene."""
+def projected_columns(mi, made, shrink=1.0, box=None):
+    """The pixel columns (min, max) and rows (min, max) of the corners of ``box`` (default:
+    the data's bounds) shrunk about its centre by ``shrink``, projected by Mitsuba's camera
+    of the made scene."""
     d = made.as_dict()
     sensor = mi.load_dict(d["sensor"])
-    lo, hi = (np.asarray(b, float) for b in made_bounds(made))
+    lo, hi = (np.asarray(b, float) for b in (box or made_bounds(made)))
     c, half = (lo + hi) / 2, (hi - lo) / 2 * shrink
     corners = np.array([c + half * np.array([sx, sy, sz]) for sx in (-1, 1) for sy in (-1, 1)
                         for sz in (-1, 1)])
@@ -79,14 +80,25 @@ SHAPES = [((0, 0, 0), (1, 1, 1)), ((0, 0, 0), (0.08, 0.04, 0.02)), ((-1, -1, 0),
 ASPECTS = [(160, 120), (160, 90), (90, 160), (200, 80), (120, 120)]
 
 
-def test01_the_camera_frames_the_data_at_30_to_90_percent_of_the_width(mi, tmp_path):
+def test01_the_camera_frames_the_surface_at_30_to_90_percent_of_the_width(mi, tmp_path):
+    """The camera frames the box of the cells the isosurface passes through (here the data
+    box shrunk by half about its centre, to within a cell): its corners cover 30-90 % of the
+    image's width at any aspect, inside the image."""
     from mi_amr.plugin.autoscene import data_scene
 
     for i, (lo, hi) in enumerate(SHAPES):
         path = save(box_volume(lo, hi, cells=16), tmp_path / f"shape{i}.npz")
+        cell = float((np.asarray(hi, float) - lo).max()) / 16
+        centre, half = (np.add(lo, hi)) / 2, (np.subtract(hi, lo)) / 2
         for width, height in ASPECTS:
             made = data_scene(path, "f", 0.5, resolution=(width, height))
-            u0, u1, v0, v1 = projected_columns(mi, made)
+            f_lo, f_hi, what = made.framed
+            assert what == "isosurface"
+            assert np.all(f_lo <= centre - half / 2) and np.all(f_hi >= centre + half / 2)
+            reach = 1.001 * cell            # (the cells beside the surface, within rounding)
+            assert np.all(f_lo >= centre - half / 2 - reach) and \
+                np.all(f_hi <= centre + half / 2 + reach), (f_lo, f_hi)
+            u0, u1, v0, v1 = projected_columns(mi, made, box=(f_lo, f_hi))
             fill = (u1 - u0) / width
             where = f"box {lo}..{hi} at {width}x{height}"
             assert 0.3 <= fill <= 0.9, f"{where}: the data covers {fill:.0%} of the width"
@@ -96,6 +108,67 @@ def test01_the_camera_frames_the_data_at_30_to_90_percent_of_the_width(mi, tmp_p
             # The framing's own figure is the camera's projection, not a guess.
             assert made.framing.width_fill == pytest.approx(fill, abs=0.01), where
 
+
+
+def test01b_a_small_feature_off_centre_is_framed_in_the_middle(mi, tmp_path):
+    """A ball of radius 0.1 in a corner of a 2 x 1 x 1 box, on two levels: the camera frames
+    the ball (the cells its isosurface or band passes through), not the box, and a render
+    shows it across the middle of the image. Where the scene's values are not read (a
+    derived field at a given isovalue), or the band's opacity is a 2D table, or nothing
+    meets the isovalue, it frames the data's bounds."""
+    from mi_amr.plugin.autoscene import data_scene
+    from mi_amr.workflows.render import render_file
+
+    centre = np.array([1.7, 0.25, 0.2])
+
+    def ball(p):
+        return np.linalg.norm(p - centre, axis=-1)
+
+    def swirl(p):                           # a velocity whose speed is the distance again
+        d = p - centre
+        return np.stack([-d[..., 1], d[..., 0], 0 * d[..., 2]], axis=-1)
+
+    names = ("f", "vx", "vy", "vz")
+
+    def fields(p):
+        return {"f": ball(p), **{n: swirl(p)[..., k] for k, n in enumerate(names[1:])}}
+
+    grids = [grid(0, (0, 0, 0), (2, 1, 1), 1 / 16, lambda p: 0 * p[..., 0], names),
+             grid(1, (1.5, 0, 0), (2, 0.5, 0.5), 1 / 32, lambda p: 0 * p[..., 0], names)]
+    for g in grids:
+        lo, h = np.asarray(g["origin"]), g["spacing"]
+        shape = g["fields"]["f"].shape
+        axes = [lo[a] + (np.arange(shape[a]) + 0.5) * h for a in range(3)]
+        g["fields"] = fields(np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1))
+    path = save(AMRVolume.from_grids(grids), tmp_path / "ball.npz")
+    made = data_scene(path, "f", 0.1, resolution=(96, 72), spp=1)
+    lo, hi, what = made.framed
+    assert what == "isosurface"
+    assert np.all(lo <= centre - 0.1) and np.all(hi >= centre + 0.1), (lo, hi)
+    assert np.all(hi - lo <= 0.2 + 2 / 16), (lo, hi)       # within a coarse cell each side
+    band = data_scene(path, "f", 0.1, mode="volume", band_width=0.02).framed
+    assert band[2] == "band" and np.all(band[0] <= lo) and np.all(band[1] >= hi)
+    assert np.all(band[1] - band[0] <= 0.2 + 2 * 0.02 + 2 / 16)
+    whole = AMRVolume.from_grids(grids).bounds
+    for kind, kw in [("a 2D table", dict(mode="volume", transfer2d_blobs="0.1 0 0.01 1 1")),
+                     ("no cell at 5", dict(isovalue=5.0)),
+                     ("speed not derived", dict(field="speed", isovalue=0.1))]:
+        kw = {"field": "f", "isovalue": 0.1, **kw}
+        other = data_scene(path, kw.pop("field"), kw.pop("isovalue"), **kw).framed
+        assert other[2] == "data", kind
+        np.testing.assert_array_equal(np.array(other[:2]), np.array(whole), err_msg=kind)
+    picked = data_scene(path, "speed").framed           # (its values read for the pick)
+    assert picked[2] == "isosurface"
+    scene = tmp_path / "ball.xml"
+    scene.write_text(made.xml())
+    render_file(scene, tmp_path / "ball.exr", quiet=True)
+    alpha = np.array(mi.Bitmap(str(tmp_path / "ball.exr")))[..., 3]
+    cols, rows = np.flatnonzero(alpha.max(axis=0) > 0.5), np.flatnonzero(alpha.max(axis=1) > 0.5)
+    # (A ball's outline is narrower than its box's corners, which cover 30-90 %; framing the
+    # data's bounds it would cover a tenth.)
+    assert (cols.max() + 1 - cols.min()) / 96 >= 0.2, cols
+    assert abs((cols.min() + cols.max() + 1) / 2 - 48) < 10 and \
+        abs((rows.min() + rows.max() + 1) / 2 - 36) < 10, (cols, rows)
 
 def test02_a_real_render_covers_the_projected_bounds(mi, tmp_path):
     """The isosurface f = 0.9 of the max-norm field is the data box shrunk by 0.9: its alpha

@@ -1,5 +1,7 @@
-"""A camera for a data file's bounds: a three-quarter view that frames the whole box in an image
-of a given aspect, and a light from over the viewer's shoulder (NumPy only).
+"""A camera for a data file: a three-quarter view that frames a box in an image of a given
+aspect, and a light from over the viewer's shoulder (NumPy only). The box is what the scene
+shows where that is known (:func:`value_box`: the cells an isosurface or a band passes
+through), else the data's bounds.
 
 Spaces: the volume's world space (the data's own units) is mapped to *scene space* by
 :attr:`Framing.to_world`, a scale and a translation that put the bounds' centre at the origin
@@ -98,3 +100,34 @@ def _view(axis: int, corners: np.ndarray, aspect: float):
     light /= np.linalg.norm(light)
     return (back * distance, up, light, float(x.max() - x.min()) / 2,
             float(y.max() - y.min()) / 2)
+
+
+def value_box(volume, field: str, lo_value: float, hi_value: float):
+    """``(lo, hi)``: the bounds (the volume's world space) of the leaf cells where ``field``
+    meets the values ``lo_value``..``hi_value`` -- a cell whose value lies there, and both
+    cells of a pair of neighbours (in one grid, along an axis) whose values reach it from
+    either side (an isosurface at ``v``, ``v``..``v``, passes between them); None where no
+    leaf cell with a finite value does. An isosurface lies inside it, and so does a band's
+    support (its cells, to within the cells beside a grid's face)."""
+    box_lo, box_hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for i, g in enumerate(volume.grids):
+        f = np.asarray(g.fields[field])
+        keep = volume.leaf_mask(i) & np.isfinite(f)
+        hit = keep & (f >= lo_value) & (f <= hi_value)
+        for axis in range(3):
+            if f.shape[axis] < 2:
+                continue
+            a = tuple(slice(0, -1) if k == axis else slice(None) for k in range(3))
+            b = tuple(slice(1, None) if k == axis else slice(None) for k in range(3))
+            meet = keep[a] & keep[b] & (np.minimum(f[a], f[b]) <= hi_value) & \
+                (np.maximum(f[a], f[b]) >= lo_value)
+            hit[a] |= meet
+            hit[b] |= meet
+        if not hit.any():
+            continue
+        origin, spacing = np.asarray(g.origin, float), np.asarray(g.spacing, float)
+        for axis in range(3):
+            on = np.flatnonzero(hit.any(axis=tuple(k for k in range(3) if k != axis)))
+            box_lo[axis] = min(box_lo[axis], origin[axis] + on[0] * spacing[axis])
+            box_hi[axis] = max(box_hi[axis], origin[axis] + (on[-1] + 1) * spacing[axis])
+    return (box_lo, box_hi) if np.all(box_hi > box_lo) else None

@@ -1,5 +1,7 @@
 """The scene made for a data file: ``amr_iso`` showing one field's isosurface, a camera that
-frames the data's bounds from a three-quarter view (:mod:`mi_amr.core.framing`), one
+frames it from a three-quarter view (:mod:`mi_amr.core.framing`: the bounds of the cells the
+isosurface, or in volume mode its band's support, passes through, where the field's values
+are read; else the data's bounds), one
 directional light over the viewer's shoulder plus the integrator's ambient term, and nothing
 behind (the film's alpha is 0 there: a PNG shows the page's own background).
 
@@ -19,7 +21,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-from mi_amr.core.framing import Framing, frame_box
+from mi_amr.core.framing import Framing, frame_box, value_box
 from mi_amr.core.suggest import finite_leaf_values, suggest_band_width, suggest_isovalues
 from mi_amr.errors import AMRError
 from mi_amr.plugin.options import boolean
@@ -29,6 +31,10 @@ SPP = 4
 ISO_COLOR = "0.78 0.74 0.68"  # linear RGB: a light neutral, lit by the one light
 IRRADIANCE = 1.6             # the directional light's irradiance (linear RGB, all channels)
 COLORMAP = "viridis"         # the map a colour field gets (-D color_field=NAME turns it on)
+# widths of a band each side of its isovalue that the camera frames: where its opacity is at
+# least exp(-1/2) of its peak (its support, two widths, takes in a faint haze, which in a field
+# with large flat regions, a volume fraction's 0 and 1, would frame them all).
+BAND_FRAMED_WIDTHS = 1.0
 # The integrator's parameters the XML takes from <default>s (so -D sets them).
 DEFAULTS = ("filename", "isovalue", "color_field", "colormap")
 
@@ -38,7 +44,9 @@ class DataScene:
     """The scene of ``path`` (absolute) showing ``field`` at ``isovalue`` (``picked``: chosen
     from the histogram, with ``suggested`` the other candidates), at ``resolution`` (width,
     height) and ``spp``; ``params`` are further ``amr_iso`` parameters (``band_width`` among
-    them where ``band_picked``: volume mode's band, picked from the histogram)."""
+    them where ``band_picked``: volume mode's band, picked from the histogram). ``framed``:
+    the box the camera frames (volume world), and what it is (``"isosurface"``, ``"band"``:
+    the cells they pass through; ``"data"``: the data's bounds)."""
 
     path: str
     field: str
@@ -50,6 +58,7 @@ class DataScene:
     framing: Framing
     params: dict = dc_field(default_factory=dict)
     band_picked: bool = False
+    framed: tuple = ()
 
     def integrator_values(self) -> dict:
         """The amr_iso parameters except ``to_world`` (Python values, written as typed)."""
@@ -84,9 +93,11 @@ class DataScene:
         how = " (picked from the histogram)" if self.picked else ""
         band = f", band width {self.params['band_width']!r} (picked from the histogram)" \
             if self.band_picked and self.params.get("mode") == "volume" else ""
+        framed = {"isosurface": "the isosurface's cells", "band": "the band's cells",
+                  "data": "the data's bounds"}.get(self.framed[2] if self.framed else "data")
         lines = ['<scene version="3.0.0">',
                  f"    <!-- Made by mi_amr for {_comment(self.path)}: field {_comment(self.field)}"
-                 f", isovalue {self.isovalue!r}{how}{band}. -->"]
+                 f", isovalue {self.isovalue!r}{how}{band}; the camera frames {framed}. -->"]
         lines += [f"    <default name={quoteattr(k)} value={quoteattr(str(v))}/>"
                   for k, v in defaults.items()]
         lines += ['', '    <integrator type="amr_iso" id="integrator">']
@@ -175,11 +186,34 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
         raise AMRError(f"isovalue must be a finite number, got {isovalue}")
     if pick_band:
         params["band_width"] = suggest_band_width(values, value)
-    lo, hi = volume.bounds
+    lo, hi, what = _shown_box(volume, field, value, params)
     return DataScene(path=path, field=field, isovalue=value, picked=isovalue is None,
                      suggested=suggested, resolution=(width, height), spp=int(spp),
                      framing=frame_box(lo, hi, width / height), params=dict(params),
-                     band_picked=pick_band)
+                     band_picked=pick_band, framed=(lo, hi, what))
+
+
+def _shown_box(volume, field: str, value: float, params: dict) -> tuple:
+    """``(lo, hi, what)``: the box the camera frames (see :class:`DataScene`'s ``framed``): the
+    cells of the isosurface, or of the band's :data:`BAND_FRAMED_WIDTHS` each side. Where the
+    field's values were not read (a derived field at a given isovalue), or for a 2D transfer
+    function or bands of their own supports, the data's bounds."""
+    span = (value, value)
+    if params.get("mode") == "volume":
+        try:
+            width = float(params["band_width"])
+        except (KeyError, TypeError, ValueError):       # (several bands, a 2D function)
+            width = None
+        if width is None or any(k in params for k in ("band_offsets", "transfer2d",
+                                                      "transfer2d_blobs")):
+            span = None
+        else:
+            span = (value - BAND_FRAMED_WIDTHS * width, value + BAND_FRAMED_WIDTHS * width)
+    box = value_box(volume, field, *span) \
+        if span is not None and field in volume.field_names else None
+    if box is None:
+        return (*volume.bounds, "data")
+    return (*box, "isosurface" if span[0] == span[1] else "band")
 
 
 def scene(source, field=None, isovalue=None, **params) -> dict:
