@@ -432,6 +432,7 @@ def test05b_chunked_speed_rounds_as_the_whole_array_expression():
             np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")     # (an overflow is +inf, not a warning)
 @pytest.mark.parametrize("seed,dtype,holes", [(0, np.float64, False), (1, np.float32, True),
                                               (5, np.float32, False)])
 def test05c_speed_range_without_the_field_is_the_derived_fields_range(seed, dtype, holes,

@@ -122,10 +122,12 @@ def _speed(v, out) -> None:
 def _squared_speed(v, part):
     """``vx^2 + vy^2 + vz^2`` of the flat components ``v`` at ``part``: each square in its
     component's own dtype, the sums in the widest, as NumPy's ``vx * vx + vy * vy + vz * vz``
-    rounds them."""
-    total = np.square(v[0][part]).astype(np.result_type(*v), copy=False)
-    total += np.square(v[1][part])
-    total += np.square(v[2][part])
+    rounds them. A square beyond the dtype's range is +inf (not finite: no speed there), not a
+    warning."""
+    with np.errstate(over="ignore"):
+        total = np.square(v[0][part]).astype(np.result_type(*v), copy=False)
+        total += np.square(v[1][part])
+        total += np.square(v[2][part])
     return total
 
 
