@@ -508,6 +508,19 @@ def test13_show_takes_a_data_file_a_dict_or_a_scene_file_alike(mi, tmp_path):
         mi_amr.show(tmp_path / "missing.npz")
     with pytest.raises(AMRError, match="missing.npz"):
         mi_amr.explore(tmp_path / "missing.npz")
+    # A scene file takes a film size; what only a data file's scene takes is refused, not
+    # ignored: one error naming it.
+    assert mi_amr.show(xml, resolution=(24, 16), spp=1).size == (24, 16)
+    for scene, kw, named in [(xml, dict(field="g"), "field="),
+                             (xml, dict(isovalue=0.3, mode="volume"), "isovalue=, mode="),
+                             (made, dict(resolution=(24, 16)), "resolution="),
+                             (made, dict(band_width=0.1), "band_width=")]:
+        with pytest.raises(AMRError, match=f"{named} appl.* to data files only"):
+            mi_amr.show(scene, spp=1, **kw)
+    for kw, named in [(dict(isovalue=0.3), "isovalue="),
+                      (dict(allow_nonfinite=True), "allow_nonfinite=")]:
+        with pytest.raises(AMRError, match=f"b.xml: {named} applies to data files only"):
+            mi_amr.explore(xml, **kw)
 
 
 def test14_view_serves_a_data_file(tmp_path):

@@ -54,6 +54,18 @@ class Image:
         return f"Image({self.size[0]}x{self.size[1]} RGBA)"
 
 
+def _refuse_data_options(scene, given: dict) -> None:
+    """One error where ``scene`` (a scene, or its file) was given with any of ``given``: the
+    keyword arguments only a data file's scene takes (None, or False for a switch: not
+    given)."""
+    named = [k for k, v in given.items() if v is not None and v is not False]
+    if named:
+        verb = "applies" if len(named) == 1 else "apply"
+        raise AMRError(f"{scene}: {', '.join(n + '=' for n in named)} {verb} to data files "
+                       f"only; a scene renders with its own values (its amr_iso parameters, "
+                       f"or mi.traverse on the loaded scene)")
+
+
 def _variant(variant):
     """Set ``variant`` (default: the one set, else ``llvm_ad_rgb``) and register amr_iso."""
     import mitsuba as mi
@@ -69,14 +81,15 @@ def _variant(variant):
     return mi
 
 
-def show(scene_or_file, field=None, isovalue=None, resolution=RESOLUTION, spp: int = 4, *,
+def show(scene_or_file, field=None, isovalue=None, resolution=None, spp: int = 4, *,
          variant=None, **params) -> Image:
     """Render ``scene_or_file`` and return the :class:`Image`. It may be a loaded Mitsuba
-    scene, a scene dict, a scene ``.xml`` file (rendered with its own camera and film), or a
-    data file or :class:`~mi_amr.AMRVolume` read from one, which gets the scene of
-    :func:`mi_amr.scene` (``field``, ``isovalue``, ``resolution`` (width, height) and
-    ``params`` apply to it). ``spp`` samples per pixel, in the passes ``render`` takes (so the
-    pixels are the command line's)."""
+    scene or a scene dict (rendered with their own camera and film), a scene ``.xml`` file
+    (its own camera, its film at ``resolution`` (width, height) where given), or a data file
+    or :class:`~mi_amr.AMRVolume` read from one, which gets the scene of :func:`mi_amr.scene`
+    (``field``, ``isovalue``, ``resolution``, default :data:`RESOLUTION`, and ``params``
+    apply to it; to a scene they are refused, as they would change nothing). ``spp`` samples
+    per pixel, in the passes ``render`` takes (so the pixels are the command line's)."""
     mi = _variant(variant)
     import drjit as dr
 
@@ -86,17 +99,19 @@ def show(scene_or_file, field=None, isovalue=None, resolution=RESOLUTION, spp: i
 
     if int(spp) < 1:
         raise AMRError(f"spp must be >= 1, got {spp}")
-    if isinstance(scene_or_file, mi.Scene):
-        scene = scene_or_file
-    elif isinstance(scene_or_file, dict):
-        scene = load_dict(scene_or_file)
+    data_only = dict(field=field, isovalue=isovalue, **params)
+    if isinstance(scene_or_file, (mi.Scene, dict)):
+        _refuse_data_options("a scene", dict(data_only, resolution=resolution))
+        scene = scene_or_file if isinstance(scene_or_file, mi.Scene) else \
+            load_dict(scene_or_file)
     elif isinstance(scene_or_file, (str, Path)) and is_scene_file(scene_or_file):
-        scene = load_scene(scene_or_file, pixel_format="rgba")
+        _refuse_data_options(scene_or_file, data_only)
+        scene = load_scene(scene_or_file, pixel_format="rgba", film_size=resolution)
     else:
         from mi_amr.workflows.datafile import make_scene
 
-        made = make_scene(scene_or_file, field=field, isovalue=isovalue, resolution=resolution,
-                          spp=spp, **params)
+        made = make_scene(scene_or_file, field=field, isovalue=isovalue,
+                          resolution=resolution or RESOLUTION, spp=spp, **params)
         scene = load_dict(made.as_dict())
     pixels = render_passes(mi, dr, np, scene, int(spp), quiet=True)
     if pixels.shape[-1] == 3:           # a film without alpha: every pixel counts as covered
@@ -141,10 +156,13 @@ def explore(scene_or_file, field=None, isovalue=None, *, port: int = 0,
     _variant(variant)
     import uvicorn
 
-    from mi_amr.workflows.datafile import asked_params, scene_file
+    from mi_amr.workflows.datafile import asked_params, is_scene_file, scene_file
     from mi_amr.workflows.viewer.hub import Hub
     from mi_amr.workflows.viewer.server import MAX_MESSAGE, bind, create_app, host_warning
 
+    if is_scene_file(scene_or_file):
+        _refuse_data_options(scene_or_file, dict(field=field, isovalue=isovalue, mode=mode,
+                                                 allow_nonfinite=allow_nonfinite))
     cleanup = contextlib.ExitStack()
     try:
         scene = cleanup.enter_context(scene_file(scene_or_file, field=field, isovalue=isovalue,
