@@ -202,8 +202,11 @@ def _add_allow_nonfinite(s, where: str = "") -> None:
 
 
 def _data_scene(args, source, resolution=None):
-    from mi_amr.workflows.datafile import asked_params, scene_file
+    from mi_amr.workflows.datafile import (asked_params, check_data_defines, is_scene_file,
+                                           scene_file)
 
+    if not is_scene_file(source):
+        check_data_defines(_defines(getattr(args, "defines", [])))
     return scene_file(source, field=args.field, isovalue=args.isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
                       force=getattr(args, "force", False),
@@ -211,8 +214,10 @@ def _data_scene(args, source, resolution=None):
 
 
 def _render(args) -> None:
-    from mi_amr.workflows.render import render_file
+    from mi_amr.workflows.render import check_image_request, render_file
 
+    # (Before a data file's scene is made: its isovalue pick reads the whole file.)
+    check_image_request(Path(args.output), args.spp, args.resolution, args.force, args.aovs)
     with _data_scene(args, args.scene, args.resolution) as scene:
         render_file(scene, args.output, spp=args.spp, resolution=args.resolution,
                     defines=_defines(args.defines), variant=args.variant,
@@ -469,12 +474,15 @@ def _add_view(sub) -> None:
 
 def _view(args) -> None:
     from mi_amr.workflows.viewer import serve
+    from mi_amr.workflows.viewer.server import MAX_PORT
 
     if args.spp < 1 or args.preview_scale < 1 or (args.resolution and min(args.resolution) < 1):
         raise AMRError("view: --spp, --preview-scale and --resolution must be positive")
     budget = args.preview_budget
     if budget is not None and not (math.isfinite(budget) and budget >= 0):
         raise AMRError(f"view: --preview-budget must be 0 or more seconds, got {budget:g}")
+    if not 0 <= args.port <= MAX_PORT:
+        raise AMRError(f"view: --port must be 0 (a free one) to {MAX_PORT}, got {args.port}")
     with _data_scene(args, args.scene) as scene:
         serve(scene, host=args.host, port=args.port, open_browser=not args.no_browser,
               out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,

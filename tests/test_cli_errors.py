@@ -139,6 +139,48 @@ def test07_histogram_bins_out_of_range_is_one_line(scenes, tmp_path, capsys, bin
     assert not (tmp_path / "h.png").exists()
 
 
+
+@pytest.mark.parametrize("port", ["99999", "-1"])
+def test07b_a_port_out_of_range_is_one_line_before_loading(scenes, capsys, port):
+    """(A port past 65535 ended in a traceback from the socket's bind, after the scene had
+    loaded.)"""
+    one_error(capsys, ["view", str(scenes / "s.npz"), "--field", "f", "--no-browser",
+                       "--port", port], f"view: --port must be 0 (a free one) to 65535, got {port}")
+
+
+def test07c_explore_refuses_a_port_out_of_range(scenes):
+    import mi_amr
+    from mi_amr.errors import AMRError
+    from mi_amr.workflows.viewer.server import bind
+
+    for port in (70000, -3, 1.5, True):
+        with pytest.raises(AMRError, match="port must be a whole number from 0"):
+            mi_amr.explore(scenes / "s.npz", field="f", port=port)
+        with pytest.raises(AMRError, match="port must be a whole number from 0"):
+            bind("127.0.0.1", port)
+
+
+def test07d_a_data_files_request_is_checked_before_its_scene_is_made(scenes, tmp_path, capsys):
+    """A bad output, sample count or -D name of a data file's render is refused before the
+    scene is made (its isovalue pick reads the whole file: nothing is printed of it), and -D
+    names the parameters a data file's scene takes (not the temporary XML made for it)."""
+    data = str(scenes / "s.npz")
+    jpg = str(tmp_path / "x.jpg")
+    for argv, starts in [(["render", data, "-o", jpg], f"{jpg}: the image must end in"),
+                         (["render", data, "-o", str(tmp_path / "x.png"), "--spp", "0"],
+                          "--spp must be >= 1"),
+                         (["render", data, "-o", str(tmp_path / "x.png"), "-D", "band_width=1"],
+                          "-D band_width: a data file's scene takes -D for filename, isovalue"),
+                         (["movie", data, "-o", str(tmp_path / "m"), "-D", "isovalu=0.3"],
+                          "-D isovalu: a data file's scene")]:
+        assert main(argv + ["--field", "f"]) == 2
+        out, err = capsys.readouterr()
+        err = err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"error: {starts}"), err
+        assert "picked from the histogram" not in out, out      # (no pick was made)
+    assert "did you mean 'isovalue'?" in err[0] and "--save-scene" in err[0]
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "m").exists()
+
 def test08_a_scene_saved_by_the_viewer_keeps_no_stale_defaults(tmp_path, variant, capsys):
     """The viewer writes its values into the scene: a parameter the file gave as ``$name``
     stays so, with the ``<default>`` holding the view's value (``-D`` still applies); a default

@@ -37,6 +37,7 @@ COLORMAP = "viridis"         # the map a colour field gets (-D color_field=NAME 
 BAND_FRAMED_WIDTHS = 1.0
 # The integrator's parameters the XML takes from <default>s (so -D sets them).
 DEFAULTS = ("filename", "isovalue", "color_field", "colormap")
+XML_DEFAULTS = DEFAULTS + ("spp", "resx", "resy")      # every <default> of the XML
 
 
 @dataclass

@@ -20,6 +20,23 @@ def is_scene_file(path) -> bool:
     return Path(path).suffix.lower() == SCENE_SUFFIX
 
 
+def check_data_defines(defines) -> None:
+    """One error for a ``-D`` name (of ``defines``) that a data file's scene has no
+    ``<default>`` for, before the scene is made (its other parameters are the XML's own)."""
+    import difflib
+
+    from mi_amr.plugin.autoscene import XML_DEFAULTS
+
+    for name in defines:
+        if name not in XML_DEFAULTS:
+            close = difflib.get_close_matches(name, XML_DEFAULTS, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise AMRError(f"-D {name}: a data file's scene takes -D for "
+                           f"{', '.join(XML_DEFAULTS)}{hint}; to set its other amr_iso "
+                           f"parameters, write it with --save-scene scene.xml, edit that and "
+                           f"render it")
+
+
 def asked_params(allow_nonfinite: bool = False, mode=None) -> dict:
     """The amr_iso parameters of a data file's scene that the user asked for, for
     :func:`scene_file`: only those, so that a scene made without them does not name them (and

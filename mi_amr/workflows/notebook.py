@@ -158,7 +158,10 @@ def explore(scene_or_file, field=None, isovalue=None, *, port: int = 0,
 
     from mi_amr.workflows.datafile import asked_params, is_scene_file, scene_file
     from mi_amr.workflows.viewer.hub import Hub
-    from mi_amr.workflows.viewer.server import MAX_MESSAGE, bind, create_app, host_warning
+    from mi_amr.workflows.viewer.server import (MAX_MESSAGE, bind, check_port, create_app,
+                                                host_warning)
+
+    check_port(port)
 
     if is_scene_file(scene_or_file):
         _refuse_data_options(scene_or_file, dict(field=field, isovalue=isovalue, mode=mode,

@@ -68,9 +68,11 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
     return image[..., :3]
 
 
-def _check_request(scene_path, output, spp, resolution, defines, overwrite, aovs) -> dict:
-    """The checks done before any work (output path, numbers, ``-D`` names against the
-    scene's ``<default>``s); returns the scene parameters."""
+def check_image_request(output, spp=None, resolution=None, overwrite: bool = False,
+                        aovs: bool = False) -> None:
+    """The checks of an image request that need no scene (the output path (a
+    :class:`~pathlib.Path`), the sample count, the size in pixels): done again by
+    :func:`render_file`, and first by the command line before it makes a data file's scene."""
     if output.suffix.lower() not in IMAGE_TYPES:
         raise AMRError(f"{output}: the image must end in {' or '.join(IMAGE_TYPES)}")
     if aovs and output.suffix.lower() != ".exr":
@@ -82,6 +84,13 @@ def _check_request(scene_path, output, spp, resolution, defines, overwrite, aovs
         raise AMRError(f"--resolution must be positive, got {resolution}")
     if resolution is not None:
         _check_png_size(output, resolution)
+
+
+def _check_request(scene_path, output, spp, resolution, defines, overwrite, aovs) -> dict:
+    """The checks done before any work (output path, numbers, ``-D`` names against the
+    scene's ``<default>``s); returns the scene parameters."""
+    check_image_request(output, spp, resolution, overwrite, aovs)
+    if resolution is not None:
         _check_film_entries(scene_path, resolution, 4, 1)
     params = dict(defines or {})
     _check_defines(scene_path, params)

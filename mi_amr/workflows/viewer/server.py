@@ -36,6 +36,7 @@ from mi_amr.errors import AMRError
 
 STATIC = Path(__file__).with_name("static")
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+MAX_PORT = 65535            # TCP's largest port number
 WILDCARD = ("0.0.0.0", "::")
 HOST_NAME = re.compile(r"[a-z0-9_][a-z0-9_.:-]{0,252}")
 MAX_MESSAGE = 1 << 20
@@ -222,8 +223,16 @@ async def _serve_client(hub, ws) -> None:
                   file=sys.stderr, flush=True)
 
 
+def check_port(port) -> None:
+    """One error unless ``port`` is a whole number from 0 (a free one) to :data:`MAX_PORT`."""
+    if isinstance(port, bool) or not isinstance(port, int) or not 0 <= port <= MAX_PORT:
+        raise AMRError(f"the port must be a whole number from 0 (a free one) to {MAX_PORT}, "
+                       f"got {port!r}")
+
+
 def bind(host: str, port: int) -> socket.socket:
     """A listening socket on ``host:port`` (``port`` 0: a free one)."""
+    check_port(port)
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
