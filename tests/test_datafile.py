@@ -364,6 +364,16 @@ def test08_bad_inputs_each_get_one_error_naming_them(mi, tmp_path, capsys):
     one_error(render_cli(["render", f_file, "--field", "speed", "-o", str(tmp_path / "x.png")],
                          capsys), f_file, "'speed'", "it holds f", "velocity components",
               "vx/vy/vz")
+    # ... and as the colour field (the message named neither the file nor the field).
+    one_error(render_cli(["render", f_file, "--field", "f", "--isovalue", "0.5", "-D",
+                          "color_field=speed", "-o", str(tmp_path / "x.png")], capsys),
+              f_file, "'speed'", "it holds f", "velocity components", "vx/vy/vz")
+    import mi_amr
+    from mi_amr.errors import AMRError
+
+    for bad in ("abc", "nan", [0.5]):           # (not a number: one error, before any read)
+        with pytest.raises(AMRError, match="isovalue must be a finite number"):
+            mi_amr.scene(tmp_path / "missing.npz", field="f", isovalue=bad)
     scene = tmp_path / "s.xml"
     scene.write_text("<scene version='3.0.0'/>")
     one_error(render_cli(["render", str(scene), "--field", "f", "-o", str(tmp_path / "x.png")],

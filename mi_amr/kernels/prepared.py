@@ -127,9 +127,10 @@ def needed_fields(volume, field: str, color_field: str | None, m=None, consume=F
     return volume.select_fields(wanted), bool(derivable)
 
 
-def fields_to_read(field: str, color_field: str | None, available) -> list:
-    """Names to read from disk for a scene showing ``field`` coloured by ``color_field``: stored
-    fields as they are, the velocity components for a derived one."""
+def fields_to_read(field: str, color_field: str | None, available, source=None) -> list:
+    """Names to read from disk (the file ``source``, named in an error) for a scene showing
+    ``field`` coloured by ``color_field``: stored fields as they are, the velocity components
+    for a derived one."""
     out = []
     for name in (field, color_field):
         if name is None:
@@ -137,18 +138,20 @@ def fields_to_read(field: str, color_field: str | None, available) -> list:
         if name in available or name not in DERIVED_FIELDS:
             out.append(name)  # an unknown name is reported by the reader
         else:
-            out.extend(_velocity_names(available))
+            out.extend(_velocity_names(available, name, source))
     return list(dict.fromkeys(out))
 
 
-def _velocity_names(available) -> list:
+def _velocity_names(available, derived: str, source) -> list:
     from mi_amr.core.derive import VELOCITY_NAMES
 
     for names in VELOCITY_NAMES:
         if all(n in available for n in names):
             return list(names)
-    raise AMRError(f"no velocity components to derive from (looked for "
-                   f"{', '.join('/'.join(n) for n in VELOCITY_NAMES)}); fields: {list(available)}")
+    where = f"{source}: " if source is not None else ""
+    raise AMRError(f"{where}'{derived}' is derived from three velocity components, which it "
+                   f"lacks (looked for {', '.join('/'.join(n) for n in VELOCITY_NAMES)}); it "
+                   f"holds {', '.join(available)}")
 
 
 class Preparations:
@@ -260,7 +263,7 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, report) -> PreparedVol
 
     field, color_field = fields
     say = report or (lambda text: None)
-    names = fields_to_read(field, color_field, available_fields(path))
+    names = fields_to_read(field, color_field, available_fields(path), path)
     t0 = time.perf_counter()
     volume = load(path, fields=names, level_buffers=set(names) - {field, color_field},
                   allow_nonfinite=how.allow_nonfinite)

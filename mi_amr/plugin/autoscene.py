@@ -169,6 +169,8 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     ``mode="volume"``, or where the isovalue is picked too (so that the viewer's switch to
     volume mode shows a band): the parameter's default is in the units of the sphere wake's
     Q, a band too thin to see in most other fields."""
+    if isovalue is not None:
+        isovalue = _finite(isovalue)
     path, volume = _source(source)
     if volume is not None and volume.allow_nonfinite:
         params.setdefault("allow_nonfinite", True)
@@ -182,9 +184,7 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
                                   allow_nonfinite=boolean(params, "allow_nonfinite"))
     values = finite_leaf_values(volume, field) if need_values else None
     suggested = [] if isovalue is not None else suggest_isovalues(volume, field, values)
-    value = float(isovalue) if isovalue is not None else suggested[0]
-    if not np.isfinite(value):
-        raise AMRError(f"isovalue must be a finite number, got {isovalue}")
+    value = isovalue if isovalue is not None else suggested[0]
     if pick_band:
         params["band_width"] = suggest_band_width(values, value)
     lo, hi, what = _shown_box(volume, field, value, params)
@@ -192,6 +192,17 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
                      suggested=suggested, resolution=(width, height), spp=int(spp),
                      framing=frame_box(lo, hi, width / height), params=dict(params),
                      band_picked=pick_band, framed=(lo, hi, what))
+
+
+def _finite(isovalue) -> float:
+    """The isovalue as a float; one error where it is not a finite number."""
+    try:
+        value = float(isovalue)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not np.isfinite(value):
+        raise AMRError(f"isovalue must be a finite number, got {isovalue!r}")
+    return value
 
 
 def _shown_box(volume, field: str, value: float, params: dict) -> tuple:

@@ -32,7 +32,7 @@ def load_with_fields(path, fields=None, *, derive_them: bool = True,
                        f"{'/'.join(VELOCITY_NAMES[0])}, {'/'.join(VELOCITY_NAMES[1])}, ...)")
         raise AMRError(f"{path}: no field(s) {', '.join(repr(u) for u in unknown)}; it holds "
                        f"{', '.join(stored)}{derived}")
-    read = list(dict.fromkeys(n for f in names for n in fields_to_read(f, None, stored)))
+    read = list(dict.fromkeys(n for f in names for n in fields_to_read(f, None, stored, path)))
     volume = load(path, fields=read, allow_nonfinite=allow_nonfinite)
     derived = [f for f in names if f not in volume.field_names]
     if derived and derive_them:

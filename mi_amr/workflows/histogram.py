@@ -87,7 +87,7 @@ def histogram_figure(path, field: str, output, *, bins: int = 256, overwrite: bo
     from mi_amr.kernels.prepared import fields_to_read
     from mi_amr.readers import available_fields, load
 
-    volume = load(path, fields=fields_to_read(field, None, available_fields(path)),
+    volume = load(path, fields=fields_to_read(field, None, available_fields(path), path),
                   allow_nonfinite=allow_nonfinite)
     if field not in volume.field_names and field in DERIVED_FIELDS:
         volume = derive(volume, field)

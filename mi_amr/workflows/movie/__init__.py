@@ -81,7 +81,7 @@ def _names_to_read(path, name) -> list:
     from mi_amr.kernels.prepared import fields_to_read
     from mi_amr.readers import available_fields
 
-    return fields_to_read(name, None, available_fields(path))
+    return fields_to_read(name, None, available_fields(path), path)
 
 
 def _file_range(path, name, allow_nonfinite: bool = False) -> tuple:
@@ -186,7 +186,7 @@ def _check_fields(files, scene_path, defines):
     for f in files:
         try:
             have = available_fields(f)
-            need = fields_to_read(field, color_field, have)
+            need = fields_to_read(field, color_field, have, f)
         except AMRError:
             continue                # unreadable: that frame fails, naming the file
         missing = [n for n in need if n not in have]

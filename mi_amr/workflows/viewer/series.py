@@ -44,7 +44,7 @@ def check_series(files, field: str, color_field) -> None:
         if sorted(have) != sorted(first):
             raise AMRError(f"--files: {f} holds the fields {have}, but {files[0]} holds "
                            f"{first}; the steps of a time series must hold the same fields")
-    need = fields_to_read(field, color_field, first)
+    need = fields_to_read(field, color_field, first, files[0])
     missing = [n for n in need if n not in first]
     if missing:
         raise AMRError(f"--files: {files[0]} has no field(s) {missing} that the scene shows; "
