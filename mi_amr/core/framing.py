@@ -107,8 +107,8 @@ def value_box(volume, field: str, lo_value: float, hi_value: float):
     meets the values ``lo_value``..``hi_value`` -- a cell whose value lies there, and both
     cells of a pair of neighbours (in one grid, along an axis) whose values reach it from
     either side (an isosurface at ``v``, ``v``..``v``, passes between them); None where no
-    leaf cell with a finite value does. An isosurface lies inside it, and so does a band's
-    support (its cells, to within the cells beside a grid's face)."""
+    leaf cell with a finite value does. An isosurface at a value of the range lies inside it,
+    to within the cells beside a grid's face (a pair across two grids is not looked at)."""
     box_lo, box_hi = np.full(3, np.inf), np.full(3, -np.inf)
     for i, g in enumerate(volume.grids):
         f = np.asarray(g.fields[field])

@@ -1,7 +1,7 @@
 """The scene made for a data file: ``amr_iso`` showing one field's isosurface, a camera that
 frames it from a three-quarter view (:mod:`mi_amr.core.framing`: the bounds of the cells the
-isosurface, or in volume mode its band's support, passes through, where the field's values
-are read; else the data's bounds), one
+isosurface passes through, or in volume mode its band within one width of the isovalue, where
+the field's values are read; else the data's bounds), one
 directional light over the viewer's shoulder plus the integrator's ambient term, and nothing
 behind (the film's alpha is 0 there: a PNG shows the page's own background).
 
