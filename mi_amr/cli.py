@@ -205,12 +205,30 @@ def _data_scene(args, source, resolution=None):
     from mi_amr.workflows.datafile import (asked_params, check_data_defines, is_scene_file,
                                            scene_file)
 
+    isovalue = args.isovalue
     if not is_scene_file(source):
-        check_data_defines(_defines(getattr(args, "defines", [])))
-    return scene_file(source, field=args.field, isovalue=args.isovalue, resolution=resolution,
+        defines = _defines(getattr(args, "defines", []))
+        check_data_defines(defines)
+        if "isovalue" in defines:
+            isovalue = _defined_isovalue(defines["isovalue"], isovalue)
+    return scene_file(source, field=args.field, isovalue=isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
                       force=getattr(args, "force", False),
                       **asked_params(args.allow_nonfinite, args.mode))
+
+
+def _defined_isovalue(text: str, given):
+    """The isovalue a data file's scene is made for (its camera frames it, and no other is
+    picked) when ``-D isovalue=text`` sets the rendered ones: the first of them. ``given``:
+    ``--isovalue``'s, which may not be given as well."""
+    if given is not None:
+        raise AMRError("--isovalue and -D isovalue both set the isovalue of a data file's "
+                       "scene; give one")
+    try:
+        return float(text.replace(",", " ").split()[0])
+    except (ValueError, IndexError):
+        raise AMRError(f"-D isovalue: expected a number or a comma-separated list of numbers, "
+                       f"got {text!r}") from None
 
 
 def _render(args) -> None:
