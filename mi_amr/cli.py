@@ -204,6 +204,7 @@ def _add_allow_nonfinite(s, where: str = "") -> None:
 def _data_scene(args, source, resolution=None):
     from mi_amr.workflows.datafile import (asked_params, check_data_defines, is_scene_file,
                                            scene_file)
+    from mi_amr.workflows.movie.spec import parse_sweep
 
     isovalue = args.isovalue
     if not is_scene_file(source):
@@ -211,9 +212,11 @@ def _data_scene(args, source, resolution=None):
         check_data_defines(defines)
         if "isovalue" in defines:
             isovalue = _defined_isovalue(defines["isovalue"], isovalue)
+    sweep = getattr(args, "isovalues", None)
     return scene_file(source, field=args.field, isovalue=isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
                       force=getattr(args, "force", False),
+                      framed_values=None if sweep is None else parse_sweep(sweep)[:2],
                       **asked_params(args.allow_nonfinite, args.mode))
 
 

@@ -110,7 +110,7 @@ def test01_the_camera_frames_the_surface_at_30_to_90_percent_of_the_width(mi, tm
 
 
 
-def test01b_a_small_feature_off_centre_is_framed_in_the_middle(mi, tmp_path):
+def test01b_a_small_feature_off_centre_is_framed_in_the_middle(mi, tmp_path, capsys):
     """A ball of radius 0.1 in a corner of a 2 x 1 x 1 box, on two levels: the camera frames
     the ball (the cells its isosurface or band passes through), not the box, and a render
     shows it across the middle of the image. Where the scene's values are not read (a
@@ -159,6 +159,17 @@ def test01b_a_small_feature_off_centre_is_framed_in_the_middle(mi, tmp_path):
         np.testing.assert_array_equal(np.array(other[:2]), np.array(whole), err_msg=kind)
     picked = data_scene(path, "speed").framed           # (its values read for the pick)
     assert picked[2] == "isosurface"
+    # A movie's isovalue sweep frames every isovalue it shows: the ball of radius 0.3 too.
+    outer = data_scene(path, "f", 0.3).framed
+    swept = data_scene(path, "f", 0.1, framed_values=(0.1, 0.3)).framed
+    assert swept[2] == "isosurfaces" and np.all(swept[0] <= np.minimum(lo, outer[0])) and \
+        np.all(swept[1] >= np.maximum(hi, outer[1])) and np.any(outer[1] - outer[0] > hi - lo)
+    xml = tmp_path / "sweep.xml"
+    rc, _, err = render_cli(["movie", path, "--field", "f", "--isovalues", "0.1:0.3", "--frames",
+                             "2", "--resolution", "16", "12", "--spp", "1", "--save-scene",
+                             str(xml), "-o", str(tmp_path / "sweep")], capsys)
+    assert rc == 0, err
+    assert "the camera frames the cells of the isovalues swept" in xml.read_text()
     scene = tmp_path / "ball.xml"
     scene.write_text(made.xml())
     render_file(scene, tmp_path / "ball.exr", quiet=True)

@@ -46,8 +46,9 @@ class DataScene:
     from the histogram, with ``suggested`` the other candidates), at ``resolution`` (width,
     height) and ``spp``; ``params`` are further ``amr_iso`` parameters (``band_width`` among
     them where ``band_picked``: volume mode's band, picked from the histogram). ``framed``:
-    the box the camera frames (volume world), and what it is (``"isosurface"``, ``"band"``:
-    the cells they pass through; ``"data"``: the data's bounds)."""
+    the box the camera frames (volume world), and what it is (``"isosurface"``, ``"band"``,
+    ``"isosurfaces"`` (a sweep's): the cells they pass through; ``"data"``: the data's
+    bounds)."""
 
     path: str
     field: str
@@ -95,6 +96,7 @@ class DataScene:
         band = f", band width {self.params['band_width']!r} (picked from the histogram)" \
             if self.band_picked and self.params.get("mode") == "volume" else ""
         framed = {"isosurface": "the isosurface's cells", "band": "the band's cells",
+                  "isosurfaces": "the cells of the isovalues swept",
                   "data": "the data's bounds"}.get(self.framed[2] if self.framed else "data")
         lines = ['<scene version="3.0.0">',
                  f"    <!-- Made by mi_amr for {_comment(self.path)}: field {_comment(self.field)}"
@@ -156,7 +158,7 @@ def _tag(name: str, value) -> str:
 
 
 def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp: int = SPP,
-               **params) -> DataScene:
+               framed_values=None, **params) -> DataScene:
     """The scene of the data file (or :class:`~mi_amr.AMRVolume` read from one) ``source``
     showing ``field`` (stored, or derived from the velocity: ``q_criterion``, ``speed``,
     ``vorticity`` / ``vorticity_magnitude``; default: the first stored field) at
@@ -168,7 +170,9 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     the histogram about the isovalue (:func:`mi_amr.core.suggest.suggest_band_width`) where
     ``mode="volume"``, or where the isovalue is picked too (so that the viewer's switch to
     volume mode shows a band): the parameter's default is in the units of the sphere wake's
-    Q, a band too thin to see in most other fields."""
+    Q, a band too thin to see in most other fields. ``framed_values``: ``(lo, hi)``, the
+    values whose isosurfaces the camera frames together (a movie's isovalue sweep) instead of
+    the isovalue's alone."""
     if isovalue is not None:
         isovalue = _finite(isovalue)
     path, volume = _source(source)
@@ -187,7 +191,7 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     value = isovalue if isovalue is not None else suggested[0]
     if pick_band:
         params["band_width"] = suggest_band_width(values, value)
-    lo, hi, what = _shown_box(volume, field, value, params)
+    lo, hi, what = _shown_box(volume, field, framed_values or (value, value), params)
     return DataScene(path=path, field=field, isovalue=value, picked=isovalue is None,
                      suggested=suggested, resolution=(width, height), spp=int(spp),
                      framing=frame_box(lo, hi, width / height), params=dict(params),
@@ -205,12 +209,13 @@ def _finite(isovalue) -> float:
     return value
 
 
-def _shown_box(volume, field: str, value: float, params: dict) -> tuple:
+def _shown_box(volume, field: str, values: tuple, params: dict) -> tuple:
     """``(lo, hi, what)``: the box the camera frames (see :class:`DataScene`'s ``framed``): the
-    cells of the isosurface, or of the band's :data:`BAND_FRAMED_WIDTHS` each side. Where the
-    field's values were not read (a derived field at a given isovalue), or for a 2D transfer
-    function or bands of their own supports, the data's bounds."""
-    span = (value, value)
+    cells of the isosurfaces of ``values`` (``(lo, hi)``: one isovalue, or the ends of a
+    sweep), or of their bands' :data:`BAND_FRAMED_WIDTHS` beyond them. Where the field's values
+    were not read (a derived field at a given isovalue), or for a 2D transfer function or
+    bands of their own supports, the data's bounds."""
+    span = (float(min(values)), float(max(values)))
     if params.get("mode") == "volume":
         try:
             width = float(params["band_width"])
@@ -220,12 +225,13 @@ def _shown_box(volume, field: str, value: float, params: dict) -> tuple:
                                                       "transfer2d_blobs")):
             span = None
         else:
-            span = (value - BAND_FRAMED_WIDTHS * width, value + BAND_FRAMED_WIDTHS * width)
+            span = (span[0] - BAND_FRAMED_WIDTHS * width, span[1] + BAND_FRAMED_WIDTHS * width)
     box = value_box(volume, field, *span) \
         if span is not None and field in volume.field_names else None
     if box is None:
         return (*volume.bounds, "data")
-    return (*box, "isosurface" if span[0] == span[1] else "band")
+    return (*box, "band" if params.get("mode") == "volume" else
+            "isosurface" if values[0] == values[1] else "isosurfaces")
 
 
 def scene(source, field=None, isovalue=None, **params) -> dict:

@@ -49,7 +49,7 @@ def asked_params(allow_nonfinite: bool = False, mode=None) -> dict:
 
 @contextlib.contextmanager
 def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
-               save_scene=None, force: bool = False, say=print, **params):
+               save_scene=None, force: bool = False, say=print, framed_values=None, **params):
     """The path of a scene XML for ``source``: ``source`` itself when it is a scene (then
     ``field``, ``isovalue`` and ``save_scene`` must be None), else the scene made for the data
     file, written to ``save_scene`` (kept; replaced only with ``force``) or to a temporary
@@ -74,7 +74,7 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
         save_scene = check_output(save_scene, suffixes=(SCENE_SUFFIX,), overwrite=force,
                                   make_folders=True)
     made = make_scene(source, field=field, isovalue=isovalue, resolution=resolution, spp=spp,
-                      say=say, **params)
+                      say=say, framed_values=framed_values, **params)
     if save_scene is not None:
         with replacing(save_scene) as tmp:
             Path(tmp).write_text(made.xml())
@@ -88,13 +88,13 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
 
 
 def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, say=print,
-               **params):
+               framed_values=None, **params):
     """The :class:`~mi_amr.plugin.autoscene.DataScene` of ``source``, with what was picked
     printed."""
     from mi_amr.plugin.autoscene import RESOLUTION, SPP, data_scene
 
     made = data_scene(source, field, isovalue, resolution=resolution or RESOLUTION,
-                      spp=spp or SPP, **params)
+                      spp=spp or SPP, framed_values=framed_values, **params)
     how = "given"
     if made.picked:
         others = ", ".join(f"{v:.6g}" for v in made.suggested[1:])
