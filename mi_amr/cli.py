@@ -201,7 +201,9 @@ def _add_allow_nonfinite(s, where: str = "") -> None:
                         f"them is refused)")
 
 
-def _data_scene(args, source, resolution=None):
+def _data_scene(args, source, resolution=None, series: bool = False):
+    """The scene file for ``source`` (a block: a data file's is made, and removed after);
+    ``series``: the first of a time series' data files."""
     from mi_amr.workflows.datafile import (asked_params, check_data_defines, is_scene_file,
                                            scene_file)
     from mi_amr.workflows.movie.spec import parse_sweep
@@ -213,10 +215,10 @@ def _data_scene(args, source, resolution=None):
         if "isovalue" in defines:
             isovalue = _defined_isovalue(defines["isovalue"], isovalue)
     sweep = getattr(args, "isovalues", None)
+    framed = "data" if series else None if sweep is None else parse_sweep(sweep)[:2]
     return scene_file(source, field=args.field, isovalue=isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
-                      force=getattr(args, "force", False),
-                      framed_values=None if sweep is None else parse_sweep(sweep)[:2],
+                      force=getattr(args, "force", False), framed_values=framed,
                       **asked_params(args.allow_nonfinite, args.mode))
 
 
@@ -324,7 +326,8 @@ def _movie(args) -> int:
     if args.workers < 1:
         raise AMRError(f"--workers must be >= 1, got {args.workers}")
     source, files = movie_inputs(args.scene, args.files)
-    with _data_scene(args, source, args.resolution) as scene:
+    # (A time series' later steps may hold their surfaces elsewhere: its data's bounds.)
+    with _data_scene(args, source, args.resolution, series=len(files or ()) > 1) as scene:
         summary = _run_movie(scene, files, args)
     print(summary.text())
     if args.mp4 and not summary.failed:
@@ -504,7 +507,7 @@ def _view(args) -> None:
         raise AMRError(f"view: --preview-budget must be 0 or more seconds, got {budget:g}")
     if not 0 <= args.port <= MAX_PORT:
         raise AMRError(f"view: --port must be 0 (a free one) to {MAX_PORT}, got {args.port}")
-    with _data_scene(args, args.scene) as scene:
+    with _data_scene(args, args.scene, series=bool(args.files)) as scene:
         serve(scene, host=args.host, port=args.port, open_browser=not args.no_browser,
               out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,
               preview_scale=args.preview_scale, variant=args.variant,

@@ -408,6 +408,12 @@ def test09_a_movie_of_data_files_needs_no_scene(mi, tmp_path, capsys):
     assert first.shape == (24, 32, 4), "movie frames are RGBA PNGs, as render's"
     assert first[..., 3].min() == 0 and first[..., 3].max() == 255
     assert "isovalue 0.8 (given)" in text
+    # A time series frames its first step's bounds: later steps' surfaces may lie elsewhere.
+    xml = tmp_path / "series.xml"
+    rc, _, err = render_cli(["movie", str(tmp_path / "plt*.npz"), "--field", "f", "--isovalue",
+                             "0.8", "-o", str(tmp_path / "again"), "--resolution", "16", "12",
+                             "--spp", "1", "--save-scene", str(xml)], capsys)
+    assert rc == 0 and "the camera frames the data's bounds" in xml.read_text(), err
 
 
 def test10_color_field_none_switches_the_colour_field_off():

@@ -172,7 +172,8 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     volume mode shows a band): the parameter's default is in the units of the sphere wake's
     Q, a band too thin to see in most other fields. ``framed_values``: ``(lo, hi)``, the
     values whose isosurfaces the camera frames together (a movie's isovalue sweep) instead of
-    the isovalue's alone."""
+    the isovalue's alone, or ``"data"``: the data's bounds (a time series, whose later steps'
+    surfaces may lie elsewhere)."""
     if isovalue is not None:
         isovalue = _finite(isovalue)
     path, volume = _source(source)
@@ -191,7 +192,8 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     value = isovalue if isovalue is not None else suggested[0]
     if pick_band:
         params["band_width"] = suggest_band_width(values, value)
-    lo, hi, what = _shown_box(volume, field, framed_values or (value, value), params)
+    lo, hi, what = (*volume.bounds, "data") if framed_values == "data" else \
+        _shown_box(volume, field, framed_values or (value, value), params)
     return DataScene(path=path, field=field, isovalue=value, picked=isovalue is None,
                      suggested=suggested, resolution=(width, height), spp=int(spp),
                      framing=frame_box(lo, hi, width / height), params=dict(params),
