@@ -333,8 +333,7 @@ class Session:
                                          for i in range(k))
         values = self._leaf_values() if state.field != old.field else None
         if values is not None and values.size:
-            widths = tuple(float(np.float32(w)) for w in suggest_band_widths(
-                values, changes.get("isovalues", state.isovalues)))
+            widths = tuple(_picked_widths(values, changes.get("isovalues", state.isovalues)))
             changes.update(band_width=widths,
                            band_offsets=tuple((-2.0 * w, 2.0 * w) for w in widths))
         if state.colormap is not None and state.color_field != old.color_field:
@@ -550,8 +549,14 @@ def _default_bands(opt, values=None) -> tuple:
         return v * k if len(v) == 1 else v
 
     widths = per_iso(opt.band_width) if values is None or not values.size else \
-        [float(np.float32(w)) for w in suggest_band_widths(values, opt.isovalues)]
+        _picked_widths(values, opt.isovalues)
     return _bands(widths, [(-2.0 * w, 2.0 * w) for w in widths], per_iso(opt.band_peak))
+
+
+def _picked_widths(values, isovalues) -> list:
+    """:func:`~mi_amr.core.suggest.suggest_band_widths` of ``isovalues`` from the sorted leaf
+    ``values``, rounded to float32 as the scene's parameters hold them."""
+    return [float(np.float32(w)) for w in suggest_band_widths(values, isovalues)]
 
 
 def light_transform(direction) -> "mi.Transform4f":
