@@ -121,10 +121,8 @@ CENTROID_ABS = 5e-3
 SHADOW_CACHE_POINTS = 2 ** 20
 # points: the viewer builds a full-size cache in wavefronts of at most this many points and
 # looks for a newer request between them, so a control moved while it builds waits for one
-# wavefront, not the whole build. Each wavefront is traced again (a few hundredths of a
-# second). On the shells scene (0.4 million points, seven wavefronts), a move during the build
-# of its refined frame at 512^2 waited up to 0.47 s (2.96 s in one wavefront); the refinement
-# took 6.3-7.5 s either way (the machine's noise).
+# wavefront, not the whole build. Each wavefront is traced again, so fewer, larger ones cost
+# less in all; the report's scenes need about 0.4 million points, seven wavefronts.
 SHADOW_CACHE_BUILD_CHUNK = 2 ** 16
 # finest cells of the band's leaves: the longest stretch of a lit piece's shadow ray that is
 # taken apart from its cache before the cache is read (mi_amr.kernels.shadow_grid: one cache cell,
