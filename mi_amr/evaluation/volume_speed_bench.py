@@ -31,6 +31,10 @@ from mi_amr.workflows import project
 # The shells' lowest band (Q = 0.02) on its own: the three bands' cost against the one that
 # meets the most pieces.
 LOWEST_BAND = {"band_width": "0.002", "band_peak": "0.15", "iso_color": "0.1 0.3 1.0"}
+# The shells as opaque as the one-band scene's band (its peak, 1.6, for each): what their
+# translucency costs, since a ray crosses every shell only where the ones in front let light
+# through (the march ends at tolerances.T_MIN).
+OPAQUE_SHELLS = {"band_peak": "1.6, 1.6, 1.6"}
 CORRECTED = {"volume_shadows": "corrected"}
 # (label, scene file stem, <default> values, integrator parameters); the volume scenes with the
 # default shadows (volume_shadows="cache") and with the cache corrected by one exact shadow ray
@@ -41,6 +45,7 @@ SCENES = (("surface mode", "sphere_wake", {}, {}),
           ("3 bands", "sphere_wake_shells", {}, {}),
           ("3 bands, corrected shadows", "sphere_wake_shells", {}, CORRECTED),
           ("3 bands' lowest alone", "sphere_wake_shells", {"isovalue": "0.02"}, LOWEST_BAND),
+          ("3 bands, each at 1 band's peak", "sphere_wake_shells", {}, OPAQUE_SHELLS),
           ("3 bands, shadows off", "sphere_wake_shells", {"shadows": "false"}, {}),
           ("2D transfer function", "sphere_wake_tf2d", {}, {}))
 YT_SCENES = ("1 band", "3 bands")
