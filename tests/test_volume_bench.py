@@ -78,6 +78,10 @@ def test05_the_speed_table_times_every_scene_beside_surface_mode_and_yt(tmp_path
         assert r["frame_s"] > 0 and r["first_s"] > 0, r
         assert r["x_surface"] == pytest.approx(r["frame_s"] / ours[0]["frame_s"])
         assert r["x_one_band"] == pytest.approx(r["frame_s"] / ours[1]["frame_s"])
+        assert r["walked"] > 0, r
+    # Faint shells let a ray through more pieces than the same shells made opaque.
+    walked = {r["scene"]: r["walked"] for r in ours}
+    assert walked["3 bands"] > walked["3 bands, each at 1 band's peak"]
     yt_rows = [r for r in rows if r["renderer"] == "yt"]
     assert [r["scene"] for r in yt_rows] == list(vs.QUICK["yt_scenes"])
     try:

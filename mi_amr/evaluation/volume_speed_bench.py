@@ -4,7 +4,9 @@ beside yt's volume renderer.
 One run, one process: each scene of :data:`SCENES` at each of :data:`RESOLUTIONS` (square
 images), 1 spp, seed 0 for the first frame (compilation, the shadow caches' build) and the
 median of :data:`FRAMES` warm frames after it, in seconds; each warm frame is also given as a
-multiple of surface mode's frame and of the one-band frame at the same size.
+multiple of surface mode's frame and of the one-band frame at the same size, beside the mean
+pieces that the march walks along a camera ray (:func:`walked_per_ray`), which a frame's cost
+follows.
 
 yt's volume renderer (when yt is installed; ``yt.create_scene`` with a perspective lens, as yt's
 users set it up) renders the same grids of the same field from the same camera at the same
@@ -112,7 +114,28 @@ def _mi_amr_row(label, name, edits, res, frames):
     first = _frame(scene, 0)
     warm = statistics.median(_frame(scene, seed) for seed in range(1, frames + 1))
     return {"renderer": "mi_amr", "scene": label, "file": f"{name}.xml", "size": res,
-            "first_s": first, "frame_s": warm}, scene
+            "first_s": first, "frame_s": warm, "walked": walked_per_ray(scene)}, scene
+
+
+def walked_per_ray(scene) -> float:
+    """The march's mean work along a camera ray through each pixel centre of ``scene``: cubic
+    pieces (``exact``) or samples (the sampling methods) up to the first crossing in surface
+    mode, and in volume mode up to the ray's end or to where less than
+    :data:`~mi_amr.tolerances.T_MIN` of the light gets through (the transmittance march,
+    which a camera ray's compositing walks alike). Rays that miss the volume count 0."""
+    from mi_amr.evaluation.references import pixel_rays
+    from mi_amr.kernels.composite import composite
+    from mi_amr.kernels.ray import RayContext
+    from mi_amr.kernels.surface import first_crossing
+
+    integ = scene.integrator()
+    m = integ.m
+    ray = pixel_rays(scene.sensors()[0])
+    o, d = integ.frame.ray_to_volume(m, ray.o, ray.d)
+    ctx = RayContext(integ.dev, integ.config(), o, d, m.Float(0.0), m.Float(math.inf),
+                     m.Bool(True))
+    march = composite if integ.opt.mode == "volume" else first_crossing
+    return float(np.mean(march(ctx, m.Float(0.5)).samples.numpy()))
 
 
 def _yt_row(label, scene, res) -> dict:
@@ -186,7 +209,8 @@ def _relate(rows) -> None:
 def speed_table(rows) -> str:
     """The rows as a Markdown table."""
     lines = ["| renderer | scene | size | first frame (s) | warm frame (s) | x surface mode "
-             "| x 1 band | mi_amr / yt |", "|---|---|---|---|---|---|---|---|"]
+             "| x 1 band | pieces walked a ray | mi_amr / yt |",
+             "|---|---|---|---|---|---|---|---|---|"]
 
     def num(r, key, fmt):
         v = r.get(key, math.nan)
@@ -197,7 +221,7 @@ def speed_table(rows) -> str:
         lines.append(f"| {r['renderer']} | {r['scene']} ({name}) | {r['size']}x{r['size']} | "
                      f"{num(r, 'first_s', '{:.2f}')} | {num(r, 'frame_s', '{:.3f}')} | "
                      f"{num(r, 'x_surface', '{:.2f}')} | {num(r, 'x_one_band', '{:.2f}')} | "
-                     f"{num(r, 'mi_amr_over_yt', '{:.2f}')} |")
+                     f"{num(r, 'walked', '{:.1f}')} | {num(r, 'mi_amr_over_yt', '{:.2f}')} |")
     return "\n".join(lines)
 
 
