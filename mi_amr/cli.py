@@ -241,10 +241,11 @@ def _render(args) -> None:
 
     # (Before a data file's scene is made: its isovalue pick reads the whole file.)
     check_image_request(Path(args.output), args.spp, args.resolution, args.force, args.aovs)
+    started = time.perf_counter()       # (the total counts a data file's scene being made)
     with _data_scene(args, args.scene, args.resolution) as scene:
         render_file(scene, args.output, spp=args.spp, resolution=args.resolution,
                     defines=_defines(args.defines), variant=args.variant,
-                    overwrite=args.force, aovs=args.aovs)
+                    overwrite=args.force, aovs=args.aovs, started=started)
 
 
 def _histogram(args) -> None:

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mi_amr.core.batches import axis_pairs, flat_field, shape_batches, stacked
 from mi_amr.errors import AMRError
 
 FOV_X_DEG = 35.0          # horizontal field of view (Mitsuba's fov_axis "x"), degrees
@@ -108,7 +109,46 @@ def value_box(volume, field: str, lo_value: float, hi_value: float):
     cells of a pair of neighbours (in one grid, along an axis) whose values reach it from
     either side (an isosurface at ``v``, ``v``..``v``, passes between them); None where no
     leaf cell with a finite value does. An isosurface at a value of the range lies inside it,
-    to within the cells beside a grid's face (a pair across two grids is not looked at)."""
+    to within the cells beside a grid's face (a pair across two grids is not looked at).
+    The grids of one shape are taken together (:mod:`mi_amr.core.batches`);
+    :func:`value_box_reference` is the slow twin (grid by grid)."""
+    box_lo, box_hi = np.full(3, np.inf), np.full(3, -np.inf)
+    flat, leaf = flat_field(volume, field), volume.leaf_mask_flat()
+    columns = volume.grid_columns()
+    for ids, shape in shape_batches(volume):
+        f = stacked(flat, columns["offset"], ids, shape)
+        keep = stacked(leaf, columns["offset"], ids, shape) & np.isfinite(f)
+        hit = keep & (f >= lo_value) & (f <= hi_value)
+        for axis in range(3):
+            if shape[axis] < 2:
+                continue
+            a, b = axis_pairs(axis)
+            meet = keep[a] & keep[b] & (np.minimum(f[a], f[b]) <= hi_value) & \
+                (np.maximum(f[a], f[b]) >= lo_value)
+            hit[a] |= meet
+            hit[b] |= meet
+        _widen(box_lo, box_hi, hit, columns["origin"][ids], columns["spacing"][ids])
+    return (box_lo, box_hi) if np.all(box_hi > box_lo) else None
+
+
+def _widen(box_lo, box_hi, hit, origin, spacing) -> None:
+    """Grow the box ``box_lo``..``box_hi`` (world) in place to the cells ``hit`` of a batch
+    of grids (``(k, nx, ny, nz)``; their origins and spacings ``(k, 3)``)."""
+    rows = hit.reshape(len(hit), -1).any(axis=1)
+    if not rows.any():
+        return
+    hit, origin, spacing = hit[rows], origin[rows], spacing[rows]
+    for axis in range(3):
+        on = hit.any(axis=tuple(k for k in (1, 2, 3) if k != axis + 1))
+        first = np.argmax(on, axis=1)
+        last = on.shape[1] - 1 - np.argmax(on[:, ::-1], axis=1)
+        box_lo[axis] = min(box_lo[axis], np.min(origin[:, axis] + first * spacing[:, axis]))
+        box_hi[axis] = max(box_hi[axis],
+                           np.max(origin[:, axis] + (last + 1) * spacing[:, axis]))
+
+
+def value_box_reference(volume, field: str, lo_value: float, hi_value: float):
+    """Slow twin of :func:`value_box`: grid by grid."""
     box_lo, box_hi = np.full(3, np.inf), np.full(3, -np.inf)
     for i, g in enumerate(volume.grids):
         f = np.asarray(g.fields[field])

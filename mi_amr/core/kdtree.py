@@ -27,7 +27,8 @@ import numpy as np
 
 from mi_amr import params
 from mi_amr.core import parallel
-from mi_amr.core.buffers import aligned_copy, aligned_empty, aligned_full, joined
+from mi_amr.core.batches import flat_field
+from mi_amr.core.buffers import aligned_copy, aligned_empty, aligned_full
 from mi_amr.core.boxes import contains_points
 from mi_amr.core.points import (as_points, finest_of,  # noqa: F401  (twins: tests)
                                 finest_grid_bruteforce, support_grids_bruteforce)
@@ -716,9 +717,9 @@ class KDTree:
         vol = self.volume
         pl, pg, lo, hi = self.leaf_windows(field, reconstruction)
         if reconstruction == "basis":
-            values = np.where(vol.leaf_mask_flat(), _all_values(vol, field), np.nan)
+            values = np.where(vol.leaf_mask_flat(), flat_field(vol, field), np.nan)
         else:
-            values = _all_values(vol, field)
+            values = flat_field(vol, field)
         vmin, vmax = _window_min_max(vol, values, pg, lo, hi, chunk=self.chunk)
         out_lo = np.full(self.num_leaves, np.inf)
         out_hi = np.full(self.num_leaves, -np.inf)
@@ -918,14 +919,6 @@ def _group(pi, gi, n) -> list:
     pi, gi = pi[order], gi[order]
     cuts = np.searchsorted(pi, np.arange(1, n))
     return np.split(gi, cuts)
-
-
-def _all_values(volume, field) -> np.ndarray:
-    """The cells of ``field`` of all grids, raveled and concatenated grid after grid (read
-    only: the buffer the grids' arrays are views of, when they lie end to end in one)."""
-    arrays = [g.fields[field] for g in volume.grids]
-    flat = joined(arrays, arrays[0].dtype, aligned=False)
-    return flat if flat is not None else np.concatenate([a.reshape(-1) for a in arrays])
 
 
 def _grid_offsets(volume) -> np.ndarray:

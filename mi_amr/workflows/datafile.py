@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import tempfile
+import time
 from pathlib import Path
 
 from mi_amr.core.atomic import check_output, replacing
@@ -93,14 +94,17 @@ def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, 
     printed."""
     from mi_amr.plugin.autoscene import RESOLUTION, SPP, data_scene
 
+    t0 = time.perf_counter()
     made = data_scene(source, field, isovalue, resolution=resolution or RESOLUTION,
                       spp=spp or SPP, framed_values=framed_values, **params)
+    seconds = time.perf_counter() - t0
     how = "given"
     if made.picked:
         others = ", ".join(f"{v:.6g}" for v in made.suggested[1:])
         how = "picked from the histogram" + (f"; also try {others}" if others else "") + \
             "; --isovalue sets it"
-    say(f"{made.path}: field {made.field}, isovalue {made.isovalue:.6g} ({how})")
+    say(f"{made.path}: field {made.field}, isovalue {made.isovalue:.6g} ({how}); scene made "
+        f"in {seconds:.1f} s")
     if made.band_picked and made.params.get("mode") == "volume":
         say(f"  volume band width {made.params['band_width']:.6g} (picked from the histogram; "
             f"the scene's band_width parameter sets it)")

@@ -19,7 +19,7 @@ JIT_MAX_ENTRIES = 2 ** 32 - 1
 
 def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
                 variant: str = "llvm_ad_rgb", overwrite: bool = False, quiet: bool = False,
-                aovs: bool = False):
+                aovs: bool = False, started: float | None = None):
     """Render ``scene_path`` to ``output`` (.png: 8-bit sRGB with alpha; .exr: linear float
     RGBA) and return the RGB image as a NumPy array. Alpha is the pixel's coverage by surfaces.
     ``aovs=True`` (.exr only) adds the isosurface's AOV channels (:mod:`mi_amr.plugin.aovs`).
@@ -27,7 +27,9 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
     ``spp``, ``resx`` and ``resy`` defaults); ``defines`` sets ``<default>`` values. Prints
     what it does and how long each part took (the scene's preparation step by step, the render
     with a progress bar). The output path is checked before anything else, and the image is
-    written atomically: a failed write leaves an existing ``output`` as it was."""
+    written atomically: a failed write leaves an existing ``output`` as it was. ``started``:
+    the :func:`time.perf_counter` at which the caller's work began (a data file's scene made
+    first), from which the printed total counts; the load's start when None."""
     output = Path(output)
     params = _check_request(scene_path, output, spp, resolution, defines, overwrite, aovs)
     import drjit as dr
@@ -61,7 +63,7 @@ def render_file(scene_path, output, *, spp=None, resolution=None, defines=None,
     t2 = time.perf_counter()
     _write_image(mi, image.astype(np.float32), output, _channels(scene, aovs))
     say(f"  rendered in {t2 - t1:.2f} s (includes compiling the kernels on first use)")
-    say(f"wrote {output.resolve()}  [total {t2 - t0:.1f} s]")
+    say(f"wrote {output.resolve()}  [total {t2 - (t0 if started is None else started):.1f} s]")
     # (The AOVs' depth is inf where no isosurface was hit: only the colour must be finite.)
     if not np.all(np.isfinite(image[..., :4])):
         raise AMRError(f"{output}: the image has NaN/Inf pixels; this is a bug, please report it")
