@@ -514,7 +514,7 @@ def test12_info_prints_each_fields_percentiles_levels_and_isovalues(tmp_path, ca
               "q_criterion")
 
 
-def test13_show_takes_a_data_file_a_dict_or_a_scene_file_alike(mi, tmp_path):
+def test13_show_takes_a_data_file_a_dict_or_a_scene_file_alike(mi, tmp_path, capsys):
     import mi_amr
     from mi_amr.errors import AMRError
 
@@ -548,6 +548,12 @@ def test13_show_takes_a_data_file_a_dict_or_a_scene_file_alike(mi, tmp_path):
                       (dict(allow_nonfinite=True), "allow_nonfinite=")]:
         with pytest.raises(AMRError, match=f"b.xml: {named} applies to data files only"):
             mi_amr.explore(xml, **kw)
+    # A picked isovalue is printed with the way to set it in Python words, not the CLI's.
+    capsys.readouterr()
+    mi_amr.show(path, field="f", resolution=(24, 16), spp=1)
+    out = capsys.readouterr().out
+    assert "picked from the histogram" in out and "isovalue= sets it" in out, out
+    assert "--isovalue" not in out, out
 
 
 def test14_view_serves_a_data_file(tmp_path):

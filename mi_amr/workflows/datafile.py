@@ -50,11 +50,13 @@ def asked_params(allow_nonfinite: bool = False, mode=None) -> dict:
 
 @contextlib.contextmanager
 def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
-               save_scene=None, force: bool = False, say=print, framed_values=None, **params):
+               save_scene=None, force: bool = False, say=print, framed_values=None,
+               sets_isovalue: str = "--isovalue", **params):
     """The path of a scene XML for ``source``: ``source`` itself when it is a scene (then
     ``field``, ``isovalue`` and ``save_scene`` must be None), else the scene made for the data
     file, written to ``save_scene`` (kept; replaced only with ``force``) or to a temporary
-    folder (removed when the block ends). Prints the field and isovalue it picked."""
+    folder (removed when the block ends). Prints the field and isovalue it picked (and that
+    ``sets_isovalue``, the caller's option, sets it)."""
     if is_scene_file(source):
         given = [n for n, v in (("--field", field), ("--isovalue", isovalue),
                                 ("--mode", params.get("mode")), ("--save-scene", save_scene),
@@ -75,7 +77,8 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
         save_scene = check_output(save_scene, suffixes=(SCENE_SUFFIX,), overwrite=force,
                                   make_folders=True)
     made = make_scene(source, field=field, isovalue=isovalue, resolution=resolution, spp=spp,
-                      say=say, framed_values=framed_values, **params)
+                      say=say, framed_values=framed_values, sets_isovalue=sets_isovalue,
+                      **params)
     if save_scene is not None:
         with replacing(save_scene) as tmp:
             Path(tmp).write_text(made.xml())
@@ -89,9 +92,10 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
 
 
 def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, say=print,
-               framed_values=None, **params):
+               framed_values=None, sets_isovalue: str = "--isovalue", **params):
     """The :class:`~mi_amr.plugin.autoscene.DataScene` of ``source``, with what was picked
-    printed."""
+    printed (and that ``sets_isovalue``, the caller's option: ``--isovalue`` on the command
+    line, ``isovalue=`` in Python, sets it)."""
     from mi_amr.plugin.autoscene import RESOLUTION, SPP, data_scene
 
     t0 = time.perf_counter()
@@ -102,7 +106,7 @@ def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, 
     if made.picked:
         others = ", ".join(f"{v:.6g}" for v in made.suggested[1:])
         how = "picked from the histogram" + (f"; also try {others}" if others else "") + \
-            "; --isovalue sets it"
+            f"; {sets_isovalue} sets it"
     say(f"{made.path}: field {made.field}, isovalue {made.isovalue:.6g} ({how}); scene made "
         f"in {seconds:.1f} s")
     if made.band_picked and made.params.get("mode") == "volume":

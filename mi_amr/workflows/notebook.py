@@ -111,7 +111,8 @@ def show(scene_or_file, field=None, isovalue=None, resolution=None, spp: int = 4
         from mi_amr.workflows.datafile import make_scene
 
         made = make_scene(scene_or_file, field=field, isovalue=isovalue,
-                          resolution=resolution or RESOLUTION, spp=spp, **params)
+                          resolution=resolution or RESOLUTION, spp=spp,
+                          sets_isovalue="isovalue=", **params)
         scene = load_dict(made.as_dict())
     pixels = render_passes(mi, dr, np, scene, int(spp), quiet=True)
     if pixels.shape[-1] == 3:           # a film without alpha: every pixel counts as covered
@@ -169,6 +170,7 @@ def explore(scene_or_file, field=None, isovalue=None, *, port: int = 0,
     cleanup = contextlib.ExitStack()
     try:
         scene = cleanup.enter_context(scene_file(scene_or_file, field=field, isovalue=isovalue,
+                                                 sets_isovalue="isovalue=",
                                                  **asked_params(allow_nonfinite, mode)))
         warning = host_warning(host)
         if warning:
