@@ -208,32 +208,37 @@ def _data_scene(args, source, resolution=None, series: bool = False):
                                            scene_file)
     from mi_amr.workflows.movie.spec import parse_sweep
 
-    isovalue = args.isovalue
+    isovalue, listed = args.isovalue, None
     if not is_scene_file(source):
         defines = _defines(getattr(args, "defines", []))
         check_data_defines(defines)
         if "isovalue" in defines:
-            isovalue = _defined_isovalue(defines["isovalue"], isovalue)
+            listed = _defined_isovalue(defines["isovalue"], isovalue)
+            isovalue = listed[0]
     sweep = getattr(args, "isovalues", None)
-    framed = "data" if series else None if sweep is None else parse_sweep(sweep)[:2]
+    framed = "data" if series else parse_sweep(sweep)[:2] if sweep is not None else \
+        (min(listed), max(listed)) if listed and len(listed) > 1 else None
     return scene_file(source, field=args.field, isovalue=isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
                       force=getattr(args, "force", False), framed_values=framed,
                       **asked_params(args.allow_nonfinite, args.mode))
 
 
-def _defined_isovalue(text: str, given):
-    """The isovalue a data file's scene is made for (its camera frames it, and no other is
-    picked) when ``-D isovalue=text`` sets the rendered ones: the first of them. ``given``:
-    ``--isovalue``'s, which may not be given as well."""
+def _defined_isovalue(text: str, given) -> list:
+    """The isovalues that ``-D isovalue=text`` sets for a data file's scene (a number or a
+    list): its scene is made for the first (no other is picked) and its camera frames them
+    all. ``given``: ``--isovalue``'s, which may not be given as well."""
     if given is not None:
         raise AMRError("--isovalue and -D isovalue both set the isovalue of a data file's "
                        "scene; give one")
     try:
-        return float(text.replace(",", " ").split()[0])
-    except (ValueError, IndexError):
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        values = []
+    if not values:
         raise AMRError(f"-D isovalue: expected a number or a comma-separated list of numbers, "
-                       f"got {text!r}") from None
+                       f"got {text!r}")
+    return values
 
 
 def _render(args) -> None:

@@ -184,7 +184,7 @@ def test07d_a_data_files_request_is_checked_before_its_scene_is_made(scenes, tmp
 
 def test07e_d_isovalue_of_a_data_file_is_its_isovalue(scenes, tmp_path, capsys):
     """``-D isovalue=...`` on a data file makes its scene for that isovalue (the first of a
-    list): no other is picked and printed, and the camera frames that one."""
+    list): no other is picked and printed, and the camera frames the isovalues it lists."""
     from mi_amr.plugin.autoscene import data_scene
 
     data, xml = str(scenes / "s.npz"), tmp_path / "s.xml"
@@ -195,14 +195,17 @@ def test07e_d_isovalue_of_a_data_file_is_its_isovalue(scenes, tmp_path, capsys):
     assert "isovalue 0.3 (given)" in out and "picked" not in out, out
     # (The framed box sets the volume's placement: its scale differs from the pick's.)
     matrix = [line for line in xml.read_text().splitlines() if "<matrix" in line]
-    scale = [float(data_scene(data, "f", v, resolution=(16, 12)).framing.to_world[0, 0])
-             for v in (0.3, None)]
-    assert scale[0] != scale[1] and matrix and f'value="{scale[0]!r} ' in matrix[0], matrix
+    scale = [float(data_scene(data, "f", v, resolution=(16, 12), framed_values=framed)
+                   .framing.to_world[0, 0])
+             for v, framed in ((0.3, (0.3, 0.6)), (0.3, None))]
+    assert scale[0] != scale[1], scale
+    assert matrix and f'value="{scale[0]!r} ' in matrix[0], matrix
     one_error(capsys, ["render", data, "--field", "f", "--isovalue", "0.3", "-D",
                        "isovalue=0.4", "-o", str(tmp_path / "t.png")],
               "--isovalue and -D isovalue both set")
-    one_error(capsys, ["render", data, "--field", "f", "-D", "isovalue=x", "-o",
-                       str(tmp_path / "t.png")], "-D isovalue: expected a number")
+    for text in ("x", "0.3, x", ""):
+        one_error(capsys, ["render", data, "--field", "f", "-D", f"isovalue={text}", "-o",
+                           str(tmp_path / "t.png")], "-D isovalue: expected a number")
 
 def test08_a_scene_saved_by_the_viewer_keeps_no_stale_defaults(tmp_path, variant, capsys):
     """The viewer writes its values into the scene: a parameter the file gave as ``$name``
