@@ -633,6 +633,25 @@ def test15b_quantiles_of_sorted_values_are_numpys_to_the_bit(values, qs, double,
         assert np.asarray(ours).dtype == np.asarray(numpys).dtype
         np.testing.assert_array_equal(ours, numpys)
 
+@settings(max_examples=300, deadline=None)
+@given(values=st.lists(st.floats(-1e3, 1e3, width=32), min_size=0, max_size=80),
+       ends=st.tuples(st.floats(-1e3, 1e3, width=32), st.floats(0.0, 1e3, width=32)),
+       bins=st.integers(1, 70), double=st.booleans(), grid_values=st.booleans())
+def test15c_a_histogram_of_sorted_values_is_numpys(values, ends, bins, double, grid_values):
+    """The viewer's histogram counts the sorted leaf values at the bin edges instead of
+    binning them again: NumPy's counts, values on an edge and on the last edge included,
+    values outside the range left out."""
+    from mi_amr.core.suggest import sorted_histogram
+
+    lo, hi = float(ends[0]), float(ends[0]) + max(float(ends[1]), 1.0)
+    if grid_values:     # values on the edges themselves
+        values = list(np.linspace(lo, hi, bins + 1)) + values[:5]
+    v = np.sort(np.asarray(values, dtype=np.float64 if double else np.float32))
+    ours, numpys = sorted_histogram(v, bins, (lo, hi)), np.histogram(v, bins, (lo, hi))[0]
+    assert ours.dtype == numpys.dtype
+    np.testing.assert_array_equal(ours, numpys)
+
+
 def ball_volume(scale=1000.0):
     """One grid over the unit cube whose field ``f`` is ``scale`` times the distance from the
     centre: a data file in other units than the sphere wake's Q."""

@@ -120,6 +120,19 @@ def sorted_percentile(values: np.ndarray, p):
                            np.true_divide(p, 100))
 
 
+def sorted_histogram(values: np.ndarray, bins: int, value_range) -> np.ndarray:
+    """``np.histogram(values, bins, range=value_range)[0]`` of ``values`` already sorted
+    ascending (1-D): each bin counts the values from its lower edge up to, not including, its
+    upper edge (the last one's included), read off the sorted values at the edges, as NumPy
+    computes the edges."""
+    lo, hi = value_range
+    edges = np.linspace(lo, hi, bins + 1, endpoint=True,
+                        dtype=np.result_type(lo, hi, values))
+    at = np.searchsorted(values, edges, side="left")
+    at[-1] = np.searchsorted(values, edges[-1], side="right")
+    return np.diff(at).astype(np.intp)
+
+
 def finite_leaf_values(volume, field: str) -> np.ndarray:
     """:func:`leaf_values` of ``field``, sorted (what the picks read); one error naming the
     source and the field where there is none (every value NaN or Inf, kept as missing

@@ -45,7 +45,8 @@ import mitsuba as mi
 import numpy as np
 
 from mi_amr import tolerances as tol
-from mi_amr.core.suggest import leaf_values, sorted_quantile, suggest_band_widths
+from mi_amr.core.suggest import (leaf_values, sorted_histogram, sorted_quantile,
+                                 suggest_band_widths)
 from mi_amr.errors import AMRError
 from mi_amr.plugin.camera import Camera, scene_camera, sensor_key, set_camera
 from mi_amr.plugin.inputs import colormap_table
@@ -379,11 +380,9 @@ class Session:
     def histogram(self) -> list:
         """Counts of the field's leaf-cell values (cells no finer grid covers) in
         :data:`HISTOGRAM_BINS` equal bins over :meth:`value_range`."""
-        values = self._leaf_values()
         lo, hi = self.value_range()
-        counts, _ = np.histogram(values, bins=HISTOGRAM_BINS, range=(lo, hi if hi > lo else
-                                                                      lo + 1.0))
-        return counts.tolist()
+        return sorted_histogram(self._leaf_values(), HISTOGRAM_BINS,
+                                (lo, hi if hi > lo else lo + 1.0)).tolist()
 
     def histogram2d(self):
         """Volume mode: the value x |grad f| histogram (:func:`.tf2d.histogram2d`)."""
