@@ -41,6 +41,19 @@ def test01_batches_hold_every_grid_once_each_of_one_shape():
     assert sorted(seen) == list(range(len(vol.grids)))
 
 
+def test01b_grids_end_to_end_are_a_view_others_a_copy():
+    """Grids one after the other in the flat array are read in place; others are gathered."""
+    grids = [{"level": 0, "origin": (2.0 * i, 0.0, 0.0), "spacing": 1.0,
+              "fields": {"f": np.arange(8.0).reshape(2, 2, 2) + 10 * i}} for i in range(4)]
+    vol = AMRVolume.from_grids(grids)
+    flat, offsets = batches.flat_field(vol, "f"), vol.cell_offsets()
+    for ids, view in (([1, 2, 3], True), ([0, 2], False), ([3], True)):
+        block = batches.stacked(flat, offsets, np.array(ids), (2, 2, 2))
+        assert np.shares_memory(block, flat) == view, ids
+        for j, g in enumerate(ids):
+            np.testing.assert_array_equal(block[j], vol.grids[g].fields["f"])
+
+
 @pytest.mark.filterwarnings("error::RuntimeWarning")   # (NumPy's inf - inf warning printed)
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2 ** 32 - 1), dtype=st.sampled_from([np.float32, np.float64]),

@@ -47,15 +47,26 @@ def shape_batches(volume, cells: int | None = None):
 
 def stacked(flat: np.ndarray, offsets: np.ndarray, ids, shape) -> np.ndarray:
     """The cells of grids ``ids`` (all of ``shape``) of the flat array ``flat`` (offsets: each
-    grid's first cell), as a new ``(len(ids), *shape)`` array."""
+    grid's first cell), as a ``(len(ids), *shape)`` array: read only, a view of ``flat`` where
+    the grids lie end to end in it (one grid, or grids one after the other), else a copy."""
     n = shape[0] * shape[1] * shape[2]
-    index = offsets[ids][:, None] + np.arange(n, dtype=np.int64)
+    starts = offsets[ids]
+    if len(starts) == 1 or np.all(np.diff(starts) == n):
+        return flat[starts[0]:starts[0] + len(starts) * n].reshape((len(ids),) + tuple(shape))
+    index = starts[:, None] + np.arange(n, dtype=np.int64)
     return flat[index].reshape((len(ids),) + tuple(shape))
+
+
+def _pairs(axis: int):
+    a = tuple(slice(0, -1) if k == axis + 1 else slice(None) for k in range(4))
+    b = tuple(slice(1, None) if k == axis + 1 else slice(None) for k in range(4))
+    return a, b
+
+
+_AXIS_PAIRS = tuple(_pairs(axis) for axis in range(3))
 
 
 def axis_pairs(axis: int):
     """Index tuples ``(a, b)`` of a batch ``(k, nx, ny, nz)`` that pair each cell with its
     neighbour above along grid axis ``axis`` (0-2) in the same grid."""
-    a = tuple(slice(0, -1) if k == axis + 1 else slice(None) for k in range(4))
-    b = tuple(slice(1, None) if k == axis + 1 else slice(None) for k in range(4))
-    return a, b
+    return _AXIS_PAIRS[axis]

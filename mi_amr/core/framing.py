@@ -134,17 +134,18 @@ def value_box(volume, field: str, lo_value: float, hi_value: float):
 def _widen(box_lo, box_hi, hit, origin, spacing) -> None:
     """Grow the box ``box_lo``..``box_hi`` (world) in place to the cells ``hit`` of a batch
     of grids (``(k, nx, ny, nz)``; their origins and spacings ``(k, 3)``)."""
-    rows = hit.reshape(len(hit), -1).any(axis=1)
-    if not rows.any():
+    if not hit.any():
         return
-    hit, origin, spacing = hit[rows], origin[rows], spacing[rows]
-    for axis in range(3):
-        on = hit.any(axis=tuple(k for k in (1, 2, 3) if k != axis + 1))
-        first = np.argmax(on, axis=1)
-        last = on.shape[1] - 1 - np.argmax(on[:, ::-1], axis=1)
-        box_lo[axis] = min(box_lo[axis], np.min(origin[:, axis] + first * spacing[:, axis]))
+    if len(hit) > 1:
+        rows = hit.reshape(len(hit), -1).any(axis=1)
+        hit, origin, spacing = hit[rows], origin[rows], spacing[rows]
+    for axis, others in enumerate(((2, 3), (1, 3), (1, 2))):
+        on = hit.any(axis=others)
+        first = on.argmax(axis=1)
+        last = on.shape[1] - 1 - on[:, ::-1].argmax(axis=1)
+        box_lo[axis] = min(box_lo[axis], (origin[:, axis] + first * spacing[:, axis]).min())
         box_hi[axis] = max(box_hi[axis],
-                           np.max(origin[:, axis] + (last + 1) * spacing[:, axis]))
+                           (origin[:, axis] + (last + 1) * spacing[:, axis]).max())
 
 
 def value_box_reference(volume, field: str, lo_value: float, hi_value: float):
