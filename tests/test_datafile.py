@@ -240,6 +240,26 @@ def velocity_of(fn, h=0.125):
                          "q_criterion")
 
 
+def test04c_a_scene_derives_the_picked_field_as_its_load_does(tmp_path):
+    """A data file's derived field, read for the pick (and ``info``), is derived by the scene
+    load's Dr.Jit kernels: the host derivation's numbers, bit for bit, and the same picks."""
+    import mi_amr
+    from mi_amr.plugin.datafields import load_with_fields
+
+    rng = np.random.default_rng(4)
+    vol = velocity_of(lambda x, y, z: (np.sin(3 * y) * z + 0.1 * rng.standard_normal(x.shape),
+                                       np.cos(2 * x) + z * z, x * y))
+    path = save(vol.select_fields(["vx", "vy", "vz"]), tmp_path / "v.npz")
+    host = mi_amr.derive(mi_amr.load(path), "q_criterion", "speed")
+    read, names = load_with_fields(path, ["q_criterion", "speed"])
+    assert names == ["q_criterion", "speed"]
+    for name in names:
+        for a, b in zip(read.grids, host.grids):
+            assert a.fields[name].dtype == b.fields[name].dtype
+            np.testing.assert_array_equal(a.fields[name], b.fields[name])
+    assert suggest_isovalues(read, "q_criterion") == suggest_isovalues(host, "q_criterion")
+
+
 def test04b_the_q_criterion_is_picked_among_its_positive_values():
     """A vortex (rotation about z, fading with the radius) in a field of small fluctuations:
     the crossings of Q would pick a value near 0, in the fluctuations; Q's picks are the

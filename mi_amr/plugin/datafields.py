@@ -13,9 +13,14 @@ ALIASES = {"vorticity": "vorticity_magnitude"}
 def load_with_fields(path, fields=None, *, derive_them: bool = True,
                      allow_nonfinite: bool = False):
     """``(volume, names)``: ``path`` read with ``fields`` (stored or derived; default: every
-    stored field) and, with ``derive_them``, the derived ones computed; ``names`` in the order
-    asked, aliases resolved. ``allow_nonfinite``: as :func:`mi_amr.load` takes it."""
-    from mi_amr.core.derive import DERIVED_FIELDS, VELOCITY_NAMES, derive
+    stored field) and, with ``derive_them``, the derived ones computed (by the Dr.Jit kernels
+    that a scene's load derives them with, :func:`mi_amr.kernels.derive.derive`: the host's
+    numbers, bit for bit); ``names`` in the order asked, aliases resolved.
+    ``allow_nonfinite``: as :func:`mi_amr.load` takes it."""
+    import drjit as dr
+
+    from mi_amr.core.derive import DERIVED_FIELDS, VELOCITY_NAMES
+    from mi_amr.kernels.derive import derive
     from mi_amr.kernels.prepared import fields_to_read
     from mi_amr.readers import available_fields, load
 
@@ -36,5 +41,5 @@ def load_with_fields(path, fields=None, *, derive_them: bool = True,
     volume = load(path, fields=read, allow_nonfinite=allow_nonfinite)
     derived = [f for f in names if f not in volume.field_names]
     if derived and derive_them:
-        volume = derive(volume, *derived)
+        volume = derive(volume, *derived, m=dr.llvm.ad)
     return volume, names
