@@ -83,14 +83,17 @@ def histogram_figure(path, field: str, output, *, bins: int = 256, overwrite: bo
     if not 2 <= bins <= MAX_BINS:
         raise AMRError(f"--bins must be between 2 and {MAX_BINS}, got {bins}")
     output = check_output(output, suffixes=(".png",), overwrite=overwrite, make_folders=True)
-    from mi_amr.core.derive import DERIVED_FIELDS, derive
+    import drjit as dr
+
+    from mi_amr.core.derive import DERIVED_FIELDS
+    from mi_amr.kernels.derive import derive
     from mi_amr.kernels.prepared import fields_to_read
     from mi_amr.readers import available_fields, load
 
     volume = load(path, fields=fields_to_read(field, None, available_fields(path), path),
                   allow_nonfinite=allow_nonfinite)
     if field not in volume.field_names and field in DERIVED_FIELDS:
-        volume = derive(volume, field)
+        volume = derive(volume, field, m=dr.llvm.ad)        # (the scene load's kernels)
     v, g = value_and_gradient(volume, field)
     if len(v) == 0:
         raise AMRError(f"{path}: field '{field}' has no finite leaf cells")
