@@ -201,9 +201,10 @@ def _add_allow_nonfinite(s, where: str = "") -> None:
                         f"them is refused)")
 
 
-def _data_scene(args, source, resolution=None, series: bool = False):
+def _data_scene(args, source, resolution=None, series: bool = False, offer=None):
     """The scene file for ``source`` (a block: a data file's is made, and removed after);
-    ``series``: the first of a time series' data files."""
+    ``series``: the first of a time series' data files; ``offer``: as
+    :func:`~mi_amr.workflows.datafile.scene_file` takes it."""
     from mi_amr.workflows.datafile import (asked_params, check_data_defines, is_scene_file,
                                            scene_file)
     from mi_amr.workflows.movie.spec import parse_sweep
@@ -221,7 +222,7 @@ def _data_scene(args, source, resolution=None, series: bool = False):
     return scene_file(source, field=args.field, isovalue=isovalue, resolution=resolution,
                       spp=getattr(args, "spp", None), save_scene=args.save_scene,
                       force=getattr(args, "force", False), framed_values=framed,
-                      **asked_params(args.allow_nonfinite, args.mode))
+                      offer=offer, **asked_params(args.allow_nonfinite, args.mode))
 
 
 def _defined_isovalue(text: str, given) -> list:
@@ -242,12 +243,17 @@ def _defined_isovalue(text: str, given) -> list:
 
 
 def _render(args) -> None:
+    from mi_amr.plugin.integrator import register
+    from mi_amr.plugin.scene import use_variant
     from mi_amr.workflows.render import check_image_request, render_file
 
     # (Before a data file's scene is made: its isovalue pick reads the whole file.)
     check_image_request(Path(args.output), args.spp, args.resolution, args.force, args.aovs)
     started = time.perf_counter()       # (the total counts a data file's scene being made)
-    with _data_scene(args, args.scene, args.resolution) as scene:
+    # The field a data file's isovalue pick reads goes on to the scene's load, not read twice.
+    use_variant(args.variant)
+    offer = register().offer
+    with _data_scene(args, args.scene, args.resolution, offer=offer) as scene:
         render_file(scene, args.output, spp=args.spp, resolution=args.resolution,
                     defines=_defines(args.defines), variant=args.variant,
                     overwrite=args.force, aovs=args.aovs, started=started)

@@ -344,6 +344,26 @@ def assert_same_pixels(a, b):
         f"differ by up to {diff.max():.3g} in {(diff > 0).mean():.2%} of the values"
 
 
+def test07f_a_render_of_a_data_file_reads_its_field_once(mi, tmp_path, capsys):
+    """``render FILE``: the field that its isovalue pick read goes on to the scene's load
+    (which says so) instead of being read again, and makes the pixels that a load of the
+    saved scene, reading the file, makes."""
+    from mi_amr.plugin.integrator import register
+
+    path = save(box_volume((0, 0, 0), (2, 1, 1)), tmp_path / "once.npz")
+    a, b, xml = tmp_path / "a.png", tmp_path / "b.png", tmp_path / "made.xml"
+    rc, text, err = render_cli(["render", path, "--field", "f", "--save-scene", str(xml),
+                                "-o", str(a), "--resolution", "48", "32", "--spp", "1"], capsys)
+    assert rc == 0, err
+    assert "once.npz (f: " in text and "already read" in text, text
+    assert "read once.npz" not in text, text
+    register().clear()                  # (the saved scene's render reads the file)
+    rc, text, err = render_cli(["render", str(xml), "-o", str(b), "--spp", "1"], capsys)
+    assert rc == 0 and "read once.npz" in text, text
+    first, second = np.array(mi.Bitmap(str(a))), np.array(mi.Bitmap(str(b)))
+    assert first[..., 3].max() > 0 and np.array_equal(first, second)
+
+
 def test07_the_saved_scene_and_the_dict_render_the_same_pixels(mi, tmp_path, capsys):
     import mi_amr
     from mi_amr.plugin.scene import load_dict

@@ -320,6 +320,58 @@ def test07_a_session_gives_back_what_it_prepared_until_cleared(tmp_path):
     assert session.prepare(path, "q_criterion", "speed", m=dr.llvm.ad) is not first
 
 
+def test07c_a_volume_offered_for_its_file_is_prepared_without_reading_it(tmp_path):
+    """:meth:`Preparations.offer`: the next preparation of that file takes the fields from the
+    volume offered (a data file's scene read them for its isovalue pick) instead of reading and
+    deriving them again, and prepares what a read would; it does not where the file changed
+    since, where the volume lacks a field, or where the offer was for NaN/Inf kept otherwise;
+    one preparation of the file takes the offer or drops it."""
+    import os
+
+    from mi_amr.kernels.prepared import Preparations
+    from mi_amr.plugin.datafields import load_with_fields
+    from mi_amr.synthetic import datasets
+
+    path = tmp_path / "wake.npz"
+    datasets.sphere_wake("small", progress=False).select_fields(["vx", "vy", "vz"]).save(path)
+    picked, _ = load_with_fields(path, ["q_criterion"])
+    heard = []
+
+    def prepare(session, *fields, offer=None, nonfinite=False):
+        if offer is not None:
+            session.offer(path, offer, allow_nonfinite=nonfinite)
+        heard.clear()
+        return session.prepare(path, *fields, m=dr.llvm.ad)
+
+    session = Preparations(report=heard.append)
+    offered = prepare(session, "q_criterion", offer=picked.select_fields(["q_criterion"]))
+    assert any("already read" in line for line in heard) and \
+        not any("read wake.npz" in line for line in heard), heard
+    read = prepare(Preparations(report=heard.append), "q_criterion")
+    assert any("read wake.npz" in line for line in heard), heard
+    for g, (a, b) in enumerate(zip(offered.volume.grids, read.volume.grids)):
+        assert np.shares_memory(a.fields["q_criterion"], picked.grids[g].fields["q_criterion"])
+        np.testing.assert_array_equal(a.fields["q_criterion"], b.fields["q_criterion"])
+    for kind in (True, False):
+        np.testing.assert_array_equal(offered.device.node_ranges(kind),
+                                      read.device.node_ranges(kind))
+    np.testing.assert_array_equal(offered.device.brick_values.numpy(),
+                                  read.device.brick_values.numpy())
+    # Not taken: a field it lacks, a file changed since the offer, NaN/Inf kept otherwise.
+    q_only = picked.select_fields(["q_criterion"])
+    for fields, nonfinite, touch in ((("q_criterion", "speed"), False, False),
+                                     (("q_criterion",), True, False),
+                                     (("q_criterion",), False, True)):
+        session = Preparations(report=heard.append)
+        session.offer(path, q_only, allow_nonfinite=nonfinite)
+        if touch:
+            os.utime(path, ns=(os.stat(path).st_atime_ns, os.stat(path).st_mtime_ns + 10**9))
+        heard.clear()
+        session.prepare(path, *fields, m=dr.llvm.ad)
+        assert any("read wake.npz" in line for line in heard), (fields, nonfinite, touch)
+        assert session.take_offer(str(path)) is None           # dropped either way
+
+
 class _Prepared:
     """What a stand-in ``prepare_file`` gives: something a weak reference can watch."""
 

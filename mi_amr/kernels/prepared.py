@@ -171,10 +171,23 @@ class Preparations:
         self.report = report
         self.cache = cache
         self._kept: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
+        self._offer = None
 
     def clear(self) -> None:
-        """Forget every volume prepared so far (the next preparation reads its file)."""
+        """Forget every volume prepared so far (the next preparation reads its file), and a
+        volume offered."""
         self._kept.clear()
+        self._offer = None
+
+    def offer(self, path, volume, allow_nonfinite: bool = False) -> None:
+        """Hand over ``volume``, just read from the file ``path`` (with NaN and Inf values kept
+        where ``allow_nonfinite``) and holding the fields it holds as that file's
+        preparation would make them (a data file's scene reads its field to pick the
+        isovalue): the next :meth:`prepare` of that file, unchanged since, takes the fields it
+        needs from it instead of reading (and deriving) them again, where it holds them all
+        and no snapshot does. One volume is held at a time, until a preparation of its file."""
+        path = os.path.abspath(path)
+        self._offer = (path, _stamp(path), bool(allow_nonfinite), volume)
 
     def retain(self, paths) -> None:
         """Forget every kept volume prepared from a file not among ``paths`` (a time series'
@@ -192,13 +205,11 @@ class Preparations:
                 allow_nonfinite: bool = False) -> PreparedVolume:
         """:func:`prepare_file`, given again while it is kept."""
         path = os.path.abspath(path)
-        try:
-            stamp = os.stat(path).st_mtime_ns
-        except OSError:
-            raise AMRError(f"{path}: no such file or folder") from None
+        stamp = _stamp(path)
         key = (path, stamp, field, color_field, leaf_cells, getattr(m, "__name__", None),
                bool(allow_nonfinite))
         if key in self._kept:
+            self.take_offer(path, allow_nonfinite)      # (not needed: dropped)
             self._kept.move_to_end(key)
             return self._kept[key]
         while self._kept and len(self._kept) >= self.SIZE:
@@ -207,6 +218,25 @@ class Preparations:
                                 how=LoadOptions(leaf_cells, allow_nonfinite))
         self._kept[key] = prepared
         return prepared
+
+    def take_offer(self, path, allow_nonfinite: bool = False):
+        """The volume :meth:`offer` holds for the file ``path`` (absolute) read as it is now
+        and as ``allow_nonfinite`` says, or None; a preparation of that file takes it or drops
+        it."""
+        if self._offer is None or self._offer[0] != path:
+            return None
+        path, stamp, nonfinite, volume = self._offer
+        self._offer = None
+        return volume if (stamp, nonfinite) == (_stamp(path), bool(allow_nonfinite)) else None
+
+
+def _stamp(path: str) -> int:
+    """The modification time (ns) of the file or folder ``path``; one error where there is
+    none."""
+    try:
+        return os.stat(path).st_mtime_ns
+    except OSError:
+        raise AMRError(f"{path}: no such file or folder") from None
 
 
 @dataclass(frozen=True)
@@ -228,8 +258,10 @@ def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
     hears each step and
     whose ``cache`` holds the snapshots (without one: no report, and the cache that
     ``$MI_AMR_CACHE`` describes, see :meth:`SnapshotCache.from_env
-    <mi_amr.kernels.snapshot.SnapshotCache.from_env>`). Keeps nothing: a
-    :class:`Preparations` keeps what it prepared and gives it again."""
+    <mi_amr.kernels.snapshot.SnapshotCache.from_env>`); a volume offered to it
+    (:meth:`Preparations.offer`) gives the fields where it holds every one needed and no
+    snapshot is read. Keeps nothing: a :class:`Preparations` keeps what it prepared and gives
+    it again."""
     path = os.path.abspath(path)
     if not os.path.exists(path):
         raise AMRError(f"{path}: no such file or folder")
@@ -241,12 +273,13 @@ def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
                                   how.allow_nonfinite) if cache.enabled else None
     memory.keep_freed_memory()          # for the read's buffers, or the snapshot's
     t0 = time.perf_counter()
+    offered = by.take_offer(path, how.allow_nonfinite) if by is not None else None
     snap = cache.load(snap_key) if snap_key else None
     if snap is not None:
         prepared = PreparedVolume.restore(snap, m=m, report=report)
         prepared._lap("snapshot", t0)
     else:
-        prepared = _prepare_from_file(path, (field, color_field), how, m, report)
+        prepared = _prepare_from_file(path, (field, color_field), how, m, report, offered)
         if snap_key:
             t0 = time.perf_counter()
             if cache.save(snap_key, prepared):
@@ -257,12 +290,23 @@ def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
     return prepared
 
 
-def _prepare_from_file(path, fields, how: LoadOptions, m, report) -> PreparedVolume:
-    """Read what ``fields`` (``(field, color_field)``) need from ``path`` and prepare it."""
+def _prepare_from_file(path, fields, how: LoadOptions, m, report,
+                       offered=None) -> PreparedVolume:
+    """Read what ``fields`` (``(field, color_field)``) need from ``path`` and prepare it;
+    from the volume ``offered`` (read from ``path``) instead where it holds them all."""
     from mi_amr.readers import available_fields, load
 
     field, color_field = fields
     say = report or (lambda text: None)
+    wanted = [f for f in dict.fromkeys(fields) if f is not None]
+    if offered is not None and all(f in offered.field_names for f in wanted):
+        volume = offered.select_fields(wanted)
+        del offered
+        say(f"  {os.path.basename(path)} ({', '.join(wanted)}: {volume.num_cells:,} cells, "
+            f"{len(volume.grids):,} grids) already read")
+        return PreparedVolume(volume, field, color_field, leaf_cells=how.leaf_cells, m=m,
+                              report=report)
+    del offered
     names = fields_to_read(field, color_field, available_fields(path), path)
     t0 = time.perf_counter()
     volume = load(path, fields=names, level_buffers=set(names) - {field, color_field},

@@ -158,7 +158,7 @@ def _tag(name: str, value) -> str:
 
 
 def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp: int = SPP,
-               framed_values=None, **params) -> DataScene:
+               framed_values=None, offer=None, **params) -> DataScene:
     """The scene of the data file (or :class:`~mi_amr.AMRVolume` read from one) ``source``
     showing ``field`` (stored, or derived from the velocity: ``q_criterion``, ``speed``,
     ``vorticity`` / ``vorticity_magnitude``; default: the first stored field) at
@@ -173,10 +173,14 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
     Q, a band too thin to see in most other fields. ``framed_values``: ``(lo, hi)``, the
     values whose isosurfaces the camera frames together (a movie's isovalue sweep) instead of
     the isovalue's alone, or ``"data"``: the data's bounds (a time series, whose later steps'
-    surfaces may lie elsewhere)."""
+    surfaces may lie elsewhere). ``offer``: a callable (as
+    :meth:`~mi_amr.kernels.prepared.Preparations.offer`) handed the volume of the field read
+    from the file here, ``offer(path, volume, allow_nonfinite)``, so that the scene's load
+    need not read it again; not called for a volume given as ``source``."""
     if isovalue is not None:
         isovalue = _finite(isovalue)
     path, volume = _source(source)
+    given = volume
     if volume is not None and volume.allow_nonfinite:
         params.setdefault("allow_nonfinite", True)
     width, height = (int(x) for x in resolution)
@@ -194,6 +198,8 @@ def data_scene(source, field=None, isovalue=None, *, resolution=RESOLUTION, spp:
         params["band_width"] = suggest_band_width(values, value)
     lo, hi, what = (*volume.bounds, "data") if framed_values == "data" else \
         _shown_box(volume, field, framed_values or (value, value), params)
+    if offer is not None and given is None and field in volume.field_names:
+        offer(path, volume.select_fields([field]), boolean(params, "allow_nonfinite"))
     return DataScene(path=path, field=field, isovalue=value, picked=isovalue is None,
                      suggested=suggested, resolution=(width, height), spp=int(spp),
                      framing=frame_box(lo, hi, width / height), params=dict(params),

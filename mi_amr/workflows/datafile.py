@@ -51,12 +51,14 @@ def asked_params(allow_nonfinite: bool = False, mode=None) -> dict:
 @contextlib.contextmanager
 def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
                save_scene=None, force: bool = False, say=print, framed_values=None,
-               sets_isovalue: str = "--isovalue", **params):
+               sets_isovalue: str = "--isovalue", offer=None, **params):
     """The path of a scene XML for ``source``: ``source`` itself when it is a scene (then
     ``field``, ``isovalue`` and ``save_scene`` must be None), else the scene made for the data
     file, written to ``save_scene`` (kept; replaced only with ``force``) or to a temporary
     folder (removed when the block ends). Prints the field and isovalue it picked (and that
-    ``sets_isovalue``, the caller's option, sets it)."""
+    ``sets_isovalue``, the caller's option, sets it). ``offer``: as
+    :func:`~mi_amr.plugin.autoscene.data_scene` takes it (the field read for the pick, handed
+    to the preparations that will load the scene)."""
     if is_scene_file(source):
         given = [n for n, v in (("--field", field), ("--isovalue", isovalue),
                                 ("--mode", params.get("mode")), ("--save-scene", save_scene),
@@ -78,7 +80,7 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
                                   make_folders=True)
     made = make_scene(source, field=field, isovalue=isovalue, resolution=resolution, spp=spp,
                       say=say, framed_values=framed_values, sets_isovalue=sets_isovalue,
-                      **params)
+                      offer=offer, **params)
     if save_scene is not None:
         with replacing(save_scene) as tmp:
             Path(tmp).write_text(made.xml())
@@ -92,7 +94,7 @@ def scene_file(source, *, field=None, isovalue=None, resolution=None, spp=None,
 
 
 def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, say=print,
-               framed_values=None, sets_isovalue: str = "--isovalue", **params):
+               framed_values=None, sets_isovalue: str = "--isovalue", offer=None, **params):
     """The :class:`~mi_amr.plugin.autoscene.DataScene` of ``source``, with what was picked
     printed (and that ``sets_isovalue``, the caller's option: ``--isovalue`` on the command
     line, ``isovalue=`` in Python, sets it)."""
@@ -100,7 +102,7 @@ def make_scene(source, *, field=None, isovalue=None, resolution=None, spp=None, 
 
     t0 = time.perf_counter()
     made = data_scene(source, field, isovalue, resolution=resolution or RESOLUTION,
-                      spp=spp or SPP, framed_values=framed_values, **params)
+                      spp=spp or SPP, framed_values=framed_values, offer=offer, **params)
     seconds = time.perf_counter() - t0
     how = "given"
     if made.picked:
