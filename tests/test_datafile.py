@@ -590,10 +590,20 @@ def test13_show_takes_a_data_file_a_dict_or_a_scene_file_alike(mi, tmp_path, cap
             mi_amr.explore(xml, **kw)
     # A picked isovalue is printed with the way to set it in Python words, not the CLI's.
     capsys.readouterr()
-    mi_amr.show(path, field="f", resolution=(24, 16), spp=1)
+    import mi_amr.readers
+
+    fresh = save(box_volume((0, 0, 0), (1, 2, 1)), tmp_path / "c.npz")    # (none kept)
+    reads = []
+    real = mi_amr.readers.load
+    try:
+        mi_amr.readers.load = lambda *a, **kw: reads.append(a) or real(*a, **kw)
+        mi_amr.show(fresh, field="f", resolution=(24, 16), spp=1)
+    finally:
+        mi_amr.readers.load = real
     out = capsys.readouterr().out
     assert "picked from the histogram" in out and "isovalue= sets it" in out, out
     assert "--isovalue" not in out, out
+    assert len(reads) == 1, reads           # the pick's read goes on to the scene's load
 
 
 def test14_view_serves_a_data_file(tmp_path):

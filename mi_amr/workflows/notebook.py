@@ -108,11 +108,13 @@ def show(scene_or_file, field=None, isovalue=None, resolution=None, spp: int = 4
         _refuse_data_options(scene_or_file, data_only)
         scene = load_scene(scene_or_file, pixel_format="rgba", film_size=resolution)
     else:
+        from mi_amr.plugin.integrator import register
         from mi_amr.workflows.datafile import make_scene
 
+        # (The field read for the isovalue pick goes on to the scene's load: read once.)
         made = make_scene(scene_or_file, field=field, isovalue=isovalue,
                           resolution=resolution or RESOLUTION, spp=spp,
-                          sets_isovalue="isovalue=", **params)
+                          sets_isovalue="isovalue=", offer=register().offer, **params)
         scene = load_dict(made.as_dict())
     pixels = render_passes(mi, dr, np, scene, int(spp), quiet=True)
     if pixels.shape[-1] == 3:           # a film without alpha: every pixel counts as covered
