@@ -242,17 +242,23 @@ def _defined_isovalue(text: str, given) -> list:
     return values
 
 
-def _render(args) -> None:
+def _preparations(variant: str):
+    """The volumes that amr_iso prepares on ``variant`` (set here), to which a data file's
+    scene offers the field its isovalue pick read: the scene's load does not read it again."""
     from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import use_variant
+
+    use_variant(variant)
+    return register()
+
+
+def _render(args) -> None:
     from mi_amr.workflows.render import check_image_request, render_file
 
     # (Before a data file's scene is made: its isovalue pick reads the whole file.)
     check_image_request(Path(args.output), args.spp, args.resolution, args.force, args.aovs)
     started = time.perf_counter()       # (the total counts a data file's scene being made)
-    # The field a data file's isovalue pick reads goes on to the scene's load, not read twice.
-    use_variant(args.variant)
-    offer = register().offer
+    offer = _preparations(args.variant).offer
     with _data_scene(args, args.scene, args.resolution, offer=offer) as scene:
         render_file(scene, args.output, spp=args.spp, resolution=args.resolution,
                     defines=_defines(args.defines), variant=args.variant,
@@ -519,7 +525,8 @@ def _view(args) -> None:
         raise AMRError(f"view: --preview-budget must be 0 or more seconds, got {budget:g}")
     if not 0 <= args.port <= MAX_PORT:
         raise AMRError(f"view: --port must be 0 (a free one) to {MAX_PORT}, got {args.port}")
-    with _data_scene(args, args.scene, series=bool(args.files)) as scene:
+    with _data_scene(args, args.scene, series=bool(args.files),
+                     offer=_preparations(args.variant).offer) as scene:
         serve(scene, host=args.host, port=args.port, open_browser=not args.no_browser,
               out_dir=args.out, files=args.files, resolution=args.resolution, spp=args.spp,
               preview_scale=args.preview_scale, variant=args.variant,

@@ -362,6 +362,20 @@ def test07f_a_render_of_a_data_file_reads_its_field_once(mi, tmp_path, capsys):
     assert rc == 0 and "read once.npz" in text, text
     first, second = np.array(mi.Bitmap(str(a))), np.array(mi.Bitmap(str(b)))
     assert first[..., 3].max() > 0 and np.array_equal(first, second)
+    # The viewer's session (view FILE) loads the scene through the same preparations.
+    import mi_amr.readers
+    from mi_amr.workflows.datafile import scene_file
+    from mi_amr.workflows.viewer.state import Session
+
+    path = save(box_volume((0, 0, 0), (1, 1, 2)), tmp_path / "viewed.npz")
+    reads, real = [], mi_amr.readers.load
+    try:
+        mi_amr.readers.load = lambda *a, **kw: reads.append(a) or real(*a, **kw)
+        with scene_file(path, field="f", offer=register().offer, say=lambda *_: None) as scene:
+            Session(scene, resolution=(24, 16), spp=1).close()
+    finally:
+        mi_amr.readers.load = real
+    assert len(reads) == 1, reads
 
 
 def test07_the_saved_scene_and_the_dict_render_the_same_pixels(mi, tmp_path, capsys):
