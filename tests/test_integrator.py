@@ -306,6 +306,23 @@ def test05_parameter_mistakes_give_the_documented_messages(tmp_path, sphere_file
     assert "Traceback" not in str(info.value)
 
 
+def test05b_a_bad_colour_map_is_refused_before_the_volume_is_read(tmp_path, sphere_file,
+                                                                   monkeypatch):
+    """A colour map that is not one (an unknown name, an unreadable pair) is refused while the
+    parameters are read, before a file of perhaps many gigabytes is read and prepared."""
+    import mi_amr.readers
+
+    (tmp_path / "sphere.npz").symlink_to(sphere_file)
+    reads = []
+    monkeypatch.setattr(mi_amr.readers, "load", lambda *a, **kw: reads.append(a))
+    for spec in ("not_a_map", "0.1: 1 0 0, high: 0 1 0"):
+        params = {**BASE, "color_field": ("string", "f"), "colormap": ("string", spec)}
+        path = write_scene(tmp_path / "scene.xml", params)
+        with pytest.raises(AMRError, match="colormap"):
+            load_scene(path)
+    assert reads == []
+
+
 def test06_a_valid_scene_file_of_the_same_shape_loads(tmp_path, sphere_file):
     """The baseline of the mistakes above is itself correct (so each error is the mistake's)."""
     (tmp_path / "sphere.npz").symlink_to(sphere_file)

@@ -13,6 +13,7 @@ from typing import Optional
 from mi_amr import params
 from mi_amr.core.transfer2d import parse_blobs, parse_range
 from mi_amr.errors import AMRError
+from mi_amr.kernels.colormap import ColorMap
 
 FLOAT32_MAX = 3.4028234663852886e38
 NO_COLOR_FIELD = ("none", "")    # color_field values that mean "no colour field"
@@ -90,6 +91,8 @@ def parse(values: dict) -> Options:
         opt.color_field = opt.colormap = opt.color_range = None
     if (opt.color_field is None) != (opt.colormap is None):
         raise AMRError("amr_iso: 'color_field' and 'colormap' go together; give both or neither")
+    if opt.colormap is not None:
+        ColorMap.parse(opt.colormap)    # (a bad map is one error before the volume's load)
     if opt.layers != "composite" and opt.mode != "surface":
         raise AMRError(f"amr_iso: parameter 'layers' ({opt.layers!r}) picks translucent "
                        f"surfaces' layers; mode {opt.mode!r} composites its band, give mode "
