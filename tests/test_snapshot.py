@@ -395,6 +395,10 @@ def test14_files_that_are_links_or_not_files_are_refused(data, cache, tmp_path):
         assert_same(want, host(prepare(data)))
 
 
+def _swap(mapping, a, b):
+    mapping[a], mapping[b] = mapping[b], mapping[a]
+
+
 def test15_metadata_of_the_wrong_types_is_refused(data, cache):
     """Every field of the metadata is checked: JSON that parses and carries a valid checksum
     but holds a wrong type or value is refused (warning, prepared afresh), never used."""
@@ -402,9 +406,6 @@ def test15_metadata_of_the_wrong_types_is_refused(data, cache):
     import zlib
 
     want = host(prepare(data))
-    (entry,) = entries(cache)
-    meta = cache / entry / "meta.json"
-    head, body = meta.read_bytes().split(b"\n", 1)
     edits = [lambda b: b["volume"].__setitem__("ratios", ["2", 2, 2]),
              lambda b: b["volume"].__setitem__("fields", []),
              lambda b: b["arrays"]["pool0"].__setitem__("dtype", "|O"),
@@ -412,17 +413,32 @@ def test15_metadata_of_the_wrong_types_is_refused(data, cache):
              lambda b: b["arrays"]["pool0"].__setitem__("shape", [-1]),
              lambda b: b["bricks"].pop(),
              lambda b: b.__setitem__("tree", {"$array": "nothing"}),
-             lambda b: b.__setitem__("extra", 1)]
+             lambda b: b.__setitem__("extra", 1),
+             # the kd-tree's state: each entry of a built tree's type, axes and length
+             lambda b: b["tree"].__setitem__("lattice_leaf_hi", {}),
+             lambda b: b["tree"].__setitem__("depth", "x"),
+             lambda b: b["tree"].__setitem__("leaf_cells", 2 ** 70),
+             lambda b: b["tree"].__setitem__("lattice_root", {"$tuple": [1, 2]}),
+             lambda b: b["tree"].__setitem__("lattice_leaf_hi", {"$array": "tree.leaf_grids"}),
+             lambda b: b["tree"].__setitem__("node_ropes", {"$array": "tree.lattice_node_lo"}),
+             lambda b: b["tree"].__setitem__("grid_lo", {"$array": "tree.lattice_node_lo"}),
+             lambda b: b["tree"].pop("leaf_owner"),
+             lambda b: _swap(b["tree"], "lattice_node_split", "leaf_owner"),    # rows
+             lambda b: _swap(b["tree"], "node_ropes", "lattice_node_lo")]       # columns
     for edit in edits:
+        # (The entry written after the last edit's refusal, whose array files are its own.)
+        (entry,) = entries(cache)
+        head, body = (cache / entry / "meta.json").read_bytes().split(b"\n", 1)
         parsed = json.loads(body)
         edit(parsed)
         text = json.dumps(parsed).encode()
         h = json.loads(head)
         h["crc32"] = zlib.crc32(text)
-        (entry,) = entries(cache)
         (cache / entry / "meta.json").write_bytes(json.dumps(h).encode() + b"\n" + text)
-        with pytest.warns(UserWarning, match="unreadable snapshot"):
+        with pytest.warns(UserWarning, match="unreadable snapshot") as heard:
             assert_same(want, host(prepare(data)))
+        assert not any("No such file" in str(w.message) for w in heard), \
+            [str(w.message) for w in heard]         # refused for the edit, not a stale file
     (entry,) = entries(cache)
     (cache / entry / "meta.json").write_bytes(b'{"kind": ' + b"[" * 100_000)
     with pytest.warns(UserWarning, match="unreadable snapshot"):

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from mi_amr.core import levels, rawarrays
+from mi_amr.core.kdstate import state_problem
 from mi_amr.core.rawarrays import BadFile, expect
 from mi_amr.core.volume import AMRVolume, Grid
 from mi_amr.core.buffers import aligned_parts
@@ -312,7 +313,8 @@ def _read_entry(fd: int, key: str, checks):
     vol = meta["volume"]
     volume = _volume(vol, dict(zip(vol["fields"], meta["fields"])), get, records)
     tree = rawarrays.decode(meta["tree"], get)
-    expect(isinstance(tree, dict), "tree: not a mapping")
+    problem = state_problem(tree, len(volume.grids))
+    expect(problem is None, f"tree: {problem}")
     parts = [(np.array(b["lo"], dtype=np.int64), np.array(b["dims"], dtype=np.int64),
               get(b["table"]), b["count"]) for b in meta["bricks"]]
     pools = [get(r) for r in meta["pools"]]
