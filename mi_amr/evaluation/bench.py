@@ -304,22 +304,12 @@ def run_peers_only(out_dir="out/bench", variant: str = "llvm_ad_rgb", progress: 
 
 
 def _samples_per_ray(scene) -> float:
-    """Mean field evaluations per camera ray through a pixel centre (``exact``: cubic pieces)."""
-    import drjit as dr
-    import mitsuba as mi
+    """Mean field evaluations per camera ray through a pixel centre (``exact``: cubic pieces),
+    up to the first crossing: :func:`~mi_amr.evaluation.volume_speed_bench.walked_per_ray`
+    of the sweep's surface scenes."""
+    from mi_amr.evaluation.volume_speed_bench import walked_per_ray
 
-    from mi_amr.kernels.ray import RayContext
-    from mi_amr.kernels.surface import first_crossing
-
-    from mi_amr.evaluation.references import pixel_rays
-
-    integ = scene.integrator()
-    ray = pixel_rays(scene.sensors()[0])
-    m = integ.m
-    o, d = integ.frame.ray_to_volume(integ.m, ray.o, ray.d)
-    c = first_crossing(RayContext(integ.dev, integ.config(), o, d, m.Float(0.0),
-                                  m.Float(dr.inf), m.Bool(True)), m.Float(0.5))
-    return float(np.mean(c.samples.numpy()))
+    return walked_per_ray(scene)
 
 
 def _write_csv(rows, path):

@@ -301,12 +301,10 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, report,
     wanted = [f for f in dict.fromkeys(fields) if f is not None]
     if offered is not None and all(f in offered.field_names for f in wanted):
         volume = offered.select_fields(wanted)
-        del offered
         say(f"  {os.path.basename(path)} ({', '.join(wanted)}: {volume.num_cells:,} cells, "
             f"{len(volume.grids):,} grids) already read")
         return PreparedVolume(volume, field, color_field, leaf_cells=how.leaf_cells, m=m,
                               report=report)
-    del offered
     names = fields_to_read(field, color_field, available_fields(path), path)
     t0 = time.perf_counter()
     volume = load(path, fields=names, level_buffers=set(names) - {field, color_field},
