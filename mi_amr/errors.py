@@ -1,5 +1,6 @@
 """The one exception type for mistakes a user can make (bad file, bad hierarchy, bad parameter),
-:func:`shown`, how a value is written in its messages, and :func:`print_traceback`, how a
+:func:`shown`, how a value is written in its messages, :func:`did_you_mean`, how a misspelt
+name is answered, and :func:`print_traceback`, how a
 long-lived thread reports a bug and goes on."""
 
 import traceback
@@ -16,6 +17,15 @@ class AMRError(ValueError):
 
     Deriving from ``ValueError`` lets callers that already catch ``ValueError`` keep working.
     """
+
+
+def did_you_mean(name: str, known) -> str:
+    """`` (did you mean 'x'?)`` naming the entry of ``known`` closest to the misspelt ``name``,
+    or "" where none is close: the end of a message that refuses a name."""
+    import difflib
+
+    close = difflib.get_close_matches(name, list(known), n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 def shown(value) -> str:

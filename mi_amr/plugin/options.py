@@ -5,14 +5,13 @@ allowed. The algorithm never sees Mitsuba's ``Properties``.
 
 from __future__ import annotations
 
-import difflib
 import math
 from dataclasses import dataclass
 from typing import Optional
 
 from mi_amr import params
 from mi_amr.core.transfer2d import parse_blobs, parse_range
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, did_you_mean
 from mi_amr.kernels.colormap import ColorMap
 
 FLOAT32_MAX = 3.4028234663852886e38
@@ -66,8 +65,7 @@ def parse(values: dict) -> Options:
     ``to_world`` is read by the integrator itself)."""
     unknown = sorted(set(values) - set(params.BY_NAME))
     if unknown:
-        hints = [f"'{u}' (did you mean '{m[0]}'?)" if m else f"'{u}'" for u in unknown
-                 for m in [difflib.get_close_matches(u, params.BY_NAME, n=1)]]
+        hints = [f"'{u}'{did_you_mean(u, params.BY_NAME)}" for u in unknown]
         raise AMRError(f"amr_iso: unknown parameter(s) {', '.join(hints)}; allowed: "
                        f"{', '.join(params.BY_NAME)}")
     for p in params.TABLE:

@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 from mi_amr.core.atomic import check_output, replacing
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, did_you_mean
 
 SCENE_SUFFIX = ".xml"
 
@@ -24,16 +24,13 @@ def is_scene_file(path) -> bool:
 def check_data_defines(defines) -> None:
     """One error for a ``-D`` name (of ``defines``) that a data file's scene has no
     ``<default>`` for, before the scene is made (its other parameters are the XML's own)."""
-    import difflib
-
     from mi_amr.plugin.autoscene import XML_DEFAULTS
 
     for name in defines:
         if name not in XML_DEFAULTS:
-            close = difflib.get_close_matches(name, XML_DEFAULTS, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
             raise AMRError(f"-D {name}: a data file's scene takes -D for "
-                           f"{', '.join(XML_DEFAULTS)}{hint}; to set its other amr_iso "
+                           f"{', '.join(XML_DEFAULTS)}{did_you_mean(name, XML_DEFAULTS)}; "
+                           f"to set its other amr_iso "
                            f"parameters, write it with --save-scene scene.xml, edit that and "
                            f"render it")
 

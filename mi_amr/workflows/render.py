@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from mi_amr.core.atomic import check_output, replacing
-from mi_amr.errors import AMRError
+from mi_amr.errors import AMRError, did_you_mean
 
 IMAGE_TYPES = (".png", ".exr")
 # libpng refuses wider or taller images (its default user limit), after the render has run.
@@ -114,7 +114,6 @@ def _check_film_entries(scene_path, size, channels: int, pass_spp: int) -> None:
 def _check_defines(scene_path, defines: dict) -> None:
     """Every ``-D`` name must be a ``<default>`` of the scene (else Mitsuba would report
     "unused parameters" after loading): an unknown name gets a did-you-mean."""
-    import difflib
     import xml.etree.ElementTree as ET
 
     if not defines:
@@ -126,9 +125,8 @@ def _check_defines(scene_path, defines: dict) -> None:
     known = [d.get("name") for d in root.iter("default")]
     for name in defines:
         if name not in known:
-            close = difflib.get_close_matches(name, known, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
-            raise AMRError(f"-D {name}: the scene {scene_path} has no default '{name}'{hint}; "
+            raise AMRError(f"-D {name}: the scene {scene_path} has no default "
+                           f"'{name}'{did_you_mean(name, known)}; "
                            f"it has {', '.join(known) or 'none'}")
 
 
