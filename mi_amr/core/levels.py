@@ -189,6 +189,15 @@ def adopt_caches(volume, source) -> None:
                                   if k[1] in volume.field_names}
 
 
+def adopt_index(volume, source) -> None:
+    """Give ``volume`` the level tables (:class:`LevelIndex`) made for ``source``, a volume of
+    the same hierarchy (:meth:`AMRVolume.same_hierarchy
+    <mi_amr.core.volume.AMRVolume.same_hierarchy>`), where both keep tables of the same dense
+    block limit; tables ``volume`` made itself stay."""
+    if volume.level_caches.dense_blocks == source.level_caches.dense_blocks:
+        volume.level_caches.index = {**source.level_caches.index, **volume.level_caches.index}
+
+
 def grid_offsets(volume, level: int) -> np.ndarray:
     """Where each grid of :class:`LevelIndex` ``level`` starts in :func:`level_values` (the
     table's own array: do not write to it)."""

@@ -243,6 +243,30 @@ class AMRVolume:
         levels.adopt_caches(out, self)
         return out
 
+    def same_hierarchy(self, other: "AMRVolume") -> bool:
+        """Whether ``other`` has exactly this volume's grids, grid for grid in the same order:
+        the same levels, origins, spacings (world units, compared exactly) and shapes, whatever
+        fields they hold. What is made from the hierarchy alone (leaf masks, level tables, the
+        kd-tree) is then the same for both."""
+        if other is self:
+            return True
+        if len(self.grids) != len(other.grids):
+            return False
+        mine, theirs = self.grid_columns(), other.grid_columns()
+        return all(np.array_equal(mine[k], theirs[k])
+                   for k in ("level", "shape", "origin", "spacing"))
+
+    def adopt_hierarchy(self, other: "AMRVolume") -> bool:
+        """Take the leaf masks and level tables that ``other``, a volume of the
+        :meth:`same_hierarchy` (another time step of unchanged grids), has made, instead of
+        making them again; True where it is one (nothing is taken otherwise)."""
+        if not self.same_hierarchy(other):
+            return False
+        if self._leaf_flat is None and other._leaf_flat is not None:
+            self._leaf_flat, self._partly = other._leaf_flat, other._partly
+        levels.adopt_index(self, other)
+        return True
+
     def drop_level_fields(self, level: int, names: Sequence[str]) -> None:
         """Drop fields ``names`` from every grid of ``level`` and from the level's cached flat
         values, so that their memory is freed where nothing else holds it. The volume is left

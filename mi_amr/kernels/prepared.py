@@ -38,20 +38,32 @@ class PreparedVolume:
     """
 
     def __init__(self, volume, field: str, color_field: str | None = None, *,
-                 leaf_cells: int = params.default("leaf_cells"), m=None, report=None):
-        """``report``: a callable told each step as it ends (one line of text), or None."""
+                 leaf_cells: int = params.default("leaf_cells"), m=None,
+                 by: "Preparations | None" = None):
+        """``by``: the :class:`Preparations` it is made for, whose ``report`` is told each
+        step as it ends (one line of text), and whose kept preparation of the same grids
+        (:meth:`Preparations.like`) gives its kd-tree, not built again (the tree is made from
+        the grids alone); or None."""
         memory.keep_freed_memory()
         clock = time.perf_counter()
         self.timings = {}
-        self.report = report
+        self.report = report = by.report if by is not None else None
         volume, derived = needed_fields(volume, field, color_field, m=m or dr.llvm.ad)
         self.volume = volume
         self.field = field
         self.color_field = color_field or field
         clock = self._lap("derive", clock, quiet=not derived)
-        self.tree = KDTree(self.volume, leaf_cells=leaf_cells,
-                           device=DeviceSteps(m or dr.llvm.ad))
-        clock = self._lap("tree", clock)
+        like = by.like(volume, leaf_cells) if by is not None else None
+        if like is not None and like.tree.leaf_cells == leaf_cells and \
+                volume.adopt_hierarchy(like.volume):
+            self.tree = KDTree.from_arrays(volume, like.tree.arrays())
+            clock = self._lap("tree", clock, quiet=True)
+            if report is not None:
+                report("  kd-tree of the same grids reused")
+        else:
+            self.tree = KDTree(self.volume, leaf_cells=leaf_cells,
+                               device=DeviceSteps(m or dr.llvm.ad))
+            clock = self._lap("tree", clock)
         if volume.num_cells >= memory.RELEASE_CELLS:
             # The pools are new mappings, which cannot reuse what the derivation's kernels and
             # the tree freed: handed back first, that memory is not part of the load's peak.
@@ -219,6 +231,16 @@ class Preparations:
         self._kept[key] = prepared
         return prepared
 
+    def like(self, volume, leaf_cells: int) -> "PreparedVolume | None":
+        """The newest kept preparation of ``leaf_cells`` whose volume has the
+        :meth:`same hierarchy <mi_amr.core.volume.AMRVolume.same_hierarchy>` as ``volume``
+        (another time step of unchanged grids, or the same file with other fields), or
+        None: a preparation of ``volume`` takes its kd-tree."""
+        for key, prepared in reversed(list(self._kept.items())):
+            if key[4] == leaf_cells and prepared.volume.same_hierarchy(volume):
+                return prepared
+        return None
+
     def take_offer(self, path, allow_nonfinite: bool = False):
         """The volume :meth:`offer` holds for the file ``path`` (absolute) read as it is now
         and as ``allow_nonfinite`` says, or None; a preparation of that file takes it or drops
@@ -279,7 +301,7 @@ def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
         prepared = PreparedVolume.restore(snap, m=m, report=report)
         prepared._lap("snapshot", t0)
     else:
-        prepared = _prepare_from_file(path, (field, color_field), how, m, report, offered)
+        prepared = _prepare_from_file(path, (field, color_field), how, m, by, offered)
         if snap_key:
             t0 = time.perf_counter()
             if cache.save(snap_key, prepared):
@@ -290,13 +312,16 @@ def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
     return prepared
 
 
-def _prepare_from_file(path, fields, how: LoadOptions, m, report,
+def _prepare_from_file(path, fields, how: LoadOptions, m, by,
                        offered=None) -> PreparedVolume:
     """Read what ``fields`` (``(field, color_field)``) need from ``path`` and prepare it;
-    from the volume ``offered`` (read from ``path``) instead where it holds them all."""
+    from the volume ``offered`` (read from ``path``) instead where it holds them all. ``by``:
+    the :class:`Preparations` it is made for (its report; a volume it keeps of the same
+    grids gives its kd-tree, :meth:`Preparations.like`), or None."""
     from mi_amr.readers import available_fields, load
 
     field, color_field = fields
+    report = by.report if by is not None else None
     say = report or (lambda text: None)
     wanted = [f for f in dict.fromkeys(fields) if f is not None]
     if offered is not None and all(f in offered.field_names for f in wanted):
@@ -304,7 +329,7 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, report,
         say(f"  {os.path.basename(path)} ({', '.join(wanted)}: {volume.num_cells:,} cells, "
             f"{len(volume.grids):,} grids) already read")
         return PreparedVolume(volume, field, color_field, leaf_cells=how.leaf_cells, m=m,
-                              report=report)
+                              by=by)
     names = fields_to_read(field, color_field, available_fields(path), path)
     t0 = time.perf_counter()
     volume = load(path, fields=names, level_buffers=set(names) - {field, color_field},
@@ -312,6 +337,11 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, report,
     read = time.perf_counter() - t0
     say(f"  read {os.path.basename(path)} ({', '.join(names)}: {volume.num_cells:,} cells, "
         f"{len(volume.grids):,} grids) in {read:.2f} s")
+    # A kept volume of the same grids lends its level tables to the derivation (and its
+    # kd-tree to the preparation).
+    same = by.like(volume, how.leaf_cells) if by is not None else None
+    if same is not None:
+        volume.adopt_hierarchy(same.volume)
     # Derived here, so that the velocity read for it is freed before the kd-tree and the
     # device arrays are built (a third of the peak memory of a large load), and level by
     # level during the derivation (read with a buffer per level for that).
@@ -322,6 +352,6 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, report,
     if derived:
         say(f"{_STEPS['derive']} in {derive_s:.2f} s")
     prepared = PreparedVolume(volume, field, color_field, leaf_cells=how.leaf_cells, m=m,
-                              report=report)
+                              by=by)
     prepared.timings = {"read": read, **prepared.timings, "derive": derive_s}
     return prepared

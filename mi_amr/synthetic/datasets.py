@@ -6,6 +6,7 @@ lists them for ``python -m mi_amr dataset NAME -o PATH``.
 * :func:`sphere_wake` -- air flow around a ball (see :mod:`mi_amr.flow`), refined where the
   vorticity is strong: tagged cells are clustered into boxes (Berger-Rigoutsos), so fine grids
   cover the wake and the ball's surroundings, not the empty far field. Fields ``vx, vy, vz``.
+  :func:`sphere_wake_on` puts another seed's flow on one wake's grids.
 * :func:`sphere`, :func:`torus`, :func:`ramp`, :func:`spike` -- a field ``f`` whose isosurface
   at :data:`ISOVALUES` ``[name]`` is known, on two levels whose boundary (the plane x = 0.5) cuts
   through the surface.
@@ -77,6 +78,20 @@ def sphere_wake(size: str = "default", seed: int = 0, progress: bool = True) -> 
         bar.update(1)
     bar.close()
     return AMRVolume.from_grids(grids, source=f"sphere_wake({size})")
+
+
+def sphere_wake_on(volume: AMRVolume, seed: int) -> AMRVolume:
+    """The flow of :func:`sphere_wake` ``seed`` on the grids of ``volume`` (another
+    sphere_wake), not refined after it: the time steps of a simulation whose grids stay put
+    (static refinement, or the steps between two regrids). Fields ``vx, vy, vz``."""
+    model = flow.SphereWakeFlow(seed)
+    grids = []
+    for g in volume.grids:
+        centres = np.stack(np.meshgrid(*g.cell_centers(), indexing="ij"), axis=-1)
+        v = model.velocity(centres.reshape(-1, 3)).astype(np.float32).reshape(g.shape + (3,))
+        grids.append({"level": g.level, "origin": g.origin, "spacing": g.spacing,
+                      "fields": {n: v[..., a].copy() for a, n in enumerate(("vx", "vy", "vz"))}})
+    return AMRVolume.from_grids(grids, source=f"sphere_wake_on(seed={seed})")
 
 
 def write_ball_mesh(path, subdivisions: int = 4) -> Path:
