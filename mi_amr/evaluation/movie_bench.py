@@ -1,8 +1,10 @@
 """``python -m mi_amr bench --movie``: frames per second of the kinds of movie (an orbit on
 one file, an isovalue sweep, a time series of ``sphere_wake`` with one file per frame, and one
-whose files share a grid layout, :func:`_series_one_layout`) with 1 and 2 Dask workers at 512 x 512, the cost of one new time step broken down, and an estimate
-for a long series of big files from the measured per-cell costs. Writes ``movie.md`` (and
-``movie.json``) and a strip of four frames, ``movie_strip.png``."""
+whose files share a grid layout, :func:`_series_one_layout`) with 1 and 2 Dask workers at
+512 x 512, the cost of one new time step broken down (a new grid layout, and the grids of the
+step before), and an estimate for a long series of big files from the measured per-cell
+costs. Writes ``movie.md`` (and ``movie.json``) and a strip of four frames,
+``movie_strip.png``."""
 
 from __future__ import annotations
 
