@@ -109,6 +109,23 @@ def test06_wake_is_deterministic_for_a_seed_and_differs_across_seeds(wake):
     assert not np.array_equal(other.grids[0].fields["vx"], wake.grids[0].fields["vx"])
 
 
+def test06b_another_seeds_flow_on_a_wakes_grids_keeps_its_grids(wake):
+    """``sphere_wake_on``: the grids of the wake given, the flow of the seed asked; its own
+    seed gives back the wake's values bit for bit, another seed other values (the flow of that
+    seed at the same cell centres)."""
+    same = datasets.sphere_wake_on(wake, 0)
+    assert same.same_hierarchy(wake)
+    for g, h in zip(wake.grids, same.grids):
+        for n in ("vx", "vy", "vz"):
+            np.testing.assert_array_equal(h.fields[n], g.fields[n])
+    other = datasets.sphere_wake_on(wake, 1)
+    assert other.same_hierarchy(wake)
+    g = other.grids[-1]
+    want = flow.SphereWakeFlow(1).velocity(centres_of(g).reshape(-1, 3)).astype(np.float32)
+    np.testing.assert_array_equal(g.fields["vz"].ravel(), want[:, 2])
+    assert not np.array_equal(g.fields["vx"], wake.grids[-1].fields["vx"])
+
+
 def test07_unknown_wake_size_is_refused():
     with pytest.raises(AMRError, match=r"size must be one of \['small', 'default', 'large', "
                        r"'xlarge', 'xxlarge'\], got 'huge'"):
