@@ -55,8 +55,8 @@ TABLE = (
           "opacity per isovalue in (0, 1]; below 1 the surfaces are composited front to back",
           lo=0.0, hi=1.0, traversable=True),
     Param("color_field", "string", None,
-          "colour the surface by this field (``none``: no colour field, whatever the "
-          "colour map) ..."),
+          "colour the surface by this field (``none``: no colour field; a colour map "
+          "given is still checked) ..."),
     Param("colormap", "string", None,
           "... with ``\"v: r g b, ...\"`` pairs (each holds its colour over 1/24 of the "
           "pairs' span, at most a quarter of the gap to its neighbours) or a matplotlib map "

@@ -309,17 +309,20 @@ def test05_parameter_mistakes_give_the_documented_messages(tmp_path, sphere_file
 def test05b_a_bad_colour_map_is_refused_before_the_volume_is_read(tmp_path, sphere_file,
                                                                    monkeypatch):
     """A colour map that is not one (an unknown name, an unreadable pair) is refused while the
-    parameters are read, before a file of perhaps many gigabytes is read and prepared."""
+    parameters are read, before a file of perhaps many gigabytes is read and prepared; also
+    where the colour field is switched off (``color_field=none``: a typo is a typo, even in a
+    map not drawn)."""
     import mi_amr.readers
 
     (tmp_path / "sphere.npz").symlink_to(sphere_file)
     reads = []
     monkeypatch.setattr(mi_amr.readers, "load", lambda *a, **kw: reads.append(a))
-    for spec in ("not_a_map", "0.1: 1 0 0, high: 0 1 0"):
-        params = {**BASE, "color_field": ("string", "f"), "colormap": ("string", spec)}
-        path = write_scene(tmp_path / "scene.xml", params)
-        with pytest.raises(AMRError, match="colormap"):
-            load_scene(path)
+    for field in ("f", "none"):
+        for spec in ("not_a_map", "0.1: 1 0 0, high: 0 1 0"):
+            params = {**BASE, "color_field": ("string", field), "colormap": ("string", spec)}
+            path = write_scene(tmp_path / "scene.xml", params)
+            with pytest.raises(AMRError, match="colormap"):
+                load_scene(path)
     assert reads == []
 
 

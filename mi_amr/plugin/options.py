@@ -84,13 +84,14 @@ def parse(values: dict) -> Options:
                   band_support=_supports(values, isovalues),
                   transfer2d_range=_range4(values), given=frozenset(values), **read)
     _check_transfer2d(opt, values)
+    if opt.colormap is not None:
+        # A bad map is one error before the volume's load, drawn or not (a typo is a typo).
+        ColorMap.parse(opt.colormap)
     if opt.color_field is not None and opt.color_field.strip().lower() in NO_COLOR_FIELD:
         # "none" switches the colour field off (-D color_field=none), with its map and range.
         opt.color_field = opt.colormap = opt.color_range = None
     if (opt.color_field is None) != (opt.colormap is None):
         raise AMRError("amr_iso: 'color_field' and 'colormap' go together; give both or neither")
-    if opt.colormap is not None:
-        ColorMap.parse(opt.colormap)    # (a bad map is one error before the volume's load)
     if opt.layers != "composite" and opt.mode != "surface":
         raise AMRError(f"amr_iso: parameter 'layers' ({opt.layers!r}) picks translucent "
                        f"surfaces' layers; mode {opt.mode!r} composites its band, give mode "
