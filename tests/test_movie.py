@@ -594,6 +594,46 @@ def test18b_a_time_series_keeps_only_the_step_shown_and_the_next(series, tmp_pat
         preps.report = old
 
 
+def test18b2_a_series_too_long_for_the_snapshot_cache_writes_no_snapshot(series, tmp_path,
+                                                                         monkeypatch):
+    """A time series' steps write their snapshots only where all of them fit the cache
+    (``MI_AMR_CACHE_GB``): with room for one step's entry but not three, a movie of the three
+    files (six frames) writes none (they would evict each other); with room for all three it
+    writes all three. A single file's preparation is not affected."""
+    import drjit as dr
+
+    from mi_amr.kernels import snapshot
+    from mi_amr.kernels.prepared import Preparations
+    from mi_amr.plugin.integrator import register
+    from mi_amr.plugin.scene import use_variant
+    from mi_amr.workflows.movie import render_movie
+
+    use_variant("llvm_ad_rgb")
+    files = [str(series / f"step{t}.npz") for t in range(3)]
+    monkeypatch.setenv("MI_AMR_CACHE", "off")
+    step = Preparations().prepare(files[0], "f", "g", m=dr.llvm.ad)
+    size = snapshot._entry_bytes(step)
+
+    def entries(cache):
+        return sorted(p.name for p in cache.iterdir() if (p / "meta.json").exists()) \
+            if cache.exists() else []
+
+    for room, written in ((2.5, 0), (4.0, 3)):
+        cache = tmp_path / f"cache{room}"
+        monkeypatch.setenv("MI_AMR_CACHE", str(cache))
+        monkeypatch.setenv("MI_AMR_CACHE_GB", repr(room * size / 1e9))
+        register().clear()
+        render_movie(series / "scene.xml", tmp_path / f"out{room}", files=files, frames=6,
+                     resolution=RES, workers=1, progress=False)
+        assert len(entries(cache)) == written, (room, entries(cache))
+        assert register().series_steps == 1        # (this process's later loads as before)
+    cache = tmp_path / "single"
+    monkeypatch.setenv("MI_AMR_CACHE", str(cache))
+    monkeypatch.setenv("MI_AMR_CACHE_GB", repr(2.5 * size / 1e9))
+    Preparations().prepare(files[0], "f", "g", m=dr.llvm.ad)
+    assert len(entries(cache)) == 1
+
+
 def test18c_a_series_colour_range_of_a_derived_field_is_the_fields_range(tmp_path):
     """``--color-range series`` over files holding a velocity: the speed's range taken
     straight from the velocity (no field written) and the vorticity's (derived) are the

@@ -175,13 +175,18 @@ class Preparations:
     preparation as it ends (one line of text; the command line prints them, so a load of
     several seconds shows what it is doing), or None. ``cache``: the
     :class:`~mi_amr.kernels.snapshot.SnapshotCache` its preparations read and write, or None
-    for the one ``$MI_AMR_CACHE`` describes at the time of each preparation."""
+    for the one ``$MI_AMR_CACHE`` describes at the time of each preparation.
+    ``series_steps``: how many files the series this session shows has (a movie sets it); a
+    preparation writes its snapshot only where that many would fit the cache."""
 
     SIZE = 3
 
     def __init__(self, report=None, cache: snapshot.SnapshotCache | None = None):
         self.report = report
         self.cache = cache
+        # The files of the series this session shows one after the other (a movie's): a
+        # step's snapshot is written only where that many fit the cache (_write_snapshot).
+        self.series_steps = 1
         self._kept: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
         self._offer = None
 
@@ -303,13 +308,25 @@ def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
     else:
         prepared = _prepare_from_file(path, (field, color_field), how, m, by, offered)
         if snap_key:
-            t0 = time.perf_counter()
-            if cache.save(snap_key, prepared):
-                say(f"  snapshot written in {time.perf_counter() - t0:.2f} s")
+            _write_snapshot(cache, snap_key, prepared, by.series_steps if by else 1, say)
     if snap_key:
         prepared.device.on_new_ranges = lambda kind, host: cache.save_ranges(snap_key, kind,
                                                                              host)
     return prepared
+
+
+def _write_snapshot(cache, key, prepared, steps: int, say) -> None:
+    """Write ``prepared``'s snapshot as entry ``key`` of ``cache``, unless it is one step of a
+    series of ``steps`` files whose snapshots would not all fit the cache: their entries
+    would evict each other (and the cache's other entries) before a second run could read
+    them, and writing one costs more than half a step's preparation."""
+    if steps > 1 and not cache.holds(prepared, steps):
+        say(f"  no snapshot written: the series' {steps:,} steps would not fit the snapshot "
+            f"cache's {cache.limit / 1e9:.2f} GB (MI_AMR_CACHE_GB)")
+        return
+    t0 = time.perf_counter()
+    if cache.save(key, prepared):
+        say(f"  snapshot written in {time.perf_counter() - t0:.2f} s")
 
 
 def _prepare_from_file(path, fields, how: LoadOptions, m, by,

@@ -103,6 +103,10 @@ class SnapshotCache:
         finally:
             os.close(root_fd)
 
+    def holds(self, prepared, copies: int = 1) -> bool:
+        """Whether ``copies`` entries the size of ``prepared``'s fit within the limit."""
+        return self.root is not None and _entry_bytes(prepared) * max(1, copies) <= self.limit
+
     def save(self, key: str, prepared) -> bool:
         """Write ``prepared`` (a :class:`PreparedVolume`) as entry ``key``; False (with a
         warning) when it cannot be written. Evicts the least recently used entries beyond the

@@ -230,12 +230,17 @@ def render_movie(scene, out, *, frames=None, files=None, orbit=None, isovalues=N
     jobs = jobs_for(scene, specs, out, fmt, resolution=resolution, spp=spp, defines=defines,
                     variant=variant, force=force, existing=existing)
     summary = Summary(skipped=sorted(existing))
+    from mi_amr.plugin.integrator import register
+
+    preparations = register()
+    series_steps = preparations.series_steps      # (frames rendered here set it: restored)
     try:
         for r in run_jobs(jobs, workers=workers, scheduler=scheduler, progress=progress,
                           variant=variant, total=len(specs) - len(existing),
                           worker_wait=worker_wait):
             (summary.failed if "error" in r else summary.rendered).append(r)
     finally:
+        preparations.series_steps = series_steps
         # A worker killed while writing leaves its temporary file (never a frame's name).
         for tmp in out.glob(f"frame_*.tmp-*.{fmt}"):
             tmp.unlink(missing_ok=True)

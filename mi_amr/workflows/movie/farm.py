@@ -43,6 +43,7 @@ class Job:
     defines: dict
     variant: str
     next_file: str | None = None    # the next frame's data file, prepared while this renders
+    series: int = 1                 # the movie's data files (snapshots: Preparations.series_steps)
 
 
 @dataclass
@@ -78,7 +79,8 @@ class Renderers:
         if key != self._key:
             self._key, self._renderer = None, None      # the old scene goes first
             self._renderer = FrameRenderer(job.scene, resolution=job.resolution, spp=job.spp,
-                                           defines=job.defines, variant=job.variant)
+                                           defines=job.defines, variant=job.variant,
+                                           series=job.series)
             self._key = key
         return self._renderer
 
@@ -98,7 +100,8 @@ def render_task(job: Job, renderers: Renderers | None = None) -> dict:
     out = {"index": spec.index, "file": spec.file, "path": job.path, "pid": os.getpid()}
     try:
         renderer = (renderers or _worker_renderers()).get(job)
-        out.update(renderer.render_to(spec, job.path, next_file=job.next_file))
+        out.update(renderer.render_to(spec, job.path, next_file=job.next_file,
+                                      series=job.series))
     except AMRError as e:
         out["error"] = str(e)
     except Exception as e:              # noqa: BLE001 -- reported per frame, not a crash
@@ -132,14 +135,25 @@ class MiAmrSetup:
 def jobs_for(scene, specs, out_dir, fmt, *, resolution, spp, defines, variant, force,
              existing=()):
     """The jobs still to do, made one by one as they are asked for: a frame whose index is
-    in ``existing`` (frames already in the folder) is skipped unless ``force``."""
+    in ``existing`` (frames already in the folder) is skipped unless ``force``. Each job
+    knows how many data files the movie shows."""
+    series = _series_files(specs)
     for spec in specs:
         if spec.index in existing and not force:
             continue
         yield Job(scene=str(scene), spec=spec.as_dict(),
                   path=str(frame_path(out_dir, spec.index, fmt)),
                   resolution=None if resolution is None else tuple(resolution), spp=spp,
-                  defines=dict(defines), variant=variant)
+                  defines=dict(defines), variant=variant, series=series)
+
+
+def _series_files(specs) -> int:
+    """How many data files the frames ``specs`` show (at least 1): a plan's own list of files
+    (its frames are made only when asked for), else the frames' files."""
+    files = getattr(specs, "files", None)
+    if files is None:
+        files = [spec.file for spec in specs]
+    return max(1, len({f for f in files if f is not None}))
 
 
 def with_next_files(jobs):

@@ -23,7 +23,8 @@ class FrameRenderer:
     ``-D``) applied, on Mitsuba variant ``variant``."""
 
     def __init__(self, scene_path, *, resolution=None, spp=None, defines=None,
-                 variant: str = "llvm_ad_rgb"):
+                 variant: str = "llvm_ad_rgb", series: int = 1):
+        """``series``: the data files the movie shows (see :meth:`render_to`)."""
         import mitsuba as mi
 
         from mi_amr.plugin.scene import load_scene, use_variant
@@ -32,7 +33,7 @@ class FrameRenderer:
         from mi_amr.plugin.camera import scene_camera
         from mi_amr.plugin.integrator import register
 
-        register()
+        register().series_steps = max(1, int(series))     # (the scene's load prepares a step)
         self.mi = mi
         params = dict(defines or {})
         self.scene_path = Path(scene_path)
@@ -95,13 +96,16 @@ class FrameRenderer:
         if path is not None and str(path) != self.file:
             self.prefetch.start(self.integ, path)
 
-    def render_to(self, spec: FrameSpec, path, next_file=None) -> dict:
+    def render_to(self, spec: FrameSpec, path, next_file=None, series: int = 1) -> dict:
         """Render frame ``spec`` to ``path`` (written atomically), preparing ``next_file`` (the
         next frame's data file, if any) meanwhile; returns its timings (seconds: ``load`` and
         its steps when the data file changed -- what was left of it when it was prepared in
-        the background --, ``frame``, ``write``) and the number of kernels compiled."""
+        the background --, ``frame``, ``write``) and the number of kernels compiled.
+        ``series``: the movie's data files (a step's snapshot is written only where that many
+        fit the cache: :class:`~mi_amr.kernels.prepared.Preparations`)."""
         import drjit as dr
 
+        self.integ.preparations.series_steps = max(1, int(series))
         t0 = time.perf_counter()
         timings = self.show(spec)
         self.prepare_next(next_file)
