@@ -319,7 +319,7 @@ def _write_snapshot(cache, key, prepared, steps: int, say) -> None:
     """Write ``prepared``'s snapshot as entry ``key`` of ``cache``, unless it is one step of a
     series of ``steps`` files whose snapshots would not all fit the cache: their entries
     would evict each other (and the cache's other entries) before a second run could read
-    them, and writing one costs more than half a step's preparation."""
+    them, and writing one adds a third or more to a step's preparation."""
     if steps > 1 and not cache.holds(prepared, steps):
         say(f"  no snapshot written: the series' {steps:,} steps would not fit the snapshot "
             f"cache's {cache.limit / 1e9:.2f} GB (MI_AMR_CACHE_GB)")
