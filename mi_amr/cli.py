@@ -344,8 +344,13 @@ def _movie(args) -> int:
     if args.workers < 1:
         raise AMRError(f"--workers must be >= 1, got {args.workers}")
     source, files = movie_inputs(args.scene, args.files)
+    # Frames rendered in this process take the field the isovalue pick read; Dask workers
+    # (other processes) could not, and the volume would be held through the movie.
+    here = args.workers == 1 and args.scheduler is None
+    offer = _preparations(args.variant).offer if here else None
     # (A time series' later steps may hold their surfaces elsewhere: its data's bounds.)
-    with _data_scene(args, source, args.resolution, series=len(files or ()) > 1) as scene:
+    with _data_scene(args, source, args.resolution, series=len(files or ()) > 1,
+                     offer=offer) as scene:
         summary = _run_movie(scene, files, args)
     print(summary.text())
     if args.mp4 and not summary.failed:

@@ -378,6 +378,46 @@ def test07f_a_render_of_a_data_file_reads_its_field_once(mi, tmp_path, capsys):
     assert len(reads) == 1, reads
 
 
+def test07g_a_movie_of_a_data_file_in_this_process_reads_its_field_once(mi, tmp_path, capsys):
+    """``movie FILE`` with one worker (its frames rendered in this process): the field that the
+    isovalue pick read goes on to the scene's load, as for ``render FILE``, and the frames are
+    those of a run that reads it twice; with Dask workers (other processes) nothing is
+    offered, so the volume read for the pick is not held through the movie."""
+    import mi_amr.readers
+    from mi_amr.plugin.integrator import register
+
+    path = save(box_volume((0, 0, 0), (2, 1, 1)), tmp_path / "moving.npz")
+    args = ["movie", path, "--field", "f", "--orbit", "90", "--frames", "2", "--resolution",
+            "24", "16"]
+    reads, real = [], mi_amr.readers.load
+    try:
+        mi_amr.readers.load = lambda *a, **kw: reads.append(a) or real(*a, **kw)
+        rc, text, err = render_cli(args + ["-o", str(tmp_path / "once")], capsys)
+    finally:
+        mi_amr.readers.load = real
+    assert rc == 0, err
+    assert len(reads) == 1, reads
+    register().clear()
+    offered = []
+    mi_amr_offer = type(register()).offer
+    try:
+        type(register()).offer = lambda self, *a, **kw: offered.append(a)
+        rc, text, err = render_cli(args + ["-o", str(tmp_path / "twice")], capsys)
+        assert rc == 0, err
+        assert len(offered) == 1            # (the run above: offered and taken)
+        offered.clear()
+        rc, text, err = render_cli(args + ["-o", str(tmp_path / "dask"), "--workers", "2"],
+                                   capsys)
+        assert rc == 0, err
+        assert offered == []
+    finally:
+        type(register()).offer = mi_amr_offer
+    for name in ("frame_00000.png", "frame_00001.png"):
+        once = np.array(mi.Bitmap(str(tmp_path / "once" / name)))
+        assert once[..., 3].max() > 0
+        np.testing.assert_array_equal(once, np.array(mi.Bitmap(str(tmp_path / "dask" / name))))
+
+
 def test07_the_saved_scene_and_the_dict_render_the_same_pixels(mi, tmp_path, capsys):
     import mi_amr
     from mi_amr.plugin.scene import load_dict
