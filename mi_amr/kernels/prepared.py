@@ -54,8 +54,7 @@ class PreparedVolume:
         self.color_field = color_field or field
         clock = self._lap("derive", clock, quiet=not derived)
         like = by.like(volume, leaf_cells) if by is not None else None
-        if like is not None and like.tree.leaf_cells == leaf_cells and \
-                volume.adopt_hierarchy(like.volume):
+        if like is not None and volume.adopt_hierarchy(like.volume):
             self.tree = KDTree.from_arrays(volume, like.tree.arrays())
             clock = self._lap("tree", clock, quiet=True)
             if report is not None:
@@ -241,8 +240,9 @@ class Preparations:
         :meth:`same hierarchy <mi_amr.core.volume.AMRVolume.same_hierarchy>` as ``volume``
         (another time step of unchanged grids, or the same file with other fields), or
         None: a preparation of ``volume`` takes its kd-tree."""
-        for key, prepared in reversed(list(self._kept.items())):
-            if key[4] == leaf_cells and prepared.volume.same_hierarchy(volume):
+        for prepared in reversed(list(self._kept.values())):
+            if prepared.tree.leaf_cells == leaf_cells and \
+                    prepared.volume.same_hierarchy(volume):
                 return prepared
         return None
 
