@@ -181,7 +181,7 @@ def _same_tree(got, want):
 
 @pytest.mark.parametrize("name", sorted(HIERARCHIES) + ["one grid", "many grids"])
 def test08_a_tree_built_with_the_devices_steps_is_the_hosts(name):
-    """The kernels' ropes (every face descended from the root) equal the host's top-down ones
+    """The kernels' ropes (a kernel a depth, top-down) equal the host's top-down ones
     and their slow twin, and the kernel's active grids the host's, on every test hierarchy at
     two leaf sizes, a lone grid (a handful of nodes) and a thousand tiny grids: the tree built
     with the device's steps is the host's, array for array."""

@@ -2,10 +2,10 @@
 :class:`~mi_amr.core.kdtree.KDTree` takes as ``device`` (:class:`DeviceSteps`).
 
 * **Ropes.** :meth:`KDTree._ropes <mi_amr.core.kdtree.KDTree._ropes>` (NumPy, top-down, one
-  depth at a time) is the host's way; here one kernel descends every face of every node from
-  the root (a lane a face), as :meth:`~mi_amr.core.kdtree.KDTree._ropes_from_root` does on the
-  host: the rope of face ``2 * axis + side`` of node ``n`` is the deepest node holding the
-  closed box half a finest cell beyond that face (the root for a face on the tree's boundary).
+  depth at a time) is the host's way, and a kernel a depth takes the same steps here (a lane
+  a node; :meth:`~mi_amr.core.kdtree.KDTree._ropes_from_root` is the slow twin): the rope of face
+  ``2 * axis + side`` of node ``n`` is the deepest node holding the closed box half a finest
+  cell beyond that face (the root for a face on the tree's boundary).
 * **The leaves' lists.** Whether each (leaf, grid) pair of the leaves' lists is active, as
   :meth:`KDTree._active <mi_amr.core.kdtree.KDTree._active>` decides it: a lane a pair, the
   support test on the doubled lattice, and for a partly covered grid the leaf cells in its
@@ -21,6 +21,8 @@ and the tree's arrays are gathered from, so every tree runs the kernels compiled
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import drjit as dr
 import numpy as np
@@ -43,23 +45,104 @@ def fits(tree) -> bool:
 
 def node_ropes(m, tree) -> np.ndarray:
     """``node_ropes`` of ``tree`` (``(N, 6)`` uint32, aligned, as
-    :meth:`KDTree._ropes <mi_amr.core.kdtree.KDTree._ropes>` sets it), made by a kernel on
-    backend ``m`` (a Dr.Jit module such as ``drjit.llvm.ad``). The tree's lattice must
-    :func:`fit <fits>`."""
+    :meth:`KDTree._ropes <mi_amr.core.kdtree.KDTree._ropes>` sets it), made by a kernel a
+    depth on backend ``m`` (a Dr.Jit module such as ``drjit.llvm.ad``), from the root's
+    children down (:func:`_depth_ropes`). The tree's lattice must :func:`fit <fits>`."""
     N = tree.num_nodes
-    code = device_table(m.UInt32, tree.node_code, np.uint32)
-    split = device_table(m.Int32, 2 * tree.lattice_node_split, np.int32)
-    lo = [device_table(m.Int32, 2 * tree.lattice_node_lo[:, a], np.int32) for a in range(3)]
-    hi = [device_table(m.Int32, 2 * tree.lattice_node_hi[:, a], np.int32) for a in range(3)]
-    root = [[dr.opaque(m.Int32, int(2 * tree.lattice_root[s][a])) for a in range(3)]
-            for s in (0, 1)]
-    face = dr.arange(m.UInt32, 6 * N)
-    node = face // 6
-    box = _face_box(m, face - 6 * node, [dr.gather(m.Int32, t, node) for t in lo],
-                    [dr.gather(m.Int32, t, node) for t in hi], root)
-    rope = _descend(m, (code, split), box)
-    dr.eval(rope)
-    return aligned_copy(rope.numpy(), np.uint32).reshape(N, 6)
+    nodes = _RopeNodes(m, tree)
+    begin = np.searchsorted(tree.node_depth, np.arange(tree.depth + 1))
+    none = dr.full(m.UInt32, NO_NODE, 2)
+    dr.make_opaque(none)
+    above = _Depth(0, [dr.zeros(m.UInt32, 2)] * 6, [none] * 3)    # the root: faces outside
+    parts = [np.zeros((1, 6), dtype=np.uint32)]
+    for first, stop in zip(begin[1:-1], begin[2:]):
+        above = _depth_ropes(m, nodes, above, (int(first), int(stop)))
+        parts.append(np.stack([r.numpy() for r in above.ropes], axis=1))
+    return aligned_copy(np.concatenate(parts)[:N], np.uint32)
+
+
+NO_NODE = 0xFFFFFFFF      # (a node number no tree reaches)
+
+
+@dataclass
+class _Depth:
+    """One depth's nodes as :func:`_depth_ropes` leaves them: the first node's number, the
+    ropes (a UInt32 array a face, in node order) and per axis ``touch``: the shallowest
+    ancestor whose split plane on that axis is the node's upper face there (:data:`NO_NODE`:
+    none)."""
+
+    first: int
+    ropes: object
+    touch: list
+
+
+@dataclass
+class _RopeNodes:
+    """What the rope kernels gather per node (device tables): codes, parents, doubled split
+    planes and lattice boxes (three Int32 columns each), and the tree's doubled root box
+    (opaque scalars)."""
+
+    code: object
+    parent: object
+    split: object
+    lo: list
+    hi: list
+    root: list
+
+    def __init__(self, m, tree):
+        column = lambda box, a: device_table(m.Int32, 2 * box[:, a], np.int32)  # noqa: E731
+        self.code = device_table(m.UInt32, tree.node_code, np.uint32)
+        self.parent = device_table(m.UInt32, _parents(tree.node_code), np.uint32)
+        self.split = device_table(m.Int32, 2 * tree.lattice_node_split, np.int32)
+        self.lo = [column(tree.lattice_node_lo, a) for a in range(3)]
+        self.hi = [column(tree.lattice_node_hi, a) for a in range(3)]
+        self.root = [[dr.opaque(m.Int32, int(2 * tree.lattice_root[s][a])) for a in range(3)]
+                     for s in (0, 1)]
+
+
+def _parents(code) -> np.ndarray:
+    """Each node's parent (the root's: 0) from the node codes."""
+    parent = np.zeros(len(code), dtype=np.int64)
+    inner = np.flatnonzero((code & 3) != LEAF)
+    parent[code[inner] >> 2] = inner
+    parent[(code[inner] >> 2) + 1] = inner
+    return parent
+
+
+def _depth_ropes(m, nodes, above: _Depth, span) -> _Depth:
+    """The ropes of the nodes ``span`` (``(first, stop)``: one depth) from those of the depth
+    ``above``, a lane a node and its six faces one after the other. A face's box lies in its
+    parent's box beyond the same face, so its descent from the root passes through the
+    parent's rope and starts there. The face on the parent's split plane starts at the
+    sibling, which holds its box, unless the descent from the root stops above it: at the
+    shallowest ancestor whose split plane on another axis is the node's upper face (the closed
+    box touches that plane; a face box is half a cell off the lattice on its own axis, so no
+    plane on that axis stops it), carried down as ``touch``."""
+    first, stop = span
+    local = dr.arange(m.UInt32, stop - first)
+    node = dr.opaque(m.UInt32, first) + local
+    p = dr.gather(m.UInt32, nodes.parent, node)
+    c = dr.gather(m.UInt32, nodes.code, p)
+    axis, lower = c & 3, node == (c >> 2)
+    on_split = 2 * axis + dr.select(lower, 1, 0)    # a lower child's upper face, and back
+    at = p - dr.opaque(m.UInt32, above.first)
+    touch = [dr.gather(m.UInt32, t, at) for t in above.touch]
+    stopped = m.UInt32(NO_NODE)
+    for b in range(3):          # (ancestors number below their descendants: the min is shallowest)
+        stopped = dr.select(axis == b, stopped, dr.minimum(stopped, touch[b]))
+    split_start = dr.select(stopped != NO_NODE, stopped, (c >> 2) + dr.select(lower, 1, 0))
+    lo = [dr.gather(m.Int32, t, node) for t in nodes.lo]
+    hi = [dr.gather(m.Int32, t, node) for t in nodes.hi]
+    boxes, starts = [], []
+    for face in range(6):
+        starts.append(dr.select(on_split == face, split_start,
+                                dr.gather(m.UInt32, above.ropes[face], at)))
+        boxes.append(_face_box(m, m.UInt32(face), lo, hi, nodes.root))
+    out = _Depth(first, _descend(m, (nodes.code, nodes.split), boxes, starts), [])
+    for b in range(3):          # a lower child's upper face on its parent's split is that split
+        out.touch.append(dr.select((axis == b) & lower, p, touch[b]))
+    dr.eval(out.ropes, out.touch)
+    return out
 
 
 def _face_box(m, face, lo, hi, root):
@@ -78,14 +161,14 @@ def _face_box(m, face, lo, hi, root):
     return lo, hi, inside
 
 
-def _descend(m, nodes, box):
-    """The deepest node holding each closed box of ``box`` (``(lo, hi, inside)`` as
-    :func:`_face_box` gives it), descending from the root; the root where not ``inside``.
-    ``nodes``: the tree's node codes and doubled split planes (device tables)."""
+def _descend(m, nodes, boxes, starts) -> list:
+    """For each of ``boxes`` (closed boxes ``(lo, hi, inside)`` as :func:`_face_box` gives
+    them, a list), the deepest node holding it, descending from ``starts`` (nodes holding
+    them, a list); the root where not ``inside``. One loop takes them all, a step of each a
+    turn. ``nodes``: the tree's node codes and doubled split planes (device tables)."""
     code, split = nodes
-    lo, hi, inside = box
 
-    def body(at, going):
+    def step(at, going, lo, hi):
         c = dr.gather(m.UInt32, code, at, going)
         axis = c & 3
         inner = going & (axis != LEAF)
@@ -96,9 +179,20 @@ def _descend(m, nodes, box):
         go = above | (inner & (high < s))
         return dr.select(go, (c >> 2) + dr.select(above, 1, 0), at), go
 
-    at, _ = dr.while_loop((dr.zeros(m.UInt32, dr.width(inside)), m.Bool(inside)),
-                          lambda at, going: going, body)
-    return at
+    def body(ats, goings):
+        out = [step(at, going, box[0], box[1]) for at, going, box in zip(ats, goings, boxes)]
+        return [o[0] for o in out], [o[1] for o in out]
+
+    def any_going(ats, goings):
+        out = goings[0]
+        for going in goings[1:]:
+            out = out | going
+        return out
+
+    state = ([dr.select(box[2], start, 0) for box, start in zip(boxes, starts)],
+             [m.Bool(box[2]) for box in boxes])
+    ats, _ = dr.while_loop(state, any_going, body)
+    return ats
 
 
 # ---------------------------------------------------------------------- active grids
