@@ -115,6 +115,68 @@ def test07_level_values_follow_a_replaced_array_unless_fields_are_fixed():
 
 
 
+def test07b_adopted_level_values_are_the_grids_own_arrays():
+    """A level buffer a caller vouches for is cached only where the volume's grids hold the very
+    arrays given, of the buffer's dtype and size; afterwards a replaced array is followed."""
+    from mi_amr.core import levels
+
+    vol = datasets.sphere_wake("small", progress=False)
+    ids = np.flatnonzero(vol.levels == 1)
+    flat = np.concatenate([vol.grids[g].fields["vx"].ravel() for g in ids])
+    own = [vol.grids[g].fields["vx"] for g in ids]
+    copies = [a.copy() for a in own]
+    levels.adopt_level_values(vol, 1, "vx", flat.copy(), copies)      # not the grids' arrays
+    levels.adopt_level_values(vol, 1, "vx", flat.astype(np.float64), own)      # another dtype
+    levels.adopt_level_values(vol, 1, "vx", flat[:-1], own)                     # another size
+    assert (1, "vx") not in vol.level_caches.values
+    views_of = np.empty_like(flat)
+    at = 0
+    for g in ids:                          # the level's arrays made views of one buffer
+        n = vol.grids[g].num_cells
+        views_of[at:at + n] = vol.grids[g].fields["vx"].ravel()
+        vol.grids[g].fields["vx"] = views_of[at:at + n].reshape(vol.grids[g].shape)
+        at += n
+    levels.adopt_level_values(vol, 1, "vx", views_of,
+                              [vol.grids[g].fields["vx"] for g in ids])
+    assert levels.level_values(vol, 1, "vx") is views_of
+    g = ids[0]
+    vol.grids[g].fields["vx"] = vol.grids[g].fields["vx"] + 1.0
+    again = levels.level_values(vol, 1, "vx")
+    assert again is not views_of
+    np.testing.assert_array_equal(again[:vol.grids[g].num_cells],
+                                  views_of[:vol.grids[g].num_cells] + np.float32(1.0))
+
+
+def test07c_a_load_finds_its_buffers_without_a_look_at_each_grid(tmp_path, monkeypatch):
+    """Reading a file, deriving Q and the speed and making the device arrays never looks at the
+    grids' arrays one by one to find the buffer they lie in (the address of each of thousands
+    of arrays: a noticeable part of a time step's load): the reader, the derivation and the
+    snapshot say which buffers they made, and the device's flat field is the derivation's
+    buffer, mapped."""
+    from mi_amr.core import levels
+    from mi_amr.readers import load
+
+    path = tmp_path / "wake.npz"
+    datasets.sphere_wake("small", progress=False).save(path)
+    looked = []
+    real = buffers.joined
+
+    def counted(arrays, dtype, aligned=True):
+        arrays = list(arrays)
+        looked.append(len(arrays))
+        return real(arrays, dtype, aligned)
+
+    monkeypatch.setattr(levels, "joined", counted)
+    vol = load(path, fields=["vx", "vy", "vz"], level_buffers={"vx", "vy", "vz"})
+    vol, _ = prepared.needed_fields(vol, "q_criterion", "speed", m=M, consume=True)
+    dev = DeviceVolume(vol, KDTree(vol), "q_criterion", "speed", m=M)
+    assert looked and max(looked) <= vol.num_levels < len(vol.grids)
+    for name, arr in (("q_criterion", dev.values), ("speed", dev.color_values)):
+        flat = np.concatenate([g.fields[name].ravel() for g in vol.grids])
+        np.testing.assert_array_equal(arr.numpy(), flat)
+        assert levels.volume_values(vol, name).ctypes.data == arr.numpy().ctypes.data, name
+
+
 _REUSE = """
 import ctypes, sys
 import numpy as np

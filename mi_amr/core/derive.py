@@ -79,11 +79,12 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None, speed_field
         _derive_levels(volume, comps, flat, todo, (gradient_fields, speed_field, chunk_cells))
         if consume:
             volume.drop_level_fields(todo[0], comps)
-    out = volume.with_fields({n: _per_grid(volume, arrays, dtypes)
-                              for n, arrays in flat.items()})
+    made = {n: _per_grid(volume, arrays, dtypes) for n, arrays in flat.items()}
+    out = volume.with_fields(made)
     for name, arrays in flat.items():
         for level, values in enumerate(arrays):
-            levels.share_level_values(out, level, name, values)
+            ids = np.flatnonzero(out.levels == level)
+            levels.adopt_level_values(out, level, name, values, [made[name][g] for g in ids])
     return out
 
 

@@ -160,16 +160,44 @@ def level_values(volume, level: int, name: str) -> np.ndarray:
     return cache[key][2]
 
 
-def share_level_values(volume, level: int, name: str, flat: np.ndarray) -> None:
-    """Make ``flat`` the cached :func:`level_values` of field ``name`` on ``level`` when every
-    grid's array of it is a view of ``flat``, end to end (as :func:`mi_amr.derive` makes
-    them), so no copy is made; otherwise do nothing."""
-    arrays = [volume.grids[g].fields[name] for g in level_index(volume, level).grids]
-    whole = joined(arrays, flat.dtype, aligned=False) if arrays else None
-    if whole is not None and whole.size == flat.size and \
-            whole.ctypes.data == flat.ctypes.data:
-        volume.level_caches.values[(level, name)] = (
-            [id(a) for a in arrays], arrays, flat)
+def adopt_level_values(volume, level: int, name: str, flat: np.ndarray, arrays) -> None:
+    """Make ``flat`` the cached :func:`level_values` of field ``name`` on ``level`` where the
+    caller made ``arrays`` (the level's grids' arrays of the field, grid after grid in the
+    order of :class:`LevelIndex`) as views of ``flat``, end to end (a reader's level buffer,
+    the derivation's output, a snapshot's), so that the address of each grid's array is not
+    read to find that out (:func:`level_values`). Nothing is cached where the volume's grids
+    do not hold those very arrays of ``flat``'s dtype and size (a copy was made on the
+    way)."""
+    arrays = list(arrays)
+    held = [volume.grids[g].fields.get(name) for g in np.flatnonzero(volume.levels == level)]
+    if len(held) == len(arrays) and all(a is b and a.dtype == flat.dtype
+                                        for a, b in zip(held, arrays)) and \
+            sum(a.size for a in arrays) == flat.size:
+        volume.level_caches.values[(level, name)] = ([id(a) for a in arrays], arrays, flat)
+
+
+def volume_values(volume, name: str):
+    """Field ``name`` of every grid, grid after grid (the volume's order), as a view of the
+    one buffer the grids' arrays lie in end to end, or None where they do not (as
+    :func:`mi_amr.core.buffers.joined`, unaligned). Where the grids are in level order and
+    each level's values are cached (:func:`adopt_level_values`) it reads a pointer a level,
+    not one a grid."""
+    cache = volume.level_caches.values
+    by_level = volume.levels
+    flats = []
+    if len(by_level) and np.all(by_level[1:] >= by_level[:-1]):
+        for level in range(volume.num_levels):
+            entry = cache.get((level, name))
+            ids = np.flatnonzero(by_level == level)
+            if entry is None or entry[0] != [id(volume.grids[g].fields.get(name)) for g in ids]:
+                break
+            flats.append(entry[2])
+    if flats and len(flats) == volume.num_levels:
+        whole = joined(flats, flats[0].dtype, aligned=False)
+        if whole is not None:
+            return whole
+    arrays = [g.fields[name] for g in volume.grids]
+    return joined(arrays, arrays[0].dtype, aligned=False) if arrays else None
 
 
 def forget_level_values(volume, level: int, names) -> None:

@@ -31,7 +31,7 @@ import numpy as np
 
 from mi_amr import tolerances as tol
 from mi_amr.core import levels
-from mi_amr.core.buffers import aligned_empty, joined
+from mi_amr.core.buffers import ALIGN, aligned_empty
 from mi_amr.kernels import bricks, ranges, starts
 from mi_amr.kernels.arrays import device_array, mapped_array
 from mi_amr.kernels.bricks import BRICK, BRICK_N, NO_BRICK, brick_table  # noqa: F401
@@ -201,11 +201,14 @@ class DeviceVolume:
         return [self.values] + ([self.color_values] if color else [])
 
     def _field_values(self, name):
-        """Field ``name`` of every grid, grid after grid, as a device array: the buffer the
-        grids' arrays are views of when there is one (:func:`mi_amr.core.buffers.joined`: no
-        copy), else a float32 copy written once."""
+        """Field ``name`` of every grid, grid after grid, as a device array: the aligned float32
+        buffer the grids' arrays are views of when there is one
+        (:func:`mi_amr.core.levels.volume_values`: no copy), else a float32 copy written
+        once."""
         arrays = [g.fields[name] for g in self.volume.grids]
-        flat = joined(arrays, np.float32)
+        flat = levels.volume_values(self.volume, name)
+        if flat is not None and (flat.dtype != np.float32 or flat.ctypes.data % ALIGN):
+            flat = None
         if flat is None:
             flat = aligned_empty(sum(a.size for a in arrays), np.float32)
             if arrays:

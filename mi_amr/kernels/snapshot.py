@@ -433,7 +433,8 @@ def _volume(state: dict, fields: dict, get, records: dict) -> AMRVolume:
                        index_lo=get(state["index_lo"]),
                        ratios=tuple(state["ratios"]), anchor=get(state["anchor"]))
     for (lv, name), flat in flats.items():
-        levels.share_level_values(volume, lv, name, flat)
+        levels.adopt_level_values(volume, lv, name, flat,
+                                  [grid_fields[g][name] for g in np.flatnonzero(level == lv)])
     return volume
 
 

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mi_amr.core import levels
 from mi_amr.core.buffers import ALIGN, aligned_empty
 from mi_amr.errors import ALLOW_NONFINITE_HOW, AMRError
 from mi_amr.readers.fields import requested
@@ -92,10 +93,17 @@ def load(path, fields=None, *, level_buffers=(), allow_nonfinite: bool = False) 
     shapes = [tuple(row) for row in shape.tolist()]
     fields = {n: [data[n][r][a:a + b - c].reshape(sh) for r, a, b, c, sh in
                   zip(rank, within, offsets[1:], offsets, shapes)] for n in wanted}
-    return AMRVolume.from_columns({k: index[k] for k in ("level", "origin", "spacing", "shape")},
-                                  fields, data,
-                                  allow_nonfinite=index["allow_nonfinite"] or allow_nonfinite,
-                                  source=str(path))
+    volume = AMRVolume.from_columns(
+        {k: index[k] for k in ("level", "origin", "spacing", "shape")}, fields, data,
+        allow_nonfinite=index["allow_nonfinite"] or allow_nonfinite, source=str(path))
+    # Each level's buffer holds its grids in file order, which is the level tables' order.
+    by_level = np.asarray(index["level"])
+    for r, level in enumerate(np.unique(by_level)):
+        ids = np.flatnonzero(by_level == level)
+        for n in wanted:
+            levels.adopt_level_values(volume, int(level), n, data[n][r],
+                                      [fields[n][g] for g in ids])
+    return volume
 
 
 # ---------------------------------------------------------------------- reading the archive
