@@ -84,6 +84,19 @@ def test05_the_velocity_is_freed_once_the_caller_drops_its_volume():
     assert not any(k[1] in ("vx", "vy", "vz") for k in out.level_caches.values)
 
 
+def test05b_a_volume_holding_just_the_fields_is_given_back_as_it_is():
+    """needed_fields of a volume that holds exactly the fields asked for (a derivation's result,
+    asked again by the preparation) gives that volume back, not a copy of every grid's record;
+    one holding more, or the same fields in another order, is narrowed to a new volume."""
+    vol = datasets.sphere_wake("small", progress=False)
+    out, _ = prepared.needed_fields(vol, "q_criterion", "speed")
+    again, derived = prepared.needed_fields(out, "q_criterion", "speed")
+    assert again is out and not derived
+    swapped, _ = prepared.needed_fields(out, "speed", "q_criterion")
+    assert swapped is not out and swapped.field_names == ("speed", "q_criterion")
+    narrowed, _ = prepared.needed_fields(out, "speed", None)
+    assert narrowed is not out and narrowed.field_names == ("speed",)
+
 def test06_level_values_of_a_file_read_whole_are_views_of_what_was_read(tmp_path):
     from mi_amr.core import levels
     from mi_amr.readers import load

@@ -135,6 +135,8 @@ def needed_fields(volume, field: str, color_field: str | None, m=None, consume=F
     elif derivable:
         from mi_amr.core.derive import derive
         volume = derive(volume, *derivable, consume=consume)
+    if list(volume.field_names) == wanted:      # (already so: no copy of every grid's record)
+        return volume, bool(derivable)
     return volume.select_fields(wanted), bool(derivable)
 
 
