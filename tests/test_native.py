@@ -610,3 +610,21 @@ def test30_columns_that_are_not_plain_get_from_grids_messages(tmp_path):
             AMRVolume.from_columns(columns, fields, fields, source="f.npz")
         assert str(got.value) == str(want.value)
         assert re.search(r"grid \d", str(got.value)), str(got.value)
+
+
+def test31_grid_offsets_are_pythons_sums_even_where_int64_would_overflow():
+    """Each grid's first value in a field's row: NumPy's products for an ordinary index, the
+    same numbers as Python's exact ones, and Python's where an index's shapes multiply past
+    int64 (a damaged file, refused later for its entries' sizes, not read with wrapped
+    offsets)."""
+    import math
+    from itertools import accumulate
+
+    from mi_amr.readers.native import _offsets
+
+    rng = np.random.default_rng(3)
+    for shape in (rng.integers(1, 40, (3000, 3)), np.zeros((0, 3), dtype=np.int64),
+                  np.array([[2 ** 31 - 1] * 3, [2, 3, 4]]), np.array([[2 ** 21] * 3] * 4)):
+        want = [0, *accumulate(math.prod(int(n) for n in row) for row in shape)]
+        got = _offsets(shape)
+        assert got == want and all(type(x) is int for x in got)

@@ -378,10 +378,18 @@ def _read_index(path: Path, archive) -> dict:
         raise AMRError(f"{path}: entry 'allow_nonfinite' must be one boolean, got {allow.dtype} "
                        f"shape {allow.shape}")
     names = _names(path, _entry(path, archive, "field_names"))
-    counts = [math.prod(int(n) for n in row) for row in shape]
     return {"level": level, "origin": origin, "spacing": spacing, "shape": shape,
-            "offsets": [0, *accumulate(counts)], "names": names,
+            "offsets": _offsets(shape), "names": names,
             "allow_nonfinite": bool(allow)}
+
+
+def _offsets(shape) -> list:
+    """Where each grid's values begin in a field's row, and the end (Python ints): from NumPy's
+    products where the total cannot overflow int64, else from Python's (a damaged index's
+    huge shapes, which the entries' sizes then refuse)."""
+    if float(np.prod(shape.astype(np.float64), axis=1).sum()) < 2.0 ** 62:
+        return [0, *np.cumsum(np.prod(shape.astype(np.int64), axis=1)).tolist()]
+    return [0, *accumulate(math.prod(int(n) for n in row) for row in shape)]
 
 
 def _checked(path: Path, a: np.ndarray, key: str, kinds: str, ndim: int, count=None):
