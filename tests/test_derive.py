@@ -460,3 +460,27 @@ def test05c_speed_range_without_the_field_is_the_derived_fields_range(seed, dtyp
     mixed = _velocity_hierarchy(seed, (2, 2), dtype, holes)
     mixed.grids[0].fields["vx"] = mixed.grids[0].fields["vx"].astype(np.float16)
     assert derive_mod.speed_range(mixed) is None
+
+
+def test40_each_grid_derives_in_its_own_velocitys_dtype():
+    """Derived values take each grid's velocity dtype: float32 grids give float32 and a grid
+    whose components are float64 (or mixed) gives float64, whether every grid agrees (one
+    dtype found once) or not (found grid by grid)."""
+    from mi_amr.core.derive import derive
+
+    def field(c):
+        return lambda p: np.stack([np.sin(p[..., 0] + c), p[..., 1] * p[..., 2], p[..., 0] ** 2],
+                                  axis=-1)
+
+    grids = [velocity_grid(level, lo, hi, [H0, H0 / 2, H0 / 4][level], field(i), dtype=np.float32)
+             for i, (level, (lo, hi)) in enumerate(
+                 (lv, box) for lv in range(3) for box in DERIVE_BOXES[lv])]
+    same = derive(AMRVolume.from_grids(grids), "q_criterion", "speed")
+    assert {g.fields[n].dtype for g in same.grids for n in ("q_criterion", "speed")} == \
+        {np.dtype(np.float32)}
+    grids[1]["fields"]["vy"] = grids[1]["fields"]["vy"].astype(np.float64)
+    grids[4]["fields"] = {n: a.astype(np.float64) for n, a in grids[4]["fields"].items()}
+    mixed = derive(AMRVolume.from_grids(grids), "q_criterion", "speed")
+    for i, g in enumerate(mixed.grids):
+        want = np.float64 if i in (1, 4) else np.float32
+        assert g.fields["q_criterion"].dtype == want and g.fields["speed"].dtype == want, i

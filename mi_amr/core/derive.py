@@ -73,7 +73,7 @@ def derive(volume, *names: str, velocity=None, gradient_fields=None, speed_field
         raise AMRError(f"cannot derive {unknown}; derived fields are {list(DERIVED_FIELDS)}")
     comps = velocity_fields(volume, velocity)
     flat = _level_buffers(volume, names, comps)
-    dtypes = [np.result_type(*(g.fields[n].dtype for n in comps)) for g in volume.grids]
+    dtypes = _grid_dtypes(volume, comps)
     every = list(range(volume.num_levels))
     for todo in ([[level] for level in reversed(every)] if consume else [every]):
         _derive_levels(volume, comps, flat, todo, (gradient_fields, speed_field, chunk_cells))
@@ -216,6 +216,15 @@ def _level_buffers(volume, names, comps) -> dict:
 def _level_dtype(volume, level, comps):
     """The dtype a level's derived values are computed in: that of its velocity components."""
     return np.result_type(*(levels.level_values(volume, level, n).dtype for n in comps))
+
+
+def _grid_dtypes(volume, comps) -> list:
+    """Per grid, the dtype its derived values take: that of its velocity components (the
+    widest of them), found once where every grid's components have one dtype."""
+    kinds = [{g.fields[n].dtype for g in volume.grids} for n in comps]
+    if all(len(k) == 1 for k in kinds):
+        return [np.result_type(*(next(iter(k)) for k in kinds))] * len(volume.grids)
+    return [np.result_type(*(g.fields[n].dtype for n in comps)) for g in volume.grids]
 
 
 def _per_grid(volume, level_arrays, dtypes) -> list:
