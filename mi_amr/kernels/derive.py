@@ -392,8 +392,9 @@ def _difference(lv, cells, line, below, above, faces):
     use_lo = faces[0] & ~dr.isfinite(below)
     use_hi = faces[1] & ~dr.isfinite(above)
     use = use_lo | use_hi
-    one_sided = _one_sided(lv, cells, line, use_hi, dr.select(use_hi, below, above), use)
-    return dr.select(use, one_sided, d)
+    # (In a symbolic branch: few vectors hold a cell on the domain's boundary.)
+    return dr.if_stmt((), use, lambda: dr.select(use, _one_sided(
+        lv, cells, line, use_hi, dr.select(use_hi, below, above), use), d), lambda: d)
 
 
 def _one_sided(lv, cells, line, upper, other, use):
@@ -482,8 +483,20 @@ def _face_cells(tables, level, chunk, wanted, out, base):
 
 def _same_level_ghosts(lv, cells):
     """``ghost_of(axis, side)`` for :func:`_fields`: the three components of the cells beyond
-    each face of ``cells`` that the level itself holds (NaN where it holds none)."""
-    return lambda axis, side: lv.cell_values(cells.ghost(axis, side), cells.face(axis, side))[0]
+    each face of ``cells`` that the level itself holds (NaN where it holds none), looked up
+    in a symbolic branch (:func:`_on_face`)."""
+    def ghost_of(axis, side):
+        face = cells.face(axis, side)
+        return _on_face(lv.m, face, lambda: lv.cell_values(cells.ghost(axis, side), face)[0])
+
+    return ghost_of
+
+
+def _on_face(m, face, look):
+    """``look()`` (three Float64 arrays) where ``face``, NaN elsewhere, in a symbolic branch: a
+    vector with no lane on that face skips the lookup's arithmetic and loads (a chunk's face
+    cells lie on one or two faces of their grid a vector at a time)."""
+    return dr.if_stmt((), face, look, lambda: [m.Float64(dr.nan) for _ in range(3)])
 
 
 def _grid_of_cells(m, offsets, start):
@@ -517,11 +530,16 @@ def _with_coarse_ghosts(tables, level, c, p, wanted):
     lane = dr.arange(m.UInt32, k)
 
     def either(axis, side):
-        values, found = lv.cell_values(cells.ghost(axis, side), cells.face(axis, side))
-        at = dr.gather(m.UInt32, slot, (2 * axis + side) * dr.opaque(m.UInt32, k) + lane,
-                       ~found)
-        return [dr.select(found, v, dr.gather(m.Float64, g, at, ~found))
-                for v, g in zip(values, coarse)]
+        face = cells.face(axis, side)
+
+        def look():
+            values, found = lv.cell_values(cells.ghost(axis, side), face)
+            at = dr.gather(m.UInt32, slot, (2 * axis + side) * dr.opaque(m.UInt32, k) + lane,
+                           ~found)
+            return [dr.select(found, v, dr.gather(m.Float64, g, at, ~found))
+                    for v, g in zip(values, coarse)]
+
+        return _on_face(m, face, look)
 
     return _fields(lv, cells, either, wanted)
 
