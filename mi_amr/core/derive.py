@@ -231,10 +231,12 @@ def _per_grid(volume, level_arrays, dtypes) -> list:
     """One array per grid (a view of its level's flat array, cast to ``dtypes[grid]``, the
     grid's velocity dtype, where a level mixes dtypes) from the per-level flat arrays."""
     out = [None] * len(volume.grids)
+    shapes = volume.grid_columns()["shape"]
     for level, flat in enumerate(level_arrays):
         table = levels.level_index(volume, level)
-        for gi, start in zip(table.grids, levels.grid_offsets(volume, level)):
-            g = volume.grids[gi]
-            out[gi] = flat[start:start + g.num_cells].reshape(g.shape).astype(dtypes[gi],
-                                                                              copy=False)
+        starts = levels.grid_offsets(volume, level)
+        ends = starts + np.prod(shapes[table.grids], axis=1)
+        for gi, start, end in zip(table.grids.tolist(), starts.tolist(), ends.tolist()):
+            view = flat[start:end].reshape(volume.grids[gi].shape)
+            out[gi] = view if dtypes[gi] == view.dtype else view.astype(dtypes[gi])
     return out
