@@ -72,22 +72,14 @@ class _Depth:
     none)."""
 
     first: int
-    ropes: object
+    ropes: list
     touch: list
 
 
-@dataclass
 class _RopeNodes:
     """What the rope kernels gather per node (device tables): codes, parents, doubled split
     planes and lattice boxes (three Int32 columns each), and the tree's doubled root box
     (opaque scalars)."""
-
-    code: object
-    parent: object
-    split: object
-    lo: list
-    hi: list
-    root: list
 
     def __init__(self, m, tree):
         column = lambda box, a: device_table(m.Int32, 2 * box[:, a], np.int32)  # noqa: E731
