@@ -165,13 +165,15 @@ def test09b_leaf_masks_equal_their_slow_twin(box_cells, chunk_cells):
     """The flat leaf masks, cleared through flat cell indices in blocks of about
     ``chunk_cells`` cells (or box by box with slices above ``box_cells``), equal the slow
     twin's per-pair slices on random and reference hierarchies, ratio 4 included; so do the
-    volume's own (the default sizes)."""
+    volume's own (the default sizes), cleared from the (coarse, fine) pairs its nesting check
+    found, where the twin finds its own."""
     from mi_amr.core import volume as volume_module
 
     hierarchies = [random_grids(seed, ratios=ratios) for seed in range(4)
                    for ratios in ((2, 2), (4, 2), (2, 4))] + [reference_grids((4, 2))]
     for grids in hierarchies:
         vol = AMRVolume.from_grids(grids)
+        assert vol._nesting is not None
         masks, partly = volume_module._leaf_masks_reference(vol)
         want = np.concatenate([m.ravel() for m in masks])
         flat, got_partly = volume_module._leaf_masks(vol, box_cells, chunk_cells)

@@ -120,6 +120,7 @@ class AMRVolume:
         self._leaf_flat = None   # every grid's leaf mask, flat, grid after grid (_leaf_masks)
         self._partly = None
         self._columns = None     # per-grid arrays (grid_columns), built once
+        self._nesting = None     # per finer level, its (coarser, finer) grid pairs that overlap
         self._ranges = {}
         # Work derived from this volume that is kept with it: the level tables and flat level
         # values (mi_amr.core.levels), and mi_amr.trace's preparations of it by field, leaf
@@ -198,9 +199,10 @@ class AMRVolume:
         prefix = f"{source}: " if source else ""
         ratios = _check_levels(records, columns, prefix)
         anchor, index_lo = _check_lattice(records, columns, ratios, prefix)
-        _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix)
+        nesting = _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix)
         volume = cls(tuple(records), allow_nonfinite=allow_nonfinite, source=source,
                      index_lo=index_lo, ratios=ratios, anchor=anchor)
+        volume._nesting = nesting
         # Levels are now known to be 0..L-1; the volume keeps the columns (grid_columns).
         volume._columns = {**columns, "level": columns["level"].astype(np.int32),
                            "offset": _cell_offsets(columns["shape"])}
@@ -224,7 +226,7 @@ class AMRVolume:
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
         out._leaf_flat, out._partly = self._leaf_flat, self._partly
-        out._columns = self._columns            # the same hierarchy
+        out._columns, out._nesting = self._columns, self._nesting      # the same hierarchy
         levels.adopt_caches(out, self)
         return out
 
@@ -239,7 +241,7 @@ class AMRVolume:
         out = AMRVolume(grids, allow_nonfinite=self.allow_nonfinite, source=self.source,
                         index_lo=self._index_lo, ratios=self.ratios, anchor=self.anchor)
         out._leaf_flat, out._partly = self._leaf_flat, self._partly
-        out._columns = self._columns            # the same hierarchy
+        out._columns, out._nesting = self._columns, self._nesting      # the same hierarchy
         levels.adopt_caches(out, self)
         return out
 
@@ -264,6 +266,8 @@ class AMRVolume:
             return False
         if self._leaf_flat is None and other._leaf_flat is not None:
             self._leaf_flat, self._partly = other._leaf_flat, other._partly
+        if self._nesting is None:
+            self._nesting = other._nesting
         levels.adopt_index(self, other)
         return True
 
@@ -765,9 +769,14 @@ def _check_lattice(records, columns, ratios, prefix: str):
     return anchor, rounded.astype(np.int64) * ratio[:, None]
 
 
-def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str) -> None:
+def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str) -> list:
+    """Refuse grids of one level that overlap, and grids not inside the coarser level. Returns,
+    per level with a coarser one, the (coarser grid, grid) pairs that overlap (grid numbers,
+    sorted by the coarser grid, then the grid): the leaf masks' covered boxes
+    (:func:`_covered_boxes`)."""
     levels, shapes = columns["level"], columns["shape"]
     index_hi = index_lo + shapes
+    nesting = []
     for level in range(len(ratios) + 1):
         ids = np.flatnonzero(levels == level)
         a, b = overlap_pairs(index_lo[ids], index_hi[ids], index_lo[ids], index_hi[ids])
@@ -782,6 +791,8 @@ def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str) 
         parents = np.flatnonzero(levels == level - 1)
         flo, fhi = index_lo[ids] // ratio, index_hi[ids] // ratio
         fa, pb = overlap_pairs(flo, fhi, index_lo[parents], index_hi[parents])
+        order = np.lexsort((fa, pb))
+        nesting.append((parents[pb[order]], ids[fa[order]]))
         covered = np.zeros(len(ids), dtype=np.int64)
         np.add.at(covered, fa, intersection_volume(flo[fa], fhi[fa], index_lo[parents][pb],
                                                    index_hi[parents][pb]))
@@ -793,6 +804,7 @@ def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str) 
             raise AMRError(f"{prefix}{records[i].describe(i)} is not inside the level-{level - 1} "
                            f"grids (only {share:.0%} of it is covered); a fine grid must lie "
                            f"within the coarser level (proper nesting)")
+    return nesting
 
 
 def _leaf_masks(volume: AMRVolume, box_cells: int = MASK_BOX_CELLS,
@@ -842,26 +854,30 @@ def _leaf_masks_reference(volume: AMRVolume):
     per-grid ``partly`` flags."""
     masks = [np.ones(g.shape, dtype=bool) for g in volume.grids]
     partly = np.zeros(len(masks), dtype=bool)
-    for cs, los, his in _covered_boxes(volume):
+    for cs, los, his in _covered_boxes(volume, kept=False):     # (its own pairs)
         for c, a, b in zip(cs, los, his):
             masks[c][a[0]:b[0], a[1]:b[1], a[2]:b[2]] = False
             partly[c] = True
     return masks, partly
 
 
-def _covered_boxes(volume: AMRVolume):
+def _covered_boxes(volume: AMRVolume, kept: bool = True):
     """Per level with a finer one, ``(c, a, b)``: for each (coarse grid, finer grid) pair that
     overlaps, the coarse grid ``c`` and the half-open index box ``[a, b)`` (its own cells,
-    from its lower corner) the finer grid covers."""
+    from its lower corner) the finer grid covers. The pairs are the nesting check's where the
+    volume kept them (:func:`_check_overlap_and_nesting`) and ``kept``, else found again."""
     levels = volume.grid_columns()["level"]
     lo, hi = volume.index_boxes()
     for level, ratio in enumerate(volume.ratios):
-        coarse = np.flatnonzero(levels == level)
-        fine = np.flatnonzero(levels == level + 1)
-        flo, fhi = lo[fine] // ratio, hi[fine] // ratio
-        ca, fb = overlap_pairs(lo[coarse], hi[coarse], flo, fhi)
-        c = coarse[ca]
-        yield c, np.maximum(lo[c], flo[fb]) - lo[c], np.minimum(hi[c], fhi[fb]) - lo[c]
+        if kept and volume._nesting is not None:
+            c, f = volume._nesting[level]
+        else:
+            coarse = np.flatnonzero(levels == level)
+            fine = np.flatnonzero(levels == level + 1)
+            ca, fb = overlap_pairs(lo[coarse], hi[coarse], lo[fine] // ratio, hi[fine] // ratio)
+            c, f = coarse[ca], fine[fb]
+        flo, fhi = lo[f] // ratio, hi[f] // ratio
+        yield c, np.maximum(lo[c], flo) - lo[c], np.minimum(hi[c], fhi) - lo[c]
 
 
 def _format_bytes(n: int) -> str:
