@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mi_amr.core.buffers import joined
+from mi_amr.core import levels
 
 # Cells a batch holds at most (one grid at least): bounds its temporaries, a few bytes to a few
 # tens of bytes a cell.
@@ -20,9 +20,9 @@ BATCH_CELLS = 1 << 20
 def flat_field(volume, name: str) -> np.ndarray:
     """Field ``name`` of all grids, raveled and concatenated grid after grid, in its own dtype
     (read only: the buffer the grids' arrays are views of, when they lie end to end in one)."""
-    arrays = [g.fields[name] for g in volume.grids]
-    flat = joined(arrays, arrays[0].dtype, aligned=False)
-    return flat if flat is not None else np.concatenate([a.reshape(-1) for a in arrays])
+    flat = levels.volume_values(volume, name)
+    return flat if flat is not None else \
+        np.concatenate([g.fields[name].reshape(-1) for g in volume.grids])
 
 
 def shape_batches(volume, cells: int | None = None):
