@@ -439,16 +439,18 @@ def _chunk_fields(tables, level, grids, wanted, out, base):
                        interior=True)
         for k, v in _fields(lv, cells, None, wanted).items():
             dr.scatter(out[k], _as(m, v, wanted[k]), at + inner)
-    need = m.Bool(False)
+    need, lacking = m.Bool(False), m.UInt32(0)
     if dr.width(outer):
-        need = _face_cells(tables, level, (first, outer, dr.gather(m.UInt32, p, outer)),
-                           wanted, out, at)
-    dr.eval(out, need)
-    redo = dr.gather(m.UInt32, outer, dr.compress(need)) if dr.width(outer) else None
+        need, lacking = _face_cells(tables, level, (first, outer, dr.gather(m.UInt32, p, outer)),
+                                    wanted, out, at)
+    dr.eval(out, need, lacking)
+    again_at = dr.compress(need) if dr.width(outer) else None
+    redo = dr.gather(m.UInt32, outer, again_at) if dr.width(outer) else None
     if redo is not None and dr.width(redo):
         c, q = dr.opaque(m.UInt32, first) + redo, dr.gather(m.UInt32, p, redo)
         if level > 0:
-            again = _with_coarse_ghosts(tables, level, c, q, wanted)
+            again = _with_coarse_ghosts(tables, level, (c, q, dr.gather(m.UInt32, lacking,
+                                                                          again_at)), wanted)
         else:                            # (no coarser level: one-sided where none is held)
             cells = _Cells(lv, c, q)
             again = _fields(lv, cells, _same_level_ghosts(lv, cells), wanted)
@@ -460,25 +462,29 @@ def _chunk_fields(tables, level, grids, wanted, out, base):
 def _face_cells(tables, level, chunk, wanted, out, base):
     """Write :func:`_fields` of the chunk's face cells (``chunk``: ``(first, at, p)``, their
     positions ``at`` from the chunk's ``first`` cell, their grids ``p``) into ``out`` (from
-    ``base`` on), with central differences and the ghosts their own level holds; the cells
-    where one of those is missing or not finite (most of them on a coarse-fine or the
-    domain's boundary, or beside missing data) are marked in what it returns, to be
-    computed again with coarser ghosts and one-sided differences."""
+    ``base`` on), with central differences and the ghosts their own level holds. Returns
+    ``(need, lacking)``: the cells where one of those ghosts is missing or not finite (most
+    of them on a coarse-fine or the domain's boundary, or beside missing data), to be
+    computed again with coarser ghosts and one-sided differences, and per cell the faces
+    (bit ``2 axis + side``) beyond which the level holds no cell, whose ghosts the coarser
+    levels give (:func:`_coarse_ghosts`)."""
     lv, m = tables[level], tables[level].m
     first, at, p = chunk
     cells = _Cells(lv, dr.opaque(m.UInt32, first) + at, p)
-    lack = [m.Bool(False)]
-    ghosts = _same_level_ghosts(lv, cells)
+    lack, lacking = [m.Bool(False)], [m.UInt32(0)]
 
     def checked(axis, side):
-        values = ghosts(axis, side)
-        lack[0] |= cells.face(axis, side) & ~(dr.isfinite(values[0]) & dr.isfinite(values[1]) &
-                                              dr.isfinite(values[2]))
+        face = cells.face(axis, side)
+        values, found = _on_face(m, face, lambda: lv.cell_values(cells.ghost(axis, side),
+                                                                  face))
+        lack[0] |= face & ~(dr.isfinite(values[0]) & dr.isfinite(values[1]) &
+                            dr.isfinite(values[2]))
+        lacking[0] |= dr.select(face & ~found, m.UInt32(1 << (2 * axis + side)), 0)
         return values
 
     for k, v in _fields(lv, cells, checked, wanted, one_sided=False).items():
         dr.scatter(out[k], _as(m, v, wanted[k]), base + at)
-    return lack[0]
+    return lack[0], lacking[0]
 
 
 def _same_level_ghosts(lv, cells):
@@ -487,16 +493,18 @@ def _same_level_ghosts(lv, cells):
     in a symbolic branch (:func:`_on_face`)."""
     def ghost_of(axis, side):
         face = cells.face(axis, side)
-        return _on_face(lv.m, face, lambda: lv.cell_values(cells.ghost(axis, side), face)[0])
+        return _on_face(lv.m, face, lambda: lv.cell_values(cells.ghost(axis, side), face))[0]
 
     return ghost_of
 
 
 def _on_face(m, face, look):
-    """``look()`` (three Float64 arrays) where ``face``, NaN elsewhere, in a symbolic branch: a
-    vector with no lane on that face skips the lookup's arithmetic and loads (a chunk's face
-    cells lie on one or two faces of their grid a vector at a time)."""
-    return dr.if_stmt((), face, look, lambda: [m.Float64(dr.nan) for _ in range(3)])
+    """``look()`` (three Float64 arrays, and a Bool) where ``face``, ``(NaN, False)``
+    elsewhere, in a symbolic branch: a vector with no lane on that face skips the lookup's
+    arithmetic and loads (a chunk's face cells lie on one or two faces of their grid a
+    vector at a time)."""
+    return dr.if_stmt((), face, look,
+                      lambda: ([m.Float64(dr.nan) for _ in range(3)], m.Bool(False)))
 
 
 def _grid_of_cells(m, offsets, start):
@@ -520,69 +528,60 @@ def _as(m, values, dtype):
     return m.Float32(values) if np.dtype(dtype) == np.float32 else values
 
 
-def _with_coarse_ghosts(tables, level, c, p, wanted):
-    """:func:`_fields` of the cells ``c`` (grids ``p``) with every ghost: the level's own,
-    else interpolated from the coarser levels (NaN where that too lacks cells)."""
+def _with_coarse_ghosts(tables, level, cells, wanted):
+    """:func:`_fields` of the cells ``c`` (grids ``p``; ``cells``: ``(c, p, lacking)``) with
+    every ghost: the level's own, else (the faces of ``lacking``, bits as
+    :func:`_face_cells` gives them) interpolated from the coarser levels (NaN where that too
+    lacks cells)."""
     lv, m = tables[level], tables[level].m
-    k = dr.width(c)
-    slot, coarse = _coarse_ghosts(tables, level, c, p)
+    c, p, lacking = cells
+    first, coarse = _coarse_ghosts(tables, level, cells)
     cells = _Cells(lv, c, p)
-    lane = dr.arange(m.UInt32, k)
 
     def either(axis, side):
         face = cells.face(axis, side)
+        bit = 1 << (2 * axis + side)
 
         def look():
             values, found = lv.cell_values(cells.ghost(axis, side), face)
-            at = dr.gather(m.UInt32, slot, (2 * axis + side) * dr.opaque(m.UInt32, k) + lane,
-                           ~found)
-            return [dr.select(found, v, dr.gather(m.Float64, g, at, ~found))
-                    for v, g in zip(values, coarse)]
+            use = ((lacking & bit) != 0) & face
+            at = first + dr.popcnt(lacking & (bit - 1))
+            return [dr.select(use, dr.gather(m.Float64, g, at, use), v)
+                    for v, g in zip(values, coarse)], found
 
-        return _on_face(m, face, look)
+        return _on_face(m, face, look)[0]
 
     return _fields(lv, cells, either, wanted)
 
 
-def _coarse_ghosts(tables, level, c, p):
-    """``(slot, values)`` for the ``k`` cells ``c``: the ghosts the level lacks beyond their
-    faces, interpolated from level ``level - 1`` (three Float64 arrays, NaN where that fails
-    too); the ghost beyond face ``2 axis + side`` of cell ``i`` is ``values[slot[face k +
-    i]]`` (slot read only where the level lacks that ghost)."""
+def _coarse_ghosts(tables, level, cells):
+    """``(first, values)`` for the ``k`` cells ``(c, p, lacking)``: the ghosts the level lacks
+    beyond their faces (the bits of ``lacking``, face ``2 axis + side``), interpolated from
+    level ``level - 1`` (three Float64 arrays, NaN where that fails too), listed cell after
+    cell, face after face: cell ``i``'s ghost beyond face ``f`` is ``values[first[i] +
+    popcnt(lacking[i] & (2^f - 1))]``."""
     lv, m = tables[level], tables[level].m
-    k = dr.opaque(m.UInt32, dr.width(c))
-    j = dr.arange(m.UInt32, 6 * dr.width(c))
-    on_face, index = _beyond_face(lv, (c, p, k), j)
-    _, found = lv.find(index, on_face)
-    asked = dr.compress(on_face & ~found)
-    slot = dr.zeros(m.UInt32, dr.width(j))
-    dr.scatter(slot, dr.arange(m.UInt32, dr.width(asked)), asked)
-    # The asked ghosts' cells worked out again for those lanes alone: gathering them from
-    # ``index`` would make Dr.Jit write ``index`` for all 6 k lanes, new memory (slow to
-    # touch) for values nearly all of which are never read.
-    index = _beyond_face(lv, (c, p, k), asked)[1]
+    c, p, lacking = cells
+    first = dr.prefix_reduce(dr.ReduceOp.Add, dr.popcnt(lacking))      # exclusive
+    j = dr.arange(m.UInt32, 8 * dr.width(c))
+    asked = dr.compress(((dr.gather(m.UInt32, lacking, j >> 3) >> (j & 7)) & 1) == 1)
+    index = _beyond_face(lv, (c, p), (asked >> 3, asked & 7))
     centres = [lv.anchor[a] + (m.Float64(index[a]) + 0.5) * lv.spacing[a] for a in range(3)]
     values = interpolate(tables, level - 1, centres) if dr.width(asked) else \
         [dr.full(m.Float64, dr.nan, 2) for _ in range(3)]
-    dr.eval(slot, values)
-    return slot, values
+    dr.eval(first, values)
+    return first, values
 
 
-def _beyond_face(lv, cells, j):
-    """For lanes ``j`` (face ``j // k`` of cell ``j % k`` of ``cells``: ``(c, p, k)``, the
-    cells' flat positions, grids and number), whether the cell lies on that face of its grid
-    and the level index of the cell beyond it (three Int32 arrays)."""
+def _beyond_face(lv, cells, lanes):
+    """The level index of the cell beyond face ``face`` (``2 axis + side``) of cell ``lane``
+    of ``cells`` (``(c, p)``: the cells' flat positions and grids; ``lanes``: ``(lane,
+    face)``, UInt32 each), three Int32 arrays."""
     m = lv.m
-    c, p, k = cells
-    lane, face_id = j % k, j // k
+    c, p = cells
+    lane, face_id = lanes
     cells = _Cells(lv, dr.gather(m.UInt32, c, lane), dr.gather(m.UInt32, p, lane))
     axis, upper = face_id >> 1, (face_id & 1) == 1
-    along = [axis == a for a in range(3)]
-    local = dr.select(along[0], cells.local[0], dr.select(along[1], cells.local[1],
-                                                          cells.local[2]))
-    size = dr.select(along[0], cells.n[0], dr.select(along[1], cells.n[1], cells.n[2]))
-    on_face = dr.select(upper, local == size - 1, local == 0)
     step = dr.select(upper, m.Int32(1), m.Int32(-1))
-    index = [cells.lo[a] + m.Int32(cells.local[a]) + dr.select(along[a], step, 0)
-             for a in range(3)]
-    return on_face, index
+    return [cells.lo[a] + m.Int32(cells.local[a]) + dr.select(axis == a, step, 0)
+            for a in range(3)]
