@@ -47,7 +47,7 @@ MAX_LATTICE_OFFSET = float(2 ** 40)
 MASK_BOX_CELLS = 4096
 # Field values are checked for NaN/Inf in blocks of grids of about this many cells.
 FINITE_CHECK_CELLS = 1 << 16
-MASK_CHUNK_CELLS = 1 << 16
+MASK_CHUNK_CELLS = 1 << 17
 
 
 @dataclass(frozen=True, eq=False)
@@ -830,11 +830,14 @@ def _leaf_masks(volume: AMRVolume, box_cells: int = MASK_BOX_CELLS,
             mask = flat[offsets[c[q]]:offsets[c[q]] + int(np.prod(n))].reshape(n)
             mask[a[q, 0]:b[q, 0], a[q, 1]:b[q, 1], a[q, 2]:b[q, 2]] = False
         small = np.flatnonzero(cells <= box_cells)
-        # Blocks of pairs with at most about chunk_cells cells between them keep temporaries
-        # small.
-        block = max(1, chunk_cells // max(1, int(cells[small].max(initial=1))))
-        for start in range(0, len(small), block):
-            q = small[start:start + block]
+        # Blocks of consecutive pairs holding about chunk_cells cells between them (at most
+        # box_cells more) keep temporaries small, however small each box.
+        ends = np.cumsum(cells[small])
+        cuts = np.searchsorted(ends, np.arange(chunk_cells, int(ends[-1]) if len(ends) else 0,
+                                               chunk_cells), side="right")
+        bounds = np.unique(np.concatenate([[0], cuts, [len(small)]]))
+        for start, stop in zip(bounds[:-1], bounds[1:]):
+            q = small[start:stop]
             flat[_box_cell_indices(offsets[c[q]], shapes[c[q]], a[q], b[q])] = False
     return flat, partly
 
@@ -843,9 +846,13 @@ def _box_cell_indices(offset, shape, a, b) -> np.ndarray:
     """Flat indices (into the array of all cells) of the cells of the half-open index boxes
     ``[a, b)`` (rows, cells of each box's grid) of grids with the given cell ``offset`` and
     ``shape`` (rows)."""
-    points, box = levels.box_points(a, b)
-    return offset[box] + (points[:, 0] * shape[box, 1] + points[:, 1]) * shape[box, 2] + \
-        points[:, 2]
+    # A box's rows along z are runs of consecutive cells: the rows listed (a point each),
+    # then widened to their runs.
+    rows, box = levels.box_points(np.stack([a[:, 0], a[:, 1], np.zeros_like(a[:, 2])], axis=1),
+                                  np.stack([b[:, 0], b[:, 1], np.ones_like(b[:, 2])], axis=1))
+    run = (b[:, 2] - a[:, 2])[box]
+    start = offset[box] + (rows[:, 0] * shape[box, 1] + rows[:, 1]) * shape[box, 2] + a[box, 2]
+    return np.arange(int(run.sum())) + np.repeat(start - (np.cumsum(run) - run), run)
 
 
 def _leaf_masks_reference(volume: AMRVolume):
