@@ -505,6 +505,49 @@ def test39_overlapping_grids_of_one_level_are_refused():
         AMRVolume.from_grids(grids)
 
 
+@pytest.mark.parametrize("seed", range(12))
+def test39b_overlaps_found_through_blocks_or_boxes_name_the_first_pair(seed):
+    """A level's overlaps are found through its blocks (which its level table then reuses) or,
+    for a level of too many blocks, box against box: either way the first pair (lowest grid,
+    then its lowest partner) of a brute-force search over every pair."""
+    from mi_amr.core import levels
+    from mi_amr.core.volume import _first_overlap
+
+    rng = np.random.default_rng(seed)
+    step = int(rng.choice([1, 2, 4, 8]))
+    lo = rng.integers(0, 12, size=(int(rng.integers(2, 30)), 3)) * step
+    hi = lo + rng.integers(1, 5, size=lo.shape) * step
+    inter = np.minimum(hi[:, None], hi[None]) > np.maximum(lo[:, None], lo[None])
+    pairs = [(i, j) for i in range(len(lo)) for j in range(i + 1, len(lo))
+             if inter[i, j].all()]
+    expected = pairs[0] if pairs else None
+    blocks = {}
+    assert _first_overlap(lo, hi, blocks, 0) == expected
+    assert _first_overlap(lo, hi, {}, 0, most=0) == expected
+    listed = levels.LevelBlocks.of(lo, hi)
+    assert np.array_equal(blocks[0].keys, listed.keys)
+    assert len(listed.keys) == levels.LevelBlocks.count(lo, hi)
+
+
+def test39c_a_level_table_takes_the_blocks_the_check_listed():
+    """The level tables of a checked volume are those made from nothing: the blocks its check
+    listed are taken (and dropped from the cache), not listed again."""
+    from mi_amr.core import levels
+
+    vol = AMRVolume.from_grids(reference_grids())
+    assert sorted(vol.level_caches.blocks) == list(range(vol.num_levels))
+    taken = [vol.level_caches.blocks[level].keys for level in range(vol.num_levels)]
+    fresh = AMRVolume.from_grids(reference_grids())
+    fresh.level_caches.blocks = {}
+    for level in range(vol.num_levels):
+        made, again = levels.level_index(vol, level), levels.level_index(fresh, level)
+        assert made.keys is taken[level]
+        for name in ("keys", "owner", "origin", "dims", "table"):
+            assert np.array_equal(getattr(made, name), getattr(again, name)), name
+        assert made.block == again.block
+    assert vol.level_caches.blocks == {}
+
+
 def test40_fine_grid_outside_the_coarser_level_is_refused():
     # Half of the fine grid pokes out of the level-0 grid.
     with pytest.raises(AMRError, match=grid_label(1, 1) + r".* is not inside the level-0 grids "

@@ -23,6 +23,58 @@ DENSE_BLOCKS = 1 << 24     # blocks: up to this many, LevelIndex keeps a dense t
 CHUNK_CELLS = 1 << 18
 
 
+class LevelBlocks:
+    """The blocks of one level's grids (index boxes ``lo``, ``hi``, ``(G, 3)``): ``block``, the
+    largest power of two (at most 16) dividing every grid corner, so each block lies in whole
+    grids; the blocks' ``origin`` and the extent ``dims`` of the level's bounding box in
+    blocks; per block its ``key`` in that box (C order), sorted, and the grid that holds it
+    (``owner``, position in ``lo``; a stable sort, so the grids sharing a block, where grids
+    overlap, follow each other in increasing order)."""
+
+    def __init__(self, block, origin, dims, keys, owner):
+        self.block, self.origin, self.dims, self.keys, self.owner = \
+            block, origin, dims, keys, owner
+
+    @classmethod
+    def count(cls, lo, hi) -> int:
+        """How many blocks :meth:`of` would list (without listing them)."""
+        block = _block_size(lo, hi)
+        return int(np.prod(hi // block - lo // block, axis=1).sum())
+
+    @classmethod
+    def of(cls, lo, hi) -> "LevelBlocks":
+        block = _block_size(lo, hi)
+        blo, bhi = lo // block, hi // block
+        origin = blo.min(axis=0)
+        dims = bhi.max(axis=0) - origin
+        cell, owner = box_points(blo, bhi)
+        b = cell - origin
+        keys = (b[:, 0] * dims[1] + b[:, 1]) * dims[2] + b[:, 2]
+        order = np.argsort(keys, kind="stable")
+        return cls(block, origin, dims, keys[order], owner[order])
+
+    def first_overlap(self):
+        """``(i, j)``, ``i < j``: the first pair of grids (positions in ``lo``) that share a
+        block, in increasing order of ``i`` then ``j`` -- grids that overlap; None where no
+        two do."""
+        same = np.flatnonzero(self.keys[1:] == self.keys[:-1])
+        if len(same) == 0:
+            return None
+        i, j = self.owner[same], self.owner[same + 1]
+        k = np.lexsort((j, i))[0]
+        return int(i[k]), int(j[k])
+
+
+def _block_size(lo, hi) -> int:
+    """The largest power of two, at most 16, dividing every corner of the boxes ``lo``,
+    ``hi``."""
+    corners = np.concatenate([lo.ravel(), hi.ravel()])
+    block = 16
+    while block > 1 and np.any(corners % block):
+        block //= 2
+    return block
+
+
 class LevelIndex:
     """Which grid of one level holds a given cell: a sorted table of the blocks the level's grids
     cover, searched with ``np.searchsorted``.
@@ -38,18 +90,10 @@ class LevelIndex:
         lo, hi = volume.index_boxes()
         self.grids = np.flatnonzero(volume.levels == level)
         glo, ghi = lo[self.grids], hi[self.grids]
-        corners = np.concatenate([glo.ravel(), ghi.ravel()])
-        block = 16
-        while block > 1 and np.any(corners % block):
-            block //= 2
-        self.block = block
-        blo, bhi = glo // block, ghi // block
-        self.origin = blo.min(axis=0)
-        self.dims = bhi.max(axis=0) - self.origin
-        cell, owner = box_points(blo, bhi)
-        keys = self._key(cell)
-        order = np.argsort(keys)
-        self.keys, self.owner = keys[order], owner[order]
+        # (The hierarchy's check may have listed the blocks already: LevelBlocks.)
+        blocks = volume.level_caches.blocks.pop(level, None) or LevelBlocks.of(glo, ghi)
+        self.block, self.origin, self.dims = blocks.block, blocks.origin, blocks.dims
+        self.keys, self.owner = blocks.keys, blocks.owner
         self.lo, self.hi = glo, ghi
         counts = np.prod(ghi - glo, axis=1)
         self.offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
@@ -119,7 +163,8 @@ def grid_chunks(table, cells: int | None = None):
 
 class LevelCaches:
     """What this module keeps of one volume (its ``level_caches``): ``index``, the
-    :class:`LevelIndex` of each level; ``values``, per ``(level, field name)`` the flat
+    :class:`LevelIndex` of each level; ``blocks``, the :class:`LevelBlocks` the hierarchy's
+    check listed, for the levels whose index is not made yet (which takes them); ``values``, per ``(level, field name)`` the flat
     :func:`level_values` with the grid arrays it was made from (``(ids, arrays, flat)``);
     ``fields_fixed``, how many :func:`fields_fixed` blocks are open; ``dense_blocks``, the
     largest dense block table a :class:`LevelIndex` of the volume keeps (blocks; see there),
@@ -127,6 +172,7 @@ class LevelCaches:
 
     def __init__(self, dense_blocks: int = DENSE_BLOCKS):
         self.index = {}
+        self.blocks = {}
         self.values = {}
         self.fields_fixed = 0
         self.dense_blocks = dense_blocks
@@ -211,6 +257,7 @@ def adopt_caches(volume, source) -> None:
     ``source``, a volume of the same hierarchy (values are checked against the arrays before
     each use)."""
     volume.level_caches.index = dict(source.level_caches.index)
+    volume.level_caches.blocks = dict(source.level_caches.blocks)
     volume.level_caches.dense_blocks = source.level_caches.dense_blocks
     # Only fields the volume holds: a flat copy of a dropped field would stay alive with it.
     volume.level_caches.values = {k: v for k, v in source.level_caches.values.items()

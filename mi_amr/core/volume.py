@@ -45,6 +45,9 @@ MAX_LATTICE_OFFSET = float(2 ** 40)
 # through flat cell indices, in blocks of about MASK_CHUNK_CELLS cells (temporaries that stay
 # small reuse memory); bigger boxes are cleared one at a time with a slice.
 MASK_BOX_CELLS = 4096
+# Blocks (levels.LevelBlocks) of a level up to which its overlaps are found through them (which
+# its level table then reuses); a level of more is checked box against box.
+CHECK_BLOCKS = 1 << 22
 # Field values are checked for NaN/Inf in blocks of grids of about this many cells.
 FINITE_CHECK_CELLS = 1 << 16
 MASK_CHUNK_CELLS = 1 << 17
@@ -199,10 +202,11 @@ class AMRVolume:
         prefix = f"{source}: " if source else ""
         ratios = _check_levels(records, columns, prefix)
         anchor, index_lo = _check_lattice(records, columns, ratios, prefix)
-        nesting = _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix)
+        nesting, blocks = _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix)
         volume = cls(tuple(records), allow_nonfinite=allow_nonfinite, source=source,
                      index_lo=index_lo, ratios=ratios, anchor=anchor)
         volume._nesting = nesting
+        volume.level_caches.blocks = blocks        # (the level tables take them)
         # Levels are now known to be 0..L-1; the volume keeps the columns (grid_columns).
         volume._columns = {**columns, "level": columns["level"].astype(np.int32),
                            "offset": _cell_offsets(columns["shape"])}
@@ -769,26 +773,26 @@ def _check_lattice(records, columns, ratios, prefix: str):
     return anchor, rounded.astype(np.int64) * ratio[:, None]
 
 
-def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str) -> list:
-    """Refuse grids of one level that overlap, and grids not inside the coarser level. Returns,
-    per level with a coarser one, the (coarser grid, grid) pairs that overlap (grid numbers,
-    sorted by the coarser grid, then the grid): the leaf masks' covered boxes
-    (:func:`_covered_boxes`)."""
-    levels, shapes = columns["level"], columns["shape"]
+def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str):
+    """Refuse grids of one level that overlap, and grids not inside the coarser level. Returns
+    ``(nesting, blocks)``: per level with a coarser one, the (coarser grid, grid) pairs that
+    overlap (grid numbers, sorted by the coarser grid, then the grid): the leaf masks' covered
+    boxes (:func:`_covered_boxes`); and the levels' :class:`levels.LevelBlocks` where they
+    were listed to find overlaps (see :data:`CHECK_BLOCKS`)."""
+    levels_of, shapes = columns["level"], columns["shape"]
     index_hi = index_lo + shapes
-    nesting = []
+    nesting, blocks = [], {}
     for level in range(len(ratios) + 1):
-        ids = np.flatnonzero(levels == level)
-        a, b = overlap_pairs(index_lo[ids], index_hi[ids], index_lo[ids], index_hi[ids])
-        clash = a < b
-        if np.any(clash):
-            i, j = ids[a[clash][0]], ids[b[clash][0]]
+        ids = np.flatnonzero(levels_of == level)
+        clash = _first_overlap(index_lo[ids], index_hi[ids], blocks, level)
+        if clash is not None:
+            i, j = ids[clash[0]], ids[clash[1]]
             raise AMRError(f"{prefix}{records[i].describe(i)} and {records[j].describe(j)} "
                            f"overlap; grids of one level must not overlap")
         if level == 0:
             continue
         ratio = ratios[level - 1]
-        parents = np.flatnonzero(levels == level - 1)
+        parents = np.flatnonzero(levels_of == level - 1)
         flo, fhi = index_lo[ids] // ratio, index_hi[ids] // ratio
         fa, pb = overlap_pairs(flo, fhi, index_lo[parents], index_hi[parents])
         order = np.lexsort((fa, pb))
@@ -804,7 +808,20 @@ def _check_overlap_and_nesting(records, columns, index_lo, ratios, prefix: str) 
             raise AMRError(f"{prefix}{records[i].describe(i)} is not inside the level-{level - 1} "
                            f"grids (only {share:.0%} of it is covered); a fine grid must lie "
                            f"within the coarser level (proper nesting)")
-    return nesting
+    return nesting, blocks
+
+
+def _first_overlap(lo, hi, blocks: dict, level: int, most: int = CHECK_BLOCKS):
+    """The first pair ``(i, j)``, ``i < j``, of the boxes ``lo``, ``hi`` (one level's grids)
+    that overlap, or None. Through the level's blocks (:class:`levels.LevelBlocks`: grids that
+    overlap share one), kept in ``blocks[level]`` for the level's index, where they number at
+    most ``most``; else from the boxes' overlapping pairs."""
+    if levels.LevelBlocks.count(lo, hi) <= most:
+        blocks[level] = levels.LevelBlocks.of(lo, hi)
+        return blocks[level].first_overlap()
+    a, b = overlap_pairs(lo, hi, lo, hi)
+    clash = np.flatnonzero(a < b)
+    return (int(a[clash[0]]), int(b[clash[0]])) if len(clash) else None
 
 
 def _leaf_masks(volume: AMRVolume, box_cells: int = MASK_BOX_CELLS,
