@@ -164,7 +164,8 @@ def grid_chunks(table, cells: int | None = None):
 class LevelCaches:
     """What this module keeps of one volume (its ``level_caches``): ``index``, the
     :class:`LevelIndex` of each level; ``blocks``, the :class:`LevelBlocks` the hierarchy's
-    check listed, for the levels whose index is not made yet (which takes them); ``values``, per ``(level, field name)`` the flat
+    check listed, for the levels whose index is not made yet (which takes them); ``values``,
+    per ``(level, field name)`` the flat
     :func:`level_values` with the grid arrays it was made from (``(ids, arrays, flat)``);
     ``fields_fixed``, how many :func:`fields_fixed` blocks are open; ``dense_blocks``, the
     largest dense block table a :class:`LevelIndex` of the volume keeps (blocks; see there),
