@@ -46,7 +46,8 @@ MAX_LATTICE_OFFSET = float(2 ** 40)
 # small reuse memory); bigger boxes are cleared one at a time with a slice.
 MASK_BOX_CELLS = 4096
 # Blocks (levels.LevelBlocks) of a level up to which its overlaps are found through them (which
-# its level table then reuses); a level of more is checked box against box.
+# its level table then reuses); a level of more, or of blocks of one cell, is checked box
+# against box.
 CHECK_BLOCKS = 1 << 22
 # Field values are checked for NaN/Inf in blocks of grids of about this many cells.
 FINITE_CHECK_CELLS = 1 << 16
@@ -815,8 +816,10 @@ def _first_overlap(lo, hi, blocks: dict, level: int, most: int = CHECK_BLOCKS):
     """The first pair ``(i, j)``, ``i < j``, of the boxes ``lo``, ``hi`` (one level's grids)
     that overlap, or None. Through the level's blocks (:class:`levels.LevelBlocks`: grids that
     overlap share one), kept in ``blocks[level]`` for the level's index, where they number at
-    most ``most``; else from the boxes' overlapping pairs."""
-    if levels.LevelBlocks.count(lo, hi) <= most:
+    most ``most`` and an eighth of the cells (blocks of one cell would hold 16 bytes a cell
+    until the index takes them); else from the boxes' overlapping pairs."""
+    cells = int(np.prod(hi - lo, axis=1).sum())
+    if levels.LevelBlocks.count(lo, hi) <= min(most, cells // 8):
         blocks[level] = levels.LevelBlocks.of(lo, hi)
         return blocks[level].first_overlap()
     a, b = overlap_pairs(lo, hi, lo, hi)

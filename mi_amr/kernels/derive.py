@@ -444,8 +444,10 @@ def _chunk_fields(tables, level, grids, wanted, out, base):
         need, lacking = _face_cells(tables, level, (first, outer, dr.gather(m.UInt32, p, outer)),
                                     wanted, out, at)
     dr.eval(out, need, lacking)
-    again_at = dr.compress(need) if dr.width(outer) else None
-    redo = dr.gather(m.UInt32, outer, again_at) if dr.width(outer) else None
+    redo = again_at = None
+    if dr.width(outer):
+        again_at = dr.compress(need)
+        redo = dr.gather(m.UInt32, outer, again_at)
     if redo is not None and dr.width(redo):
         c, q = dr.opaque(m.UInt32, first) + redo, dr.gather(m.UInt32, p, redo)
         if level > 0:
