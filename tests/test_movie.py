@@ -569,6 +569,7 @@ def test18b_a_time_series_keeps_only_the_step_shown_and_the_next(series, tmp_pat
     """A frame renderer moving on through a time series lets go of the steps it has shown
     (their memory is then reused by the next load): after three frames of three files, the
     integrator keeps the last one only, and the first is read again when asked for."""
+    from mi_amr.kernels.prepared import LoadOptions
     from mi_amr.workflows.movie.frames import FrameRenderer
     from mi_amr.workflows.movie.spec import FrameSpec
 
@@ -584,11 +585,11 @@ def test18b_a_time_series_keeps_only_the_step_shown_and_the_next(series, tmp_pat
                         next_file=files[i + 1] if i + 1 < len(files) else None)
             r.prefetch.wait()
         heard.clear()
-        assert preps.prepare(files[2], opt.field, opt.color_field, leaf_cells=opt.leaf_cells,
-                             m=r.integ.m) is r.integ.prep
+        how = LoadOptions(opt.leaf_cells, keep_fields=opt.reconstruction != "basis")
+        assert preps.prepare(files[2], opt.field, opt.color_field, m=r.integ.m,
+                             how=how) is r.integ.prep
         assert heard == []
-        preps.prepare(files[0], opt.field, opt.color_field, leaf_cells=opt.leaf_cells,
-                      m=r.integ.m)
+        preps.prepare(files[0], opt.field, opt.color_field, m=r.integ.m, how=how)
         assert any("read step0.npz" in line for line in heard), heard
     finally:
         preps.report = old
@@ -603,7 +604,7 @@ def test18b2_a_series_too_long_for_the_snapshot_cache_writes_no_snapshot(series,
     import drjit as dr
 
     from mi_amr.kernels import snapshot
-    from mi_amr.kernels.prepared import Preparations
+    from mi_amr.kernels.prepared import LoadOptions, Preparations
     from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import use_variant
     from mi_amr.workflows.movie import render_movie
@@ -611,7 +612,9 @@ def test18b2_a_series_too_long_for_the_snapshot_cache_writes_no_snapshot(series,
     use_variant("llvm_ad_rgb")
     files = [str(series / f"step{t}.npz") for t in range(3)]
     monkeypatch.setenv("MI_AMR_CACHE", "off")
-    step = Preparations().prepare(files[0], "f", "g", m=dr.llvm.ad)
+    # A step's entry as the movie's scene (the basis blend) prepares it: without the values.
+    step = Preparations().prepare(files[0], "f", "g", m=dr.llvm.ad,
+                                  how=LoadOptions(keep_fields=False))
     size = snapshot._entry_bytes(step)
 
     def entries(cache):
@@ -630,7 +633,7 @@ def test18b2_a_series_too_long_for_the_snapshot_cache_writes_no_snapshot(series,
     cache = tmp_path / "single"
     monkeypatch.setenv("MI_AMR_CACHE", str(cache))
     monkeypatch.setenv("MI_AMR_CACHE_GB", repr(2.5 * size / 1e9))
-    Preparations().prepare(files[0], "f", "g", m=dr.llvm.ad)
+    Preparations().prepare(files[0], "f", "g", m=dr.llvm.ad, how=LoadOptions(keep_fields=False))
     assert len(entries(cache)) == 1
 
 

@@ -90,7 +90,7 @@ def test02_other_grids_or_another_leaf_size_build_their_own(steps, monkeypatch, 
     """Grids moved by a coarse cell (same shapes, levels and spacings), the same grids in
     another order, or another leaf size: the tree is built, and is that of a fresh
     preparation."""
-    from mi_amr.kernels.prepared import Preparations
+    from mi_amr.kernels.prepared import LoadOptions, Preparations
 
     monkeypatch.setenv("MI_AMR_CACHE", "off")
     heard = []
@@ -98,7 +98,7 @@ def test02_other_grids_or_another_leaf_size_build_their_own(steps, monkeypatch, 
     _prepare(session, steps["a"])
     heard.clear()
     path = steps["b" if other == "leaf size" else other]
-    kw = {"leaf_cells": 16} if other == "leaf size" else {}
+    kw = {"how": LoadOptions(leaf_cells=16)} if other == "leaf size" else {}
     got = _prepare(session, path, **kw)
     assert not any("reused" in line for line in heard), heard
     assert any(line.startswith("  kd-tree in") for line in heard), heard

@@ -746,9 +746,10 @@ class KDTree:
     def leaf_pairs(self, field: str, reconstruction: str | None = None):
         """The (leaf, grid) pairs of :meth:`leaf_windows`, those whose window is empty
         included (they hold no cell), without the windows: ``(leaf, grid)``, leaf after leaf.
-        The device takes each pair's window itself (:mod:`mi_amr.kernels.ranges`)."""
+        The device takes each pair's window itself (:mod:`mi_amr.kernels.ranges`). ``field``
+        None: the pairs whatever the volume holds (the brick pools' ranges)."""
         vol = self.volume
-        if field not in vol.field_names:
+        if field is not None and field not in vol.field_names:
             raise AMRError(f"unknown field '{field}'; available: {list(vol.field_names)}")
         if reconstruction not in (None, "basis", "finest"):
             raise AMRError(f"reconstruction must be 'basis' or 'finest', got {reconstruction!r}")

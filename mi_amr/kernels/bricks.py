@@ -1,7 +1,7 @@
 """Filling the brick pools that the basis reconstruction reads, on the device.
 
 A level's cells are gathered into bricks of ``BRICK_N^3`` values (``BRICK`` cells a side and one
-of apron above, see :meth:`~mi_amr.kernels.device.DeviceVolume._build_bricks`). Each value of
+of apron above, see :func:`~mi_amr.kernels.device.build_bricks`). Each value of
 a brick is *pulled*: one kernel over the level's brick slots finds the cell a slot holds, the
 grid of the level that holds that cell (through the level's block table,
 :class:`~mi_amr.core.levels.LevelIndex`) and reads its value where the cell is a leaf cell (no
@@ -127,7 +127,7 @@ def _uints(m, a):
 # ---------------------------------------------------------------------- tables, one level
 
 def level_bricks(volume, level, names, first, m=None):
-    """One level's part of :meth:`DeviceVolume._build_bricks`: ``(lo, dims, table, pools)``
+    """One level's part of :func:`~mi_amr.kernels.device.build_bricks`: ``(lo, dims, table, pools)``
     (see :func:`brick_table`), ``pools`` per field of ``names`` the level's bricks'
     ``BRICK_N^3`` float32 values each, flat, as NumPy arrays (filled on the backend ``m``,
     :func:`mi_amr.kernels.bricks.fill_level`). :func:`level_bricks_reference` is the slow

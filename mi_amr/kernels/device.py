@@ -143,10 +143,16 @@ class DeviceVolume:
         self.grid_offset = u32(offsets)
         self.grid_level = u32(volume.levels)
 
-        self.values = self._field_values(field)
-        self.color_values = self.values if self.color_field == field else \
-            self._field_values(self.color_field)
-        self._set_bricks(*(bricks or self._build_bricks()))
+        # Without the fields (a preparation that keeps none, its bricks given): no values.
+        held = field in volume.field_names
+        self.values = field_values(m, volume, field) if held else None
+        self.color_values = self.values if self.color_field == field or not held else \
+            field_values(m, volume, self.color_field)
+        if bricks is None and not held:
+            raise AMRError(f"{volume.source_prefix()}no field '{field}' to fill the brick "
+                           f"pools from")
+        self._set_bricks(*(bricks or build_bricks(m, volume, (self.values, self.color_values),
+                                                  field != self.color_field)))
 
     def _constants(self, volume):
         """The per-volume numbers the kernels read, as opaque one-element arrays (world units):
@@ -195,47 +201,26 @@ class DeviceVolume:
 
     def arrays(self, basis: bool, color: bool = False) -> list:
         """The value arrays a reconstruction reads: brick pools of leaf values for the basis
-        blend, the grids' raw values for the finest level; the field, then the colour field."""
+        blend, the grids' raw values for the finest level; the field, then the colour field.
+        The finest level's of a volume prepared without its values are an error."""
         if basis:
             return [self.brick_values] + ([self.brick_colors] if color else [])
-        return [self.values] + ([self.color_values] if color else [])
+        return [self._values()] + ([self.color_values] if color else [])
 
-    def _field_values(self, name):
-        """Field ``name`` of every grid, grid after grid, as a device array: the aligned float32
-        buffer the grids' arrays are views of when there is one
-        (:func:`mi_amr.core.levels.volume_values`: no copy), else a float32 copy written
-        once."""
-        arrays = [g.fields[name] for g in self.volume.grids]
-        flat = levels.volume_values(self.volume, name)
-        if flat is not None and (flat.dtype != np.float32 or flat.ctypes.data % ALIGN):
-            flat = None
-        if flat is None:
-            flat = aligned_empty(sum(a.size for a in arrays), np.float32)
-            if arrays:
-                np.concatenate([a.ravel() for a in arrays], out=flat, casting="same_kind")
-        return self.m.Float(flat)
-
-    def _build_bricks(self):
-        """Per level, the *leaf* cells of all its grids gathered into bricks of
-        ``BRICK_N^3`` values (NaN where the level has no leaf cell or the value is not finite),
-        found through a dense table of the level's bounding box. Brick ``b`` of a level holds
-        the cells ``lo + b * BRICK .. lo + b * BRICK + BRICK`` (inclusive) on each axis, so the
-        8 corners of any dual cell lie in the brick of its lower corner: one table lookup finds
-        them whichever grids hold them. This is what the basis reconstruction reads."""
-        vol = self.volume
-        names = [self.field] + ([self.color_field] if self.color_field != self.field else [])
-        parts, count = [], 0
-        for level in range(vol.num_levels):
-            parts.append(brick_table(vol, level, count))
-            count += parts[-1][3]
-        arrays = [self.values] + ([self.color_values] if len(names) > 1 else [])
-        return parts, bricks.build_pools(self.m, vol, arrays, parts, count)
+    def _values(self):
+        """:attr:`values`, or one error where the preparation kept none."""
+        if self.values is None:
+            raise AMRError(f"{self.volume.source_prefix()}the finest-level reconstruction reads "
+                           f"the field's values, which this preparation did not keep (it was "
+                           f"made for the basis blend alone); prepare the file again with "
+                           f"keep_fields")
+        return self.values
 
     def _set_bricks(self, parts, pools):
-        """The device arrays of :meth:`_build_bricks`'s ``(parts, pools)``: per level
+        """The device arrays of :func:`build_bricks`'s ``(parts, pools)``: per level
         ``(lo, dims, table, n)`` (see :func:`brick_table`) and the pools of the field and
         colour field (one pool when they are the same field): device arrays as
-        :meth:`_build_bricks` fills them, or host arrays read from a snapshot (aligned, so
+        :func:`build_bricks` fills them, or host arrays read from a snapshot (aligned, so
         Dr.Jit maps their memory without a copy). Kept as :attr:`host_bricks` (what a
         snapshot writes; a device pool is copied to the host only then)."""
         self.host_bricks = (parts, pools)
@@ -269,9 +254,12 @@ class DeviceVolume:
             if dr.flag(dr.JitFlag.SymbolicScope):
                 # First asked for while a symbolic loop is traced, where no kernel may run:
                 # the NumPy twin (the same float32 ranges, tests/test_device_prep.py).
+                self._values()
                 leaf = self.tree.leaf_ranges(self.field, key)
+            elif basis and self.values is None:     # (the same numbers, from the pools)
+                leaf = ranges.brick_leaf_ranges(self.m, self.tree, self)
             else:
-                leaf = ranges.leaf_ranges(self.m, self.tree, self.values, self.field, key)
+                leaf = ranges.leaf_ranges(self.m, self.tree, self._values(), self.field, key)
             rlo, rhi = self.tree.node_ranges(*leaf)
             self.host_ranges[key] = np.stack([rlo, rhi], axis=1).astype(np.float32).ravel()
             if self.on_new_ranges is not None:
@@ -354,6 +342,37 @@ class DeviceVolume:
                                                np.int32)
         return starts.Descent(self.node_code_split, self._lattice_split,
                               device_array(self.m.Bool, stop, np.bool_))
+
+
+def field_values(m, volume, name: str):
+    """Field ``name`` of every grid of ``volume``, grid after grid, as a device ``m.Float``:
+    the aligned float32 buffer the grids' arrays are views of when there is one
+    (:func:`mi_amr.core.levels.volume_values`: no copy), else a float32 copy written once."""
+    arrays = [g.fields[name] for g in volume.grids]
+    flat = levels.volume_values(volume, name)
+    if flat is not None and (flat.dtype != np.float32 or flat.ctypes.data % ALIGN):
+        flat = None
+    if flat is None:
+        flat = aligned_empty(sum(a.size for a in arrays), np.float32)
+        if arrays:
+            np.concatenate([a.ravel() for a in arrays], out=flat, casting="same_kind")
+    return m.Float(flat)
+
+
+def build_bricks(m, volume, values, two: bool):
+    """``(parts, pools)``: per level, the *leaf* cells of all its grids gathered into bricks
+    of ``BRICK_N^3`` values (NaN where the level has no leaf cell or the value is not
+    finite), found through a dense table of the level's bounding box (:func:`brick_table`),
+    and the pools of the field and, where ``two``, the colour field (``values``: both as
+    :func:`field_values` gives them). Brick ``b`` of a level holds the cells ``lo + b *
+    BRICK .. lo + b * BRICK + BRICK`` (inclusive) on each axis, so the 8 corners of any dual
+    cell lie in the brick of its lower corner: one table lookup finds them whichever grids
+    hold them. This is what the basis reconstruction reads."""
+    parts, count = [], 0
+    for level in range(volume.num_levels):
+        parts.append(brick_table(volume, level, count))
+        count += parts[-1][3]
+    return parts, bricks.build_pools(m, volume, list(values[:1 + bool(two)]), parts, count)
 
 
 def _kept(cache: dict, isovalues, make):

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import time
 from collections import OrderedDict
+import dataclasses
 from dataclasses import dataclass
 
 import drjit as dr
@@ -22,7 +23,7 @@ from mi_amr.core import memory
 from mi_amr.core.derive import DERIVED_FIELDS, velocity_fields
 from mi_amr.kernels import derive as device_derive
 from mi_amr.kernels import snapshot
-from mi_amr.kernels.device import DeviceVolume
+from mi_amr.kernels.device import DeviceVolume, build_bricks, field_values
 from mi_amr.kernels.kdsteps import DeviceSteps
 from mi_amr.errors import AMRError
 from mi_amr.core.kdtree import KDTree
@@ -44,11 +45,29 @@ class PreparedVolume:
         step as it ends (one line of text), and whose kept preparation of the same grids
         (:meth:`Preparations.like`) gives its kd-tree, not built again (the tree is made from
         the grids alone); or None."""
+        self._make(volume, (field, color_field), (leaf_cells, m or dr.llvm.ad), by, None)
+
+    @classmethod
+    def from_pools(cls, grids, fields, released, *, setup, by=None) -> "PreparedVolume":
+        """The preparation, for the basis blend alone (:attr:`keeps_fields` False), of the
+        volume that :func:`without_fields` gave: ``grids`` (its hierarchy alone), ``released``
+        (its brick pools and value ranges); ``fields``: ``(field, color_field)``; ``setup``:
+        ``(leaf_cells, m)``; ``by`` as for the constructor."""
+        self = cls.__new__(cls)
+        self._make(grids, fields, setup, by, released)
+        return self
+
+    def _make(self, volume, fields, setup, by, released) -> None:
+        """The constructor's work (and :meth:`from_pools`'s, ``released`` not None)."""
+        (field, color_field), (leaf_cells, m) = fields, setup
         memory.keep_freed_memory()
         clock = time.perf_counter()
         self.timings = {}
         self.report = report = by.report if by is not None else None
-        volume, derived = needed_fields(volume, field, color_field, m=m or dr.llvm.ad)
+        derived = False
+        if released is None:
+            volume, derived = needed_fields(volume, field, color_field, m=m)
+        bricks, self.value_ranges = released or (None, None)
         self.volume = volume
         self.field = field
         self.color_field = color_field or field
@@ -60,17 +79,32 @@ class PreparedVolume:
             if report is not None:
                 report("  kd-tree of the same grids reused")
         else:
-            self.tree = KDTree(self.volume, leaf_cells=leaf_cells,
-                               device=DeviceSteps(m or dr.llvm.ad))
+            self.tree = KDTree(self.volume, leaf_cells=leaf_cells, device=DeviceSteps(m))
             clock = self._lap("tree", clock)
         if volume.num_cells >= memory.RELEASE_CELLS:
             # The pools are new mappings, which cannot reuse what the derivation's kernels and
             # the tree freed: handed back first, that memory is not part of the load's peak.
             dr.flush_malloc_cache()
             memory.release_freed_memory()
-        self.device = DeviceVolume(self.volume, self.tree, field, self.color_field,
-                                   m=m or dr.llvm.ad)
+        self.device = DeviceVolume(self.volume, self.tree, field, self.color_field, m=m,
+                                   bricks=bricks)
         self._lap("device", clock)
+
+    @property
+    def keeps_fields(self) -> bool:
+        """Whether the field's values are kept (on the host and the device): False for a
+        preparation made for the basis blend alone, which holds its brick pools instead
+        (:func:`without_fields`)."""
+        return self.field in self.volume.field_names
+
+    def value_range(self, name: str):
+        """``(min, max)`` of the finite values of field ``name`` (the field or the colour
+        field), over all cells: :meth:`AMRVolume.value_range
+        <mi_amr.core.volume.AMRVolume.value_range>`, taken before the values were dropped
+        where they were."""
+        if self.value_ranges is not None and name in self.value_ranges:
+            return self.value_ranges[name]
+        return self.volume.value_range(name)
 
     @classmethod
     def restore(cls, snap, *, m=None, report=None) -> "PreparedVolume":
@@ -80,6 +114,8 @@ class PreparedVolume:
         volume, tree_state, bricks, ranges, meta = snap
         self = cls.__new__(cls)
         self.volume, self.field, self.color_field = volume, meta["field"], meta["color_field"]
+        self.value_ranges = {k: tuple(v) for k, v in meta["value_ranges"].items()} \
+            if "value_ranges" in meta else None
         self.tree = KDTree.from_arrays(volume, tree_state)
         self.device = DeviceVolume(volume, self.tree, self.field, self.color_field,
                                    m=m or dr.llvm.ad, bricks=bricks)
@@ -140,6 +176,21 @@ def needed_fields(volume, field: str, color_field: str | None, m=None, consume=F
     return volume.select_fields(wanted), bool(derivable)
 
 
+def without_fields(volume, field: str, color_field: str | None, m):
+    """``(grids, (bricks, value_ranges))``: the brick pools of ``field`` and ``color_field``
+    made from ``volume`` (:func:`~mi_amr.kernels.device.build_bricks`), the fields' value
+    ranges (:meth:`AMRVolume.value_range <mi_amr.core.volume.AMRVolume.value_range>`) and
+    ``volume`` without its fields (the grids, leaf masks and level tables shared): what a
+    :class:`PreparedVolume` for the basis blend alone is made from (its ``released``). A
+    caller that drops its own reference to ``volume`` frees the fields' values before the
+    kd-tree is built, so the pools and the values are never held with the tree."""
+    names = [f for f in dict.fromkeys([field, color_field]) if f is not None]
+    values = [field_values(m, volume, name) for name in names]
+    bricks = build_bricks(m, volume, values + values[:1], len(names) > 1)
+    ranges = {name: volume.value_range(name) for name in names}
+    return volume.select_fields([]), (bricks, ranges)
+
+
 def fields_to_read(field: str, color_field: str | None, available, source=None) -> list:
     """Names to read from disk (the file ``source``, named in an error) for a scene showing
     ``field`` coloured by ``color_field``: stored fields as they are, the velocity components
@@ -178,7 +229,9 @@ class Preparations:
     :class:`~mi_amr.kernels.snapshot.SnapshotCache` its preparations read and write, or None
     for the one ``$MI_AMR_CACHE`` describes at the time of each preparation.
     ``series_steps``: how many files the series this session shows has (a movie sets it); a
-    preparation writes its snapshot only where that many would fit the cache."""
+    preparation writes its snapshot only where that many would fit the cache.
+    ``keep_fields``: every preparation keeps its fields' values, also where the scene reads
+    the brick pools alone (the viewer's histograms and value ranges read them)."""
 
     SIZE = 3
 
@@ -188,6 +241,7 @@ class Preparations:
         # The files of the series this session shows one after the other (a movie's): a
         # step's snapshot is written only where that many fit the cache (_write_snapshot).
         self.series_steps = 1
+        self.keep_fields = False
         self._kept: "OrderedDict[tuple, PreparedVolume]" = OrderedDict()
         self._offer = None
 
@@ -218,23 +272,27 @@ class Preparations:
         if self.report is not None:
             self.report(text)
 
-    def prepare(self, path, field: str, color_field: str | None = None, *,
-                leaf_cells: int = params.default("leaf_cells"), m=None,
-                allow_nonfinite: bool = False) -> PreparedVolume:
-        """:func:`prepare_file`, given again while it is kept."""
+    def prepare(self, path, field: str, color_field: str | None = None, *, m=None,
+                how: "LoadOptions" = None) -> PreparedVolume:
+        """:func:`prepare_file` (``how``: a :class:`LoadOptions`, its defaults where None),
+        given again while it is kept. Where ``how.keep_fields`` is False (a scene that reads
+        the brick pools alone) the fields' values are kept only where :attr:`keep_fields`
+        says so, and a kept preparation that keeps them serves it too."""
+        how = how or LoadOptions()
         path = os.path.abspath(path)
         stamp = _stamp(path)
-        key = (path, stamp, field, color_field, leaf_cells, getattr(m, "__name__", None),
-               bool(allow_nonfinite))
-        if key in self._kept:
-            self.take_offer(path, allow_nonfinite)      # (not needed: dropped)
-            self._kept.move_to_end(key)
-            return self._kept[key]
+        how = dataclasses.replace(how, keep_fields=how.keep_fields or self.keep_fields)
+        keys = [(path, stamp, field, color_field, how.leaf_cells, getattr(m, "__name__", None),
+                 bool(how.allow_nonfinite), kept) for kept in (True, how.keep_fields)]
+        for key in dict.fromkeys(reversed(keys)):
+            if key in self._kept:
+                self.take_offer(path, how.allow_nonfinite)      # (not needed: dropped)
+                self._kept.move_to_end(key)
+                return self._kept[key]
         while self._kept and len(self._kept) >= self.SIZE:
             self._kept.popitem(last=False)
-        prepared = prepare_file(path, field, color_field, m=m, by=self,
-                                how=LoadOptions(leaf_cells, allow_nonfinite))
-        self._kept[key] = prepared
+        prepared = prepare_file(path, field, color_field, m=m, by=self, how=how)
+        self._kept[keys[1]] = prepared
         return prepared
 
     def like(self, volume, leaf_cells: int) -> "PreparedVolume | None":
@@ -271,12 +329,14 @@ def _stamp(path: str) -> int:
 @dataclass(frozen=True)
 class LoadOptions:
     """How :func:`prepare_file` reads and prepares a file: the kd-tree's leaf size
-    (``leaf_cells``, cells) and whether NaN and Inf values are kept as missing data
+    (``leaf_cells``, cells), whether NaN and Inf values are kept as missing data
     (``allow_nonfinite``, as :func:`mi_amr.load` takes it; else a file holding them is
-    refused)."""
+    refused), and whether the fields' values are kept (``keep_fields``; else only the brick
+    pools the basis blend reads: :func:`without_fields`)."""
 
     leaf_cells: int = params.default("leaf_cells")
     allow_nonfinite: bool = False
+    keep_fields: bool = True
 
 
 def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
@@ -299,7 +359,8 @@ def prepare_file(path, field: str, color_field: str | None = None, *, m=None,
     cache = by.cache if by is not None and by.cache is not None else \
         snapshot.SnapshotCache.from_env()
     snap_key = snapshot.entry_key(path, field, color_field, how.leaf_cells,
-                                  how.allow_nonfinite) if cache.enabled else None
+                                  how.allow_nonfinite, how.keep_fields) \
+        if cache.enabled else None
     memory.keep_freed_memory()          # for the read's buffers, or the snapshot's
     t0 = time.perf_counter()
     offered = by.take_offer(path, how.allow_nonfinite) if by is not None else None
@@ -347,8 +408,10 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, by,
         volume = offered.select_fields(wanted)
         say(f"  {os.path.basename(path)} ({', '.join(wanted)}: {volume.num_cells:,} cells, "
             f"{len(volume.grids):,} grids) already read")
-        return PreparedVolume(volume, field, color_field, leaf_cells=how.leaf_cells, m=m,
-                              by=by)
+        offered = None
+        t0 = time.perf_counter()
+        volume, released = _released(volume, fields, how, m)
+        return _timed(_made(volume, fields, released, how, m, by), t0, released)
     names = fields_to_read(field, color_field, available_fields(path), path)
     t0 = time.perf_counter()
     volume = load(path, fields=names, level_buffers=set(names) - {field, color_field},
@@ -370,7 +433,41 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, by,
     derive_s = time.perf_counter() - t0
     if derived:
         say(f"{_STEPS['derive']} in {derive_s:.2f} s")
-    prepared = PreparedVolume(volume, field, color_field, leaf_cells=how.leaf_cells, m=m,
-                              by=by)
-    prepared.timings = {"read": read, **prepared.timings, "derive": derive_s}
+    # (The volume rebound here: where the fields are dropped, nothing holds them any more.)
+    t0 = time.perf_counter()
+    volume, released = _released(volume, fields, how, m)
+    return _timed(_made(volume, fields, released, how, m, by), t0, released, (read, derive_s))
+
+
+def _made(volume, fields, released, how: LoadOptions, m, by) -> PreparedVolume:
+    """The :class:`PreparedVolume` of ``volume`` for ``fields``, from its pools where
+    ``released`` (:func:`_released`)."""
+    if released is None:
+        return PreparedVolume(volume, *fields, leaf_cells=how.leaf_cells, m=m, by=by)
+    return PreparedVolume.from_pools(volume, fields, released,
+                                     setup=(how.leaf_cells, m or dr.llvm.ad), by=by)
+
+
+def _released(volume, fields, how: LoadOptions, m):
+    """``(volume, released)`` for a :class:`PreparedVolume` of ``fields`` (``(field,
+    color_field)``): ``volume`` as it is and None where ``how.keep_fields``, else
+    :func:`without_fields` (the brick pools made, the fields dropped, so that the kd-tree is
+    built with the pools alone held where the caller rebinds its ``volume``)."""
+    if how.keep_fields:
+        return volume, None
+    field, color_field = fields
+    volume, _ = needed_fields(volume, field, color_field, m=m or dr.llvm.ad)
+    return without_fields(volume, field, color_field, m or dr.llvm.ad)
+
+
+def _timed(prepared: PreparedVolume, since: float, released, read_derive=None):
+    """``prepared``, the brick pools that :func:`without_fields` made (``released``, from
+    ``since`` on) counted in its device step, and the file's read and derivation
+    (``read_derive``, seconds) in its :attr:`~PreparedVolume.timings`."""
+    steps = prepared.timings
+    if released is not None:
+        steps["device"] = steps.get("device", 0.0) + \
+            max(time.perf_counter() - since - sum(steps.values()), 0.0)
+    if read_derive is not None:
+        prepared.timings = {"read": read_derive[0], **steps, "derive": read_derive[1]}
     return prepared

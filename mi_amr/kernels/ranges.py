@@ -22,6 +22,7 @@ import numpy as np
 
 from mi_amr.core.kdtree import run_starts
 from mi_amr.kernels.arrays import device_array, device_table, mapped_array
+from mi_amr.kernels.bricks import BRICK, BRICK_N
 
 
 # Pairs per kernel launch: bounds the host's per-pair temporaries (about 100 bytes a pair) and
@@ -44,15 +45,41 @@ def leaf_ranges(m, tree, values, field: str, reconstruction: str | None = None,
     pairs."""
     vol = tree.volume
     pl, pg = tree.leaf_pairs(field, reconstruction)
+    leaf = mapped_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
+        if reconstruction == "basis" and len(pl) else None
+    return _extremes(m, tree, (pl, pg), lambda frame, at: _window_extremes(
+        m, values, leaf, frame, at), pairs)
+
+
+def brick_leaf_ranges(m, tree, bricks, pairs: int = CHUNK_PAIRS):
+    """:func:`leaf_ranges` of the basis blend (the same float32 numbers) read from the brick
+    pools of ``bricks`` (a :class:`~mi_amr.kernels.device.DeviceVolume`: the field's pool,
+    the brick table and each level's part of it) instead of the grids' values: a pool holds
+    a leaf cell's value and NaN where the cell is not a leaf, so a window's finite pool
+    values are its finite leaf values. Each window's cells are read from their bricks (one
+    table lookup a cell); for a preparation that keeps no values (:class:`~mi_amr.kernels.
+    prepared.PreparedVolume`'s ``keep_fields``)."""
+    vol = tree.volume
+    lo, _ = vol.index_boxes()
+    cells = np.zeros((len(lo), 4), dtype=np.int32)
+    cells[:, :3], cells[:, 3] = lo, vol.levels
+    grids = device_table(m.Int32, cells, np.int32)
+    return _extremes(m, tree, tree.leaf_pairs(None, "basis"), lambda frame, at: (
+        _brick_window_extremes(m, (bricks, grids), frame, at)), pairs)
+
+
+def _extremes(m, tree, listed, walk, pairs: int):
+    """The per-leaf ``(lo, hi)`` of :func:`leaf_ranges` from the (leaf, grid) pairs
+    ``listed`` (leaf after leaf), ``pairs`` a launch, each launch's extremes taken by
+    ``walk(frame, lanes)``."""
+    pl, pg = listed
     vmin = np.empty(len(pl), dtype=np.float32)
     vmax = np.empty(len(pl), dtype=np.float32)
     frame = _Frame.of(m, tree) if len(pl) else None
-    leaf = mapped_array(m.Bool, vol.leaf_mask_flat(), np.bool_) \
-        if reconstruction == "basis" and len(pl) else None
     for a in range(0, len(pl), pairs):
         part = np.arange(a, min(a + pairs, len(pl)))
         part = part[_by_window_size(m, frame, _lanes(m, pl, pg, part), len(part))]
-        lo_part, hi_part = _window_extremes(m, values, leaf, frame, _lanes(m, pl, pg, part))
+        lo_part, hi_part = walk(frame, _lanes(m, pl, pg, part))
         dr.eval(lo_part, hi_part)
         vmin[part], vmax[part] = lo_part.numpy()[:len(part)], hi_part.numpy()[:len(part)]
     # Per leaf, the extremes over its pairs (listed leaf after leaf), on the host: a scatter
@@ -149,6 +176,57 @@ class _Frame:
 
 
 @dr.syntax
+def _brick_window_extremes(m, source, frame: _Frame, pairs):
+    """:func:`_window_extremes` read from the brick pools: ``source`` is ``(bricks, grids)``,
+    the device volume and per grid its lower corner (level index) and level (4 int32). A
+    window's cell ``(x, y, z)`` of the pair's grid is the level cell ``lo + (x, y, z)``, read
+    from the brick that starts at or below it (its place in that brick below ``BRICK`` on
+    each axis: a cell a brick's apron holds is read from its own brick)."""
+    bricks, grids = source
+    b_lo, b_hi, n, base = frame.windows(m, *pairs)
+    full = dr.all(b_lo <= b_hi)
+    b_top = device_tops(m, b_lo, dr.select(full, b_hi, b_lo), n)
+    g = dr.gather(m.Array4i, grids, pairs[1])
+    t_lo, t_at, dims = bricks.level_bricks(m.UInt32(g.w))
+    o = m.Array3i(g.x, g.y, g.z) - t_lo          # the grid's first cell from the table's
+    dy, dz = m.Int32(dims.y), m.Int32(dims.z)
+    pool, table = bricks.brick_values, bricks.brick_table
+    shift, low = BRICK.bit_length() - 1, BRICK - 1
+    x, y, z = m.Int32(b_lo.x), m.Int32(b_lo.y), m.Int32(b_lo.z)
+    vmin = dr.full(m.Float, dr.inf, dr.width(base))
+    vmax = dr.full(m.Float, -dr.inf, dr.width(base))
+    active = full & dr.all(b_lo < b_top)
+    while dr.hint(active, label="window", exclude=[b_lo, b_top, o, t_at, dy, dz, pool, table,
+                                                   m]):
+        r = [o.x + x, o.y + y, o.z + z]
+        key = t_at + m.UInt32(((r[0] >> shift) * dy + (r[1] >> shift)) * dz + (r[2] >> shift))
+        brick = dr.gather(m.UInt32, table, key, active)
+        at = brick * BRICK_N ** 3 + m.UInt32(
+            ((r[0] & low) * BRICK_N + (r[1] & low)) * BRICK_N + (r[2] & low))
+        v = dr.gather(m.Float, pool, at, active)
+        take = active & dr.isfinite(v)
+        vmin = dr.select(take, dr.minimum(vmin, v), vmin)
+        vmax = dr.select(take, dr.maximum(vmax, v), vmax)
+        x, y, z, active = _next_cell(m, (x, y, z), (b_lo, b_top), active)
+    return vmin, vmax
+
+
+def _next_cell(m, at, box, active):
+    """``(x, y, z, active)``: the cell after ``at`` in C order of the box ``(lo, top)`` (top
+    exclusive); ``active`` cleared past its end."""
+    x, y, z = at
+    lo, top = box
+    z += 1
+    wrap_z = z >= top.z
+    z = dr.select(wrap_z, lo.z, z)
+    y = dr.select(wrap_z, y + 1, y)
+    wrap_y = wrap_z & (y >= top.y)
+    y = dr.select(wrap_y, lo.y, y)
+    x = dr.select(wrap_y, x + 1, x)
+    return x, y, z, active & (x < top.x)
+
+
+@dr.syntax
 def _window_extremes(m, values, leaf, frame: _Frame, pairs):
     """Per (leaf, grid) pair (``pairs``: two ``m.UInt32``, a lane each) the min and max of the
     finite ``values`` (of leaf cells where ``leaf`` is given) in the pair's window
@@ -170,13 +248,5 @@ def _window_extremes(m, values, leaf, frame: _Frame, pairs):
             take &= dr.gather(m.Bool, leaf, at, active)
         vmin = dr.select(take, dr.minimum(vmin, v), vmin)
         vmax = dr.select(take, dr.maximum(vmax, v), vmax)
-        # The next cell in C order of the box.
-        z += 1
-        wrap_z = z >= b_top.z
-        z = dr.select(wrap_z, b_lo.z, z)
-        y = dr.select(wrap_z, y + 1, y)
-        wrap_y = wrap_z & (y >= b_top.y)
-        y = dr.select(wrap_y, b_lo.y, y)
-        x = dr.select(wrap_y, x + 1, x)
-        active &= x < b_top.x
+        x, y, z, active = _next_cell(m, (x, y, z), (b_lo, b_top), active)
     return vmin, vmax

@@ -194,12 +194,13 @@ def using(where):
 # ---------------------------------------------------------------------- the key
 
 def entry_key(path, field: str, color_field, leaf_cells: int,
-              allow_nonfinite: bool = False) -> str:
+              allow_nonfinite: bool = False, keep_fields: bool = True) -> str:
     """The key of the snapshot of ``path`` prepared for ``field``/``color_field`` (with NaN and
     Inf values kept as missing data where ``allow_nonfinite``: a file refused without it has
-    no snapshot to be read back from)."""
+    no snapshot to be read back from), keeping the fields' values or not (``keep_fields``:
+    an entry without them holds the brick pools alone)."""
     parts = (FORMAT, _code_hash(), os.path.abspath(path), _stamp(path), field, color_field,
-             int(leaf_cells), bool(allow_nonfinite))
+             int(leaf_cells), bool(allow_nonfinite)) + (() if keep_fields else ("pools",))
     return hashlib.sha256(repr(parts).encode()).hexdigest()[:32]
 
 
@@ -323,8 +324,8 @@ def _read_entry(fd: int, key: str, checks):
               get(b["table"]), b["count"]) for b in meta["bricks"]]
     pools = [get(r) for r in meta["pools"]]
     ranges = {kind: get(r) for kind, r in meta["ranges"].items()}
-    return volume, tree, (parts, pools), ranges, {"field": meta["field"],
-                                                  "color_field": meta["color_field"]}
+    kept = {k: meta[k] for k in ("field", "color_field", "value_ranges") if k in meta}
+    return volume, tree, (parts, pools), ranges, kept
 
 
 def _checked_body(body) -> dict:
@@ -332,7 +333,8 @@ def _checked_body(body) -> dict:
     checked against their records as they are read); otherwise :class:`BadFile`."""
     keys = {"field", "color_field", "volume", "tree", "bricks", "pools", "fields", "ranges",
             "arrays"}
-    expect(isinstance(body, dict) and set(body) == keys, "meta: unexpected fields")
+    expect(isinstance(body, dict) and set(body) - {"value_ranges"} == keys,
+           "meta: unexpected fields")
     expect(isinstance(body["arrays"], dict), "meta: arrays")
     for name, record in body["arrays"].items():
         rawarrays.check_record(name, record)
@@ -341,9 +343,14 @@ def _checked_body(body) -> dict:
                                                   "index_lo", "anchor", "fields", "ratios",
                                                   "allow_nonfinite", "source"}, "meta: volume")
     names = vol["fields"]
-    expect(isinstance(names, list) and names and len(set(names)) == len(names) and
+    expect(isinstance(names, list) and len(set(names)) == len(names) and
            all(isinstance(n, str) for n in names), "meta: field names")
-    expect(body["field"] in names and body["color_field"] in names, "meta: field")
+    # An entry holds the field and the colour field, or (made for the basis blend alone)
+    # none, and their value ranges.
+    shown = names or body.get("value_ranges")
+    expect(isinstance(shown, (list, dict)) and body["field"] in shown and
+           body["color_field"] in shown, "meta: field")
+    expect(bool(names) != ("value_ranges" in body) and _value_ranges(body), "meta: value ranges")
     ratios = vol["ratios"]
     expect(isinstance(ratios, list) and len(ratios) < 64 and
            all(type(r) is int and 2 <= r <= 64 for r in ratios), "meta: ratios")
@@ -352,6 +359,14 @@ def _checked_body(body) -> dict:
     _check_arrays(body, len(ratios) + 1)
     expect(isinstance(body["tree"], dict), "meta: tree")
     return body
+
+
+def _value_ranges(body: dict) -> bool:
+    """Whether ``body``'s value ranges (where it has them) are a pair of floats by name."""
+    ranges = body.get("value_ranges", {})
+    return isinstance(ranges, dict) and all(
+        isinstance(k, str) and isinstance(v, list) and len(v) == 2 and
+        all(type(x) is float for x in v) for k, v in ranges.items())
 
 
 def _check_arrays(body: dict, num_levels: int) -> None:
@@ -518,6 +533,9 @@ def _write_entry(fd: int, key: str, prepared) -> None:
             "ranges": {kind: rawarrays.encode(host, f"ranges_{kind}", put)
                        for kind, host in dev.host_ranges.items()},
             "arrays": records}
+    if not vol.field_names:         # (made for the basis blend alone: no values)
+        body["value_ranges"] = {name: [float(v) for v in r]
+                                for name, r in prepared.value_ranges.items()}
     _write_meta(fd, key, body, META)
 
 

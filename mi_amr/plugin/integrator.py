@@ -36,7 +36,7 @@ from mi_amr.kernels.composite import composite
 from mi_amr.kernels.config import MarchConfig, SearchPlan, clips
 from mi_amr.kernels.device import backend_of
 from mi_amr.kernels.jitter import stable_jitter
-from mi_amr.kernels.prepared import Preparations
+from mi_amr.kernels.prepared import LoadOptions, Preparations
 from mi_amr.kernels.ray import RayContext
 from mi_amr.plugin import aovs, bridge, options, shading, surfaces, wavefront
 from mi_amr.plugin.frame import VolumeFrame
@@ -92,16 +92,16 @@ class _AMRIso:
                            "or cuda_ad_rgb); scalar variants render surfaces only")
         self._prepare(resolve_data_file(opt.filename))
         self.frame = VolumeFrame(to_world)
-        data_range = self.prep.volume.value_range(self.prep.color_field)
+        data_range = self.prep.value_range(self.prep.color_field)
         self.inputs = FrameInputs(opt, m, data_range, self.dev.min_h_host, host_transfer2d(opt))
         options.warn_outside(self.prep, opt.isovalues)
 
     def _prepare(self, path):
-        self.prep = self.preparations.prepare(path, self.opt.field, self.opt.color_field,
-                                              leaf_cells=self.opt.leaf_cells, m=self.m,
-                                              allow_nonfinite=self.opt.allow_nonfinite)
+        o, basis = self.opt, self.opt.reconstruction == "basis"
+        how = LoadOptions(o.leaf_cells, o.allow_nonfinite, keep_fields=not basis)
+        self.prep = self.preparations.prepare(path, o.field, o.color_field, m=self.m, how=how)
         self.dev = self.prep.device
-        self.prep.search_ready(self.opt.reconstruction == "basis")
+        self.prep.search_ready(basis)
 
     def load_volume(self, path) -> None:
         """Show the data file ``path`` instead (the next step of a time series): it must hold

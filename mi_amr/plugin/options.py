@@ -288,7 +288,7 @@ def warn_outside(prep, isovalues) -> None:
     no isosurface, and nothing else would say why."""
     import mitsuba as mi
 
-    lo, hi = prep.volume.value_range(prep.field)
+    lo, hi = prep.value_range(prep.field)
     outside = [v for v in isovalues if not lo <= v <= hi]
     if outside:
         mi.Log(mi.LogLevel.Warn, f"amr_iso: isovalue(s) {', '.join(f'{v:g}' for v in outside)} "

@@ -29,9 +29,10 @@ class Prefetcher:
         from mi_amr.kernels.prepared import LoadOptions
 
         opt = integrator.opt
+        basis = opt.reconstruction == "basis"
         args = (integrator.preparations, str(path), opt.field, opt.color_field,
-                LoadOptions(opt.leaf_cells, opt.allow_nonfinite), integrator.m,
-                opt.reconstruction == "basis")
+                LoadOptions(opt.leaf_cells, opt.allow_nonfinite, keep_fields=not basis),
+                integrator.m, basis)
         if args == self._args:
             return
         self.wait()
@@ -45,8 +46,7 @@ class Prefetcher:
         import drjit as dr
 
         try:
-            preparations.prepare(path, field, color_field, leaf_cells=how.leaf_cells, m=m,
-                                 allow_nonfinite=how.allow_nonfinite).search_ready(basis)
+            preparations.prepare(path, field, color_field, m=m, how=how).search_ready(basis)
             dr.sync_thread()
         except AMRError:                # a bad file: the step loads it itself and says why
             pass

@@ -104,8 +104,10 @@ class Session:
     one at start; see :mod:`.series`)."""
 
     def __init__(self, scene_path, *, resolution=None, spp: int = 4, series=()):
+        from mi_amr.plugin.integrator import register
         from mi_amr.workflows.prefetch import Prefetcher
 
+        register().keep_fields = True       # (the histograms and value ranges read them)
         self.workdir = Path(tempfile.mkdtemp(prefix="mi_amr-view-"))
         self.compiled = {"warmup": 0, "controls": 0, "reloads": 0, "quality": 0, "saves": 0,
                          "steps": 0, "preview_sizes": 0}
