@@ -4,7 +4,6 @@ renders and is snapshotted as one that keeps them; what needs the values says so
 
 import gc
 import json
-import textwrap
 import weakref
 import zlib
 
@@ -16,26 +15,12 @@ dr = pytest.importorskip("drjit")
 from mi_amr import AMRError, AMRVolume, KDTree  # noqa: E402
 from mi_amr.kernels import prepared, ranges, snapshot  # noqa: E402
 from mi_amr.kernels.device import DeviceVolume  # noqa: E402
-from mi_amr.synthetic import datasets  # noqa: E402
 from test_device_prep import with_missing  # noqa: E402
 from test_kdtree import HIERARCHIES  # noqa: E402
+from test_snapshot import cache, data, wake_scene  # noqa: E402,F401 (fixtures)
 
 M = dr.llvm.ad
 BASIS = prepared.LoadOptions(keep_fields=False)      # a scene of the basis blend's
-
-
-@pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    path = tmp_path_factory.mktemp("basis") / "wake.npz"
-    datasets.sphere_wake("small", progress=False).save(path)
-    return path
-
-
-@pytest.fixture
-def cache(tmp_path, monkeypatch):
-    root = tmp_path / "cache"
-    monkeypatch.setenv("MI_AMR_CACHE", str(root))
-    return root
 
 
 def prepare(path, keep: bool, cache=None):
@@ -112,26 +97,7 @@ def test04_a_basis_scene_renders_the_same_image_without_the_values(data, variant
     from mi_amr.plugin.integrator import register
     from mi_amr.plugin.scene import load_scene
 
-    xml = tmp_path / "scene.xml"
-    xml.write_text(textwrap.dedent(f"""
-        <scene version="3.0.0">
-            <integrator type="amr_iso">
-                <string name="filename" value="{data}"/>
-                <string name="field" value="q_criterion"/>
-                <string name="color_field" value="speed"/>
-                <string name="colormap" value="0: 0 0 1, 1: 1 0 0"/>
-                <float name="isovalue" value="0.05"/>
-            </integrator>
-            <sensor type="perspective">
-                <float name="fov" value="40"/>
-                <transform name="to_world">
-                    <lookat origin="2, -5, 2" target="1, 0, 0" up="0, 0, 1"/>
-                </transform>
-                <film type="hdrfilm"><integer name="width" value="40"/>
-                    <integer name="height" value="40"/><rfilter type="box"/></film>
-            </sensor>
-            <emitter type="directional"><vector name="direction" value="-0.3, 0.5, -1"/></emitter>
-        </scene>"""))
+    xml = wake_scene(tmp_path / "scene.xml", data, res=40)
     preparations = register()
     images, kept = [], []
     try:

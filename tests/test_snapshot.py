@@ -49,6 +49,33 @@ def host(prep):
     return out
 
 
+def wake_scene(path, data, res: int = 48):
+    """Write ``path``: the Q = 0.05 surface of the wake file ``data`` coloured by speed, seen
+    from beside it at ``res`` x ``res`` with a directional light, through a box filter (no
+    splats of neighbours summed in varying order: the same image, bit for bit, from the same
+    volume)."""
+    path.write_text(textwrap.dedent(f"""
+        <scene version="3.0.0">
+            <integrator type="amr_iso">
+                <string name="filename" value="{data}"/>
+                <string name="field" value="q_criterion"/>
+                <string name="color_field" value="speed"/>
+                <string name="colormap" value="0: 0 0 1, 1: 1 0 0"/>
+                <float name="isovalue" value="0.05"/>
+            </integrator>
+            <sensor type="perspective">
+                <float name="fov" value="40"/>
+                <transform name="to_world">
+                    <lookat origin="2, -5, 2" target="1, 0, 0" up="0, 0, 1"/>
+                </transform>
+                <film type="hdrfilm"><integer name="width" value="{res}"/>
+                    <integer name="height" value="{res}"/><rfilter type="box"/></film>
+            </sensor>
+            <emitter type="directional"><vector name="direction" value="-0.3, 0.5, -1"/></emitter>
+        </scene>"""))
+    return path
+
+
 def assert_same(a, b):
     assert a.keys() == b.keys()
     for k in a:
@@ -87,27 +114,8 @@ def test02_a_restored_volume_renders_the_same_image(data, cache, variant, tmp_pa
 
     preparations = register()
 
-    xml = tmp_path / "scene.xml"
-    xml.write_text(textwrap.dedent(f"""
-        <scene version="3.0.0">
-            <integrator type="amr_iso">
-                <string name="filename" value="{data}"/>
-                <string name="field" value="q_criterion"/>
-                <string name="color_field" value="speed"/>
-                <string name="colormap" value="0: 0 0 1, 1: 1 0 0"/>
-                <float name="isovalue" value="0.05"/>
-            </integrator>
-            <sensor type="perspective">
-                <float name="fov" value="40"/>
-                <transform name="to_world">
-                    <lookat origin="2, -5, 2" target="1, 0, 0" up="0, 0, 1"/>
-                </transform>
-                <film type="hdrfilm"><integer name="width" value="48"/>
-                    <integer name="height" value="48"/><rfilter type="box"/></film>
-            </sensor>
-            <emitter type="directional"><vector name="direction" value="-0.3, 0.5, -1"/></emitter>
-        </scene>"""))
-    images = []         # a box filter: no splats of neighbours summed in varying order
+    xml = wake_scene(tmp_path / "scene.xml", data)
+    images = []
     for _ in range(2):
         preparations.clear()            # a new process, as far as the integrator knows
         scene = load_scene(xml)
@@ -534,21 +542,7 @@ def test19_ctrl_c_while_a_snapshot_is_written_leaves_nothing_and_exits_130(data,
     import subprocess
     import sys
 
-    xml = tmp_path / "scene.xml"
-    xml.write_text(textwrap.dedent(f"""
-        <scene version="3.0.0">
-            <integrator type="amr_iso">
-                <string name="filename" value="{data}"/>
-                <string name="field" value="q_criterion"/>
-                <string name="color_field" value="speed"/>
-                <string name="colormap" value="0: 0 0 1, 1: 1 0 0"/>
-                <float name="isovalue" value="0.05"/>
-            </integrator>
-            <sensor type="perspective">
-                <film type="hdrfilm"><integer name="width" value="8"/>
-                    <integer name="height" value="8"/></film>
-            </sensor>
-        </scene>"""))
+    xml = wake_scene(tmp_path / "scene.xml", data, res=8)
     child = textwrap.dedent("""
         import os, signal, sys
         from mi_amr.core import rawarrays
