@@ -282,10 +282,24 @@ def route_scene(scene_name: str) -> RouteScene:
     """The reference scene ``scene_name`` and what the routes read off it."""
     scene, ref_hits = _load_reference_scene(scene_name)
     integ = scene.integrator()
-    vol = integ.prep.volume
+    vol = field_volume(integ)
     return RouteScene(scene=scene, ref_hits=ref_hits, integ=integ, vol=vol,
                        field=integ.prep.field, iso=float(integ.opt.isovalues[0]),
                        to_world=matrix(integ.frame.to_scene))
+
+
+def field_volume(integ):
+    """The volume the integrator ``integ`` shows, holding its field and colour field: its
+    preparation's where that keeps them, else its file read again with them (derived where
+    they are: a scene of the basis blend keeps the brick pools alone)."""
+    from mi_amr.plugin.datafields import load_with_fields
+
+    prep = integ.prep
+    if prep.keeps_fields:
+        return prep.volume
+    names = [f for f in dict.fromkeys([prep.field, prep.color_field]) if f is not None]
+    return load_with_fields(prep.volume.source, names,
+                            allow_nonfinite=prep.volume.allow_nonfinite)[0]
 
 
 def _ray_arrays(ray, h, w):

@@ -169,7 +169,7 @@ def _yt_scene(yt, peers, integ, sensor, res):
     bands."""
     from yt.visualization.volume_rendering.api import ColorTransferFunction
 
-    opt, vol, field = integ.opt, integ.prep.volume, integ.prep.field
+    opt, vol, field = integ.opt, peers.field_volume(integ), integ.prep.field
     ds = peers.yt_dataset(yt, vol, field)
     sc = yt.create_scene(ds, field=("stream", field), lens_type="perspective")
     source = sc.get_source(0)
