@@ -210,10 +210,10 @@ class DeviceVolume:
     def _values(self):
         """:attr:`values`, or one error where the preparation kept none."""
         if self.values is None:
-            raise AMRError(f"{self.volume.source_prefix()}the finest-level reconstruction reads "
-                           f"the field's values, which this preparation did not keep (it was "
-                           f"made for the basis blend alone); prepare the file again with "
-                           f"keep_fields")
+            raise AMRError(f"{self.volume.source_prefix()}this asks for the field's values "
+                           f"(the finest-level reconstruction reads them), which this "
+                           f"preparation did not keep (it was made for the basis blend alone: "
+                           f"brick pools only); prepare the file again with keep_fields")
         return self.values
 
     def _set_bricks(self, parts, pools):

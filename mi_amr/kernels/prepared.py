@@ -13,8 +13,7 @@ from __future__ import annotations
 import os
 import time
 from collections import OrderedDict
-import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import drjit as dr
 
@@ -281,7 +280,7 @@ class Preparations:
         how = how or LoadOptions()
         path = os.path.abspath(path)
         stamp = _stamp(path)
-        how = dataclasses.replace(how, keep_fields=how.keep_fields or self.keep_fields)
+        how = replace(how, keep_fields=how.keep_fields or self.keep_fields)
         keys = [(path, stamp, field, color_field, how.leaf_cells, getattr(m, "__name__", None),
                  bool(how.allow_nonfinite), kept) for kept in (True, how.keep_fields)]
         for key in dict.fromkeys(reversed(keys)):
@@ -408,7 +407,7 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, by,
         volume = offered.select_fields(wanted)
         say(f"  {os.path.basename(path)} ({', '.join(wanted)}: {volume.num_cells:,} cells, "
             f"{len(volume.grids):,} grids) already read")
-        offered = None
+        offered = None                  # (this frame's hold on its fields)
         t0 = time.perf_counter()
         volume, released = _released(volume, fields, how, m)
         return _timed(_made(volume, fields, released, how, m, by), t0, released)

@@ -57,8 +57,8 @@ def brick_leaf_ranges(m, tree, bricks, pairs: int = CHUNK_PAIRS):
     the brick table and each level's part of it) instead of the grids' values: a pool holds
     a leaf cell's value and NaN where the cell is not a leaf, so a window's finite pool
     values are its finite leaf values. Each window's cells are read from their bricks (one
-    table lookup a cell); for a preparation that keeps no values (:class:`~mi_amr.kernels.
-    prepared.PreparedVolume`'s ``keep_fields``)."""
+    table lookup a cell); for a preparation that keeps no values
+    (:attr:`~mi_amr.kernels.prepared.PreparedVolume.keeps_fields` False)."""
     vol = tree.volume
     lo, _ = vol.index_boxes()
     cells = np.zeros((len(lo), 4), dtype=np.int32)
@@ -188,7 +188,7 @@ def _brick_window_extremes(m, source, frame: _Frame, pairs):
     b_top = device_tops(m, b_lo, dr.select(full, b_hi, b_lo), n)
     g = dr.gather(m.Array4i, grids, pairs[1])
     t_lo, t_at, dims = bricks.level_bricks(m.UInt32(g.w))
-    o = m.Array3i(g.x, g.y, g.z) - t_lo          # the grid's first cell from the table's
+    o = m.Array3i(g.x, g.y, g.z) - t_lo          # (the grid's corner in the table's cells)
     dy, dz = m.Int32(dims.y), m.Int32(dims.z)
     pool, table = bricks.brick_values, bricks.brick_table
     shift, low = BRICK.bit_length() - 1, BRICK - 1
