@@ -151,8 +151,8 @@ class DeviceVolume:
         if bricks is None and not held:
             raise AMRError(f"{volume.source_prefix()}no field '{field}' to fill the brick "
                            f"pools from")
-        self._set_bricks(*(bricks or build_bricks(m, volume, (self.values, self.color_values),
-                                                  field != self.color_field)))
+        pooled = [self.values] + ([self.color_values] if self.color_field != field else [])
+        self._set_bricks(*(bricks or build_bricks(m, volume, pooled)))
 
     def _constants(self, volume):
         """The per-volume numbers the kernels read, as opaque one-element arrays (world units):
@@ -359,12 +359,12 @@ def field_values(m, volume, name: str):
     return m.Float(flat)
 
 
-def build_bricks(m, volume, values, two: bool):
+def build_bricks(m, volume, values):
     """``(parts, pools)``: per level, the *leaf* cells of all its grids gathered into bricks
     of ``BRICK_N^3`` values (NaN where the level has no leaf cell or the value is not
     finite), found through a dense table of the level's bounding box (:func:`brick_table`),
-    and the pools of the field and, where ``two``, the colour field (``values``: both as
-    :func:`field_values` gives them). Brick ``b`` of a level holds the cells ``lo + b *
+    and a pool per array of ``values`` (the field, and the colour field where it is another;
+    as :func:`field_values` gives them). Brick ``b`` of a level holds the cells ``lo + b *
     BRICK .. lo + b * BRICK + BRICK`` (inclusive) on each axis, so the 8 corners of any dual
     cell lie in the brick of its lower corner: one table lookup finds them whichever grids
     hold them. This is what the basis reconstruction reads."""
@@ -372,7 +372,7 @@ def build_bricks(m, volume, values, two: bool):
     for level in range(volume.num_levels):
         parts.append(brick_table(volume, level, count))
         count += parts[-1][3]
-    return parts, bricks.build_pools(m, volume, list(values[:1 + bool(two)]), parts, count)
+    return parts, bricks.build_pools(m, volume, list(values), parts, count)
 
 
 def _kept(cache: dict, isovalues, make):

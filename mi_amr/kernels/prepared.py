@@ -185,7 +185,7 @@ def without_fields(volume, field: str, color_field: str | None, m):
     kd-tree is built, so the pools and the values are never held with the tree."""
     names = [f for f in dict.fromkeys([field, color_field]) if f is not None]
     values = [field_values(m, volume, name) for name in names]
-    bricks = build_bricks(m, volume, values + values[:1], len(names) > 1)
+    bricks = build_bricks(m, volume, values)
     ranges = {name: volume.value_range(name) for name in names}
     return volume.select_fields([]), (bricks, ranges)
 
@@ -410,7 +410,7 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, by,
         offered = None                  # (this frame's hold on its fields)
         t0 = time.perf_counter()
         volume, released = _released(volume, fields, how, m)
-        return _timed(_made(volume, fields, released, how, m, by), t0, released)
+        return _timed(_made(volume, fields, released, how, m, by), time.perf_counter() - t0)
     names = fields_to_read(field, color_field, available_fields(path), path)
     t0 = time.perf_counter()
     volume = load(path, fields=names, level_buffers=set(names) - {field, color_field},
@@ -435,7 +435,8 @@ def _prepare_from_file(path, fields, how: LoadOptions, m, by,
     # (The volume rebound here: where the fields are dropped, nothing holds them any more.)
     t0 = time.perf_counter()
     volume, released = _released(volume, fields, how, m)
-    return _timed(_made(volume, fields, released, how, m, by), t0, released, (read, derive_s))
+    pools_s = time.perf_counter() - t0
+    return _timed(_made(volume, fields, released, how, m, by), pools_s, (read, derive_s))
 
 
 def _made(volume, fields, released, how: LoadOptions, m, by) -> PreparedVolume:
@@ -459,14 +460,12 @@ def _released(volume, fields, how: LoadOptions, m):
     return without_fields(volume, field, color_field, m or dr.llvm.ad)
 
 
-def _timed(prepared: PreparedVolume, since: float, released, read_derive=None):
-    """``prepared``, the brick pools that :func:`without_fields` made (``released``, from
-    ``since`` on) counted in its device step, and the file's read and derivation
-    (``read_derive``, seconds) in its :attr:`~PreparedVolume.timings`."""
+def _timed(prepared: PreparedVolume, pools_s: float, read_derive=None):
+    """``prepared``, the seconds :func:`_released` took (the brick pools of a preparation
+    without values; next to nothing otherwise) counted in its device step, and the file's read
+    and derivation (``read_derive``, seconds) in its :attr:`~PreparedVolume.timings`."""
     steps = prepared.timings
-    if released is not None:
-        steps["device"] = steps.get("device", 0.0) + \
-            max(time.perf_counter() - since - sum(steps.values()), 0.0)
+    steps["device"] = steps.get("device", 0.0) + pools_s
     if read_derive is not None:
         prepared.timings = {"read": read_derive[0], **steps, "derive": read_derive[1]}
     return prepared
